@@ -1,0 +1,212 @@
+"""TOML configuration files, validated with messages that name the file and the field.
+
+Simulation config (every table and key optional)::
+
+    clip = "path/to/clip.bvh"      # default: the embedded clip; relative to the config file
+    units = "auto"                 # auto | m | cm | mm | in | metres per unit
+    up_axis = 1                    # gravity along -up
+
+    [sim]
+    h = 0.008333333333333333       # time step (s)
+    start = 0.0                    # clip time of the first step (s)
+    duration = 3.0                 # simulated seconds (default: to the clip's end)
+    implicit = true                # linearly implicit step (false: K = D = 0)
+    driven_joints = []             # joints driven along the mocap like the root
+
+    [gains]
+    ks = 6.0                       # 1/rad
+    kd = 0.6                       # s/rad
+    tau_floor = 0.2                # fraction of each DOF's RMS feedforward torque
+
+    [[perturbation]]               # any number of these
+    kind = "force"                 # force | impulse
+    body = "Chest2"
+    point = [0.0, 0.1, 0.0]        # body frame, m, from the joint origin
+    direction = [1.0, 0.0, 0.0]    # world
+    magnitude = 150.0              # N (force) or N s (impulse)
+    start = 1.0                    # s, clip time
+    duration = 0.1                 # s (force only)
+    shape = "half_sine"            # square | half_sine | triangle
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pathlib
+import tomllib
+from typing import Any
+
+from .control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
+
+
+class ConfigError(ValueError):
+    """Invalid configuration; the message names the file and the field."""
+
+
+@dataclasses.dataclass
+class SimulationConfig:
+    clip: str | None = None
+    units: str | float = "auto"
+    up_axis: int = 1
+    h: float = 1.0 / 120.0
+    start: float = 0.0
+    duration: float | None = None
+    implicit: bool = True
+    driven_joints: list[str] = dataclasses.field(default_factory=list)
+    ks: float = DEFAULT_KS
+    kd: float = DEFAULT_KD
+    tau_floor: float = DEFAULT_TAU_FLOOR
+    perturbations: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    source: str = "<defaults>"
+
+
+DEFAULT_HIT = {
+    "kind": "force",
+    "body": "Chest2",
+    "point": [0.0, 0.1, 0.0],
+    "direction": [0.0, 0.0, 1.0],
+    "magnitude": 250.0,
+    "start": 1.0,
+    "duration": 0.1,
+    "shape": "half_sine",
+}
+
+
+def read_toml(path) -> dict:
+    path = pathlib.Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read config: {e.strerror}") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: invalid TOML: {e}") from None
+
+
+class _Fields:
+    """Typed getters over one table that name the field on error and reject unknown keys."""
+
+    def __init__(self, table: dict, where: str, source: str):
+        if not isinstance(table, dict):
+            raise ConfigError(f"{source}: {where} must be a table")
+        self.table, self.where, self.source, self.used = table, where, source, set()
+
+    def _name(self, key):
+        return f"{self.where}.{key}" if self.where else key
+
+    def fail(self, key, msg):
+        raise ConfigError(f"{self.source}: field '{self._name(key)}' {msg}")
+
+    def get(self, key, default=None):
+        self.used.add(key)
+        return self.table.get(key, default)
+
+    def number(self, key, default, *, positive=False, nonneg=False):
+        val = self.get(key, default)
+        if val is None:
+            return None
+        if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val):
+            self.fail(key, f"must be a finite number, got {val!r}")
+        if positive and not val > 0:
+            self.fail(key, f"must be > 0, got {val!r}")
+        if nonneg and val < 0:
+            self.fail(key, f"must be >= 0, got {val!r}")
+        return float(val)
+
+    def vector(self, key, default):
+        val = self.get(key, default)
+        if (not isinstance(val, list) or len(val) != 3
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in val)):
+            self.fail(key, f"must be a list of 3 numbers, got {val!r}")
+        return [float(x) for x in val]
+
+    def choice(self, key, default, options):
+        val = self.get(key, default)
+        if val not in options:
+            self.fail(key, f"must be one of {list(options)}, got {val!r}")
+        return val
+
+    def boolean(self, key, default):
+        val = self.get(key, default)
+        if not isinstance(val, bool):
+            self.fail(key, f"must be true or false, got {val!r}")
+        return val
+
+    def string_list(self, key, default):
+        val = self.get(key, default)
+        if not isinstance(val, list) or not all(isinstance(x, str) for x in val):
+            self.fail(key, f"must be a list of strings, got {val!r}")
+        return list(val)
+
+    def done(self, allowed_tables=()):
+        extra = set(self.table) - self.used - set(allowed_tables)
+        if extra:
+            self.fail(sorted(extra)[0], f"is not a known field (known: {sorted(self.used)})")
+
+
+def parse_perturbation(table: dict, where: str, source: str) -> dict[str, Any]:
+    f = _Fields(table, where, source)
+    kind = f.choice("kind", "force", ("force", "impulse"))
+    body = f.get("body")
+    if not isinstance(body, str):
+        f.fail("body", f"must be a body (joint) name, got {body!r}")
+    out = {
+        "kind": kind,
+        "body": body,
+        "point": f.vector("point", [0.0, 0.0, 0.0]),
+        "direction": f.vector("direction", [1.0, 0.0, 0.0]),
+        "magnitude": f.number("magnitude", None, nonneg=True),
+        "start": f.number("start", 1.0, nonneg=True),
+        "duration": f.number("duration", 0.1, positive=True),
+        "shape": f.choice("shape", "half_sine", ("square", "half_sine", "triangle")),
+    }
+    if out["magnitude"] is None:
+        f.fail("magnitude", "is required")
+    if not any(out["direction"]):
+        f.fail("direction", "must be non-zero")
+    f.done()
+    return out
+
+
+def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> SimulationConfig:
+    top = _Fields(data, "", source)
+    cfg = SimulationConfig(source=source)
+    clip = top.get("clip")
+    if clip is not None:
+        if not isinstance(clip, str):
+            top.fail("clip", f"must be a path string, got {clip!r}")
+        p = pathlib.Path(clip)
+        if base_dir is not None and not p.is_absolute():
+            p = pathlib.Path(base_dir) / p
+        cfg.clip = str(p)
+    units = top.get("units", "auto")
+    if not (units in ("auto", "m", "cm", "mm", "in")
+            or (isinstance(units, (int, float)) and not isinstance(units, bool) and units > 0)):
+        top.fail("units", f"must be auto, m, cm, mm, in or a positive number, got {units!r}")
+    cfg.units = units
+    cfg.up_axis = int(top.choice("up_axis", 1, (0, 1, 2)))
+    sim = _Fields(top.get("sim", {}), "sim", source)
+    cfg.h = sim.number("h", cfg.h, positive=True)
+    cfg.start = sim.number("start", 0.0, nonneg=True)
+    cfg.duration = sim.number("duration", None, positive=True)
+    cfg.implicit = sim.boolean("implicit", True)
+    cfg.driven_joints = sim.string_list("driven_joints", [])
+    sim.done()
+    gains = _Fields(top.get("gains", {}), "gains", source)
+    cfg.ks = gains.number("ks", DEFAULT_KS, nonneg=True)
+    cfg.kd = gains.number("kd", DEFAULT_KD, nonneg=True)
+    cfg.tau_floor = gains.number("tau_floor", DEFAULT_TAU_FLOOR, nonneg=True)
+    gains.done()
+    perts = top.get("perturbation", [])
+    if not isinstance(perts, list):
+        top.fail("perturbation", "must be an array of tables ([[perturbation]])")
+    cfg.perturbations = [parse_perturbation(p, f"perturbation[{i}]", source) for i, p in enumerate(perts)]
+    top.done(allowed_tables=("fit", "sweep", "experiment", "ball"))
+    return cfg
+
+
+def load_simulation_config(path) -> SimulationConfig:
+    path = pathlib.Path(path)
+    return simulation_config(read_toml(path), str(path), path.parent)

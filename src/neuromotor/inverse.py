@@ -1,0 +1,117 @@
+"""Inverse dynamics on the mocap (Eq. 3 and Section 5.1).
+
+With accelerations known from the splines, the second row of Eq. 1 drops out and
+
+    [J^T  H^T] [lam; tau] = M a - f_ext          (3)
+
+For a tree of ball joints with the root driven by 6 rows, ``[J^T H^T]`` is square
+(6B = 6 + 3(B-1) + 3(B-1)), so Eq. 3 has one exact solution per frame: the feedforward torque
+multipliers tau_i (Eq. 4) and the constraint forces lam.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .kinematics import Trajectory, body_kinematics, joint_angles_from_q
+from .rotations import matrix_to_quat
+from .skeleton import Model
+from .system import constraint_jacobian, dof_axes, external_forces, mass_matrix, muscle_jacobian
+
+
+class InverseDynamics(eqx.Module):
+    """Per-time-sample solution of Eq. 3."""
+
+    time: Float[Array, " T"]
+    tau: Float[Array, "T n"]  # feedforward torque multipliers of the simulated DOFs
+    lam: Float[Array, "T nc"]  # constraint multipliers: root (6) then 3 per ball joint
+    axes: Float[Array, "T n 3"]  # world Euler axes h_i
+    residual: Float[Array, " T"]  # ||A x - b|| / ||b|| of Eq. 3
+
+
+def mocap_angles(model: Model, traj: Trajectory, t):
+    """Euler angles of every non-root channel and their first two time derivatives (jvp)."""
+    ref = traj.angle_reference(t)
+    q, qd, qdd = traj.q(t), traj.qd(t), traj.qdd(t)
+
+    def rate(q_, qd_):
+        return jax.jvp(lambda x: joint_angles_from_q(model, x, ref), (q_,), (qd_,))
+
+    (theta, theta_dot), (_, theta_ddot) = jax.jvp(rate, (q, qd), (qd, qdd))
+    return theta, theta_dot, theta_ddot
+
+
+def sim_columns(model: Model):
+    return jnp.array(model.sim_dof_columns, dtype=jnp.int32)
+
+
+def solve_eq3(model: Model, q, qd, qdd, theta_sim):
+    """Solve Eq. 3 at one instant; returns (lam, tau, axes, relative residual)."""
+    _, rot, _, omega, acc, alpha = body_kinematics(model, q, qd, qdd)
+    axes = dof_axes(model, rot, theta_sim)
+    a = jnp.concatenate([acc, alpha], -1).reshape(-1)
+    rhs = mass_matrix(model, rot) @ a - external_forces(model, rot, omega)
+    lhs = jnp.concatenate([constraint_jacobian(model, rot).T, muscle_jacobian(model, axes).T], 1)
+    x = jnp.linalg.solve(lhs, rhs)
+    residual = jnp.linalg.norm(lhs @ x - rhs) / jnp.maximum(jnp.linalg.norm(rhs), 1e-300)
+    nc = model.n_constraints
+    return x[:nc], x[nc:], axes, residual
+
+
+@eqx.filter_jit
+def inverse_dynamics(model: Model, traj: Trajectory, times: Float[Array, " T"]) -> InverseDynamics:
+    """Eq. 3 at every time in ``times`` (vmapped), from the spline of the mocap."""
+
+    def one(t):
+        theta = joint_angles_from_q(model, traj.q(t), traj.angle_reference(t))
+        return solve_eq3(model, traj.q(t), traj.qd(t), traj.qdd(t), theta[sim_columns(model)])
+
+    lam, tau, axes, res = jax.vmap(one)(times)
+    return InverseDynamics(times, tau, lam, axes, res)
+
+
+def feedforward_torques(model: Model, traj: Trajectory, times) -> Float[Array, "T n"]:
+    """tau_i(t) of Eq. 4 at the given times."""
+    return inverse_dynamics(model, traj, times).tau
+
+
+def idyn_arrays(model: Model, traj: Trajectory, times: np.ndarray) -> dict[str, np.ndarray]:
+    """Everything ``neuromotor idyn`` writes (see the README's file contract)."""
+    times = jnp.asarray(times)
+    sol = inverse_dynamics(model, traj, times)
+    q = jax.vmap(traj.q)(times)
+    qd = jax.vmap(traj.qd)(times)
+    qdd = jax.vmap(traj.qdd)(times)
+    theta, theta_dot, theta_ddot = jax.vmap(lambda t: mocap_angles(model, traj, t))(times)
+    kin = jax.vmap(lambda a, b, c: body_kinematics(model, a, b, c))(q, qd, qdd)
+    rot, omega, alpha = kin[1], kin[3], kin[5]
+    n_all = len(model.all_dof_names)
+    cols = np.array(model.sim_dof_columns, dtype=np.int64)
+    tau_all = np.zeros((len(times), n_all))
+    tau_all[:, cols] = np.asarray(sol.tau)
+    # Muscle torque on each joint's child body: sum over its DOFs of h_i tau_i.
+    torque = np.zeros((len(times), len(model.joint_names), 3))
+    contrib = np.asarray(sol.axes * sol.tau[..., None])
+    for i, b in enumerate(model.dof_body):
+        torque[:, model.body_joint[b]] += contrib[:, i]
+    return {
+        "time": np.asarray(times),
+        "dof_names": np.array(model.all_dof_names),
+        "theta": np.asarray(theta),
+        "theta_dot": np.asarray(theta_dot),
+        "theta_ddot": np.asarray(theta_ddot),
+        "tau": tau_all,
+        "root_pos": np.asarray(q[:, 0:3]),
+        "root_quat": np.asarray(matrix_to_quat(rot[:, 0])),
+        "root_lin_vel": np.asarray(qd[:, 0:3]),  # the spline's own derivative
+        "root_ang_vel": np.asarray(omega[:, 0]),
+        "root_lin_acc": np.asarray(qdd[:, 0:3]),
+        "root_ang_acc": np.asarray(alpha[:, 0]),
+        "joint_torque_world": torque,
+        "root_wrench": np.asarray(sol.lam[:, 0:6]),
+        "kkt_residual": np.asarray(sol.residual),
+    }

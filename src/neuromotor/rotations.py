@@ -1,0 +1,197 @@
+"""Rotation algebra in JAX: quaternions (w, x, y, z), matrices, Euler angles in any BVH order.
+
+BVH convention: a joint with rotation channels in file order (a1, a2, a3) has local rotation
+``R = R_a1(t1) @ R_a2(t2) @ R_a3(t3)`` mapping child-frame vectors to the parent frame.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+AXIS = {"X": 0, "Y": 1, "Z": 2}
+# Tait-Bryan orders whose axis sequence is a cyclic permutation of XYZ have parity +1.
+_CYCLIC = {"XYZ", "YZX", "ZXY"}
+
+
+def order_parity(order: str) -> int:
+    """+1 for XYZ, YZX, ZXY; -1 for XZY, ZYX, YXZ."""
+    if sorted(order) != ["X", "Y", "Z"]:
+        raise ValueError(f"rotation order must be a permutation of XYZ, got {order!r}")
+    return 1 if order in _CYCLIC else -1
+
+
+def skew(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+    """Cross-product matrix: skew(a) @ b == cross(a, b)."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    o = jnp.zeros_like(x)
+    return jnp.stack(
+        [jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2
+    )
+
+
+def vee(m: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
+    """Inverse of skew for the antisymmetric part of m."""
+    return 0.5 * jnp.stack(
+        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1
+    )
+
+
+def axis_rotation(axis: int, angle: Float[Array, "..."]) -> Float[Array, "... 3 3"]:
+    """Rotation by ``angle`` (rad) about coordinate axis 0, 1 or 2."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    o, i = jnp.zeros_like(angle), jnp.ones_like(angle)
+    if axis == 0:
+        rows = [[i, o, o], [o, c, -s], [o, s, c]]
+    elif axis == 1:
+        rows = [[c, o, s], [o, i, o], [-s, o, c]]
+    else:
+        rows = [[c, -s, o], [s, c, o], [o, o, i]]
+    return jnp.stack([jnp.stack(r, -1) for r in rows], -2)
+
+
+def euler_to_matrix(angles: Float[Array, "... 3"], order: str) -> Float[Array, "... 3 3"]:
+    """``R_a1(t1) R_a2(t2) R_a3(t3)`` for the axis order, e.g. ``"ZXY"``."""
+    r = axis_rotation(AXIS[order[0]], angles[..., 0])
+    r = r @ axis_rotation(AXIS[order[1]], angles[..., 1])
+    return r @ axis_rotation(AXIS[order[2]], angles[..., 2])
+
+
+def matrix_to_euler(
+    r: Float[Array, "... 3 3"], order: str, reference: Float[Array, "... 3"] | None = None
+) -> Float[Array, "... 3"]:
+    """Euler angles (t1, t2, t3) with ``euler_to_matrix(angles, order) == r``.
+
+    Of the two solutions (t1, t2, t3) and (t1 + pi, pi - t2, t3 + pi) the one nearest
+    ``reference`` (after wrapping) is returned, and each angle is shifted by multiples of 2 pi
+    to lie within pi of the reference: simulated angles then compare directly with the mocap's
+    unwrapped ones. Near gimbal lock (|cos t2| < 1e-7) only t1 + s t3 is determined; t1 is
+    then taken from the reference so the result stays continuous.
+    """
+    i, j, k = (AXIS[a] for a in order)
+    s = order_parity(order)
+    sin_b = jnp.clip(s * r[..., i, k], -1.0, 1.0)
+    b = jnp.arcsin(sin_b)
+    a = jnp.arctan2(-s * r[..., j, k], r[..., k, k])
+    c = jnp.arctan2(-s * r[..., i, j], r[..., i, i])
+    sol1 = jnp.stack([a, b, c], -1)
+    if reference is None:
+        return sol1
+    sol2 = jnp.stack([a + jnp.pi, jnp.pi - b, c + jnp.pi], -1)
+    sol1 = reference + wrap_angle(sol1 - reference)
+    sol2 = reference + wrap_angle(sol2 - reference)
+    d1 = jnp.sum((sol1 - reference) ** 2, -1, keepdims=True)
+    d2 = jnp.sum((sol2 - reference) ** 2, -1, keepdims=True)
+    sol = jnp.where(d1 <= d2, sol1, sol2)
+    # Gimbal lock: R depends on t1 + s' t3 only; keep t1 at the reference.
+    locked = jnp.abs(jnp.cos(sol[..., 1])) < 1e-7
+    r_a = axis_rotation(i, reference[..., 0])
+    r_b = axis_rotation(j, sol[..., 1])
+    rest = jnp.swapaxes(r_b, -1, -2) @ jnp.swapaxes(r_a, -1, -2) @ r
+    # rest = R_k(t3): read t3 from the rows/cols orthogonal to axis k.
+    k1, k2 = (k + 1) % 3, (k + 2) % 3
+    c_locked = jnp.arctan2(rest[..., k2, k1], rest[..., k1, k1])
+    c_locked = reference[..., 2] + wrap_angle(c_locked - reference[..., 2])
+    locked_sol = jnp.stack([reference[..., 0], sol[..., 1], c_locked], -1)
+    return jnp.where(locked[..., None], locked_sol, sol)
+
+
+def wrap_angle(x: Float[Array, "..."]) -> Float[Array, "..."]:
+    """Map angles to (-pi, pi]."""
+    return x - 2.0 * jnp.pi * jnp.ceil((x - jnp.pi) / (2.0 * jnp.pi))
+
+
+def euler_axes(
+    parent_rot: Float[Array, "3 3"], angles: Float[Array, "3"], order: str
+) -> Float[Array, "3 3"]:
+    """World-frame Euler axes h_1, h_2, h_3 (rows) of a joint (the rows of H, Eq. 4).
+
+    The relative angular velocity of the child is ``sum_i h_i thetadot_i``:
+    h_1 = R_p e_a1, h_2 = R_p R_a1(t1) e_a2, h_3 = R_p R_a1(t1) R_a2(t2) e_a3.
+    """
+    e = jnp.eye(3, dtype=angles.dtype)
+    r1 = parent_rot @ axis_rotation(AXIS[order[0]], angles[0])
+    r2 = r1 @ axis_rotation(AXIS[order[1]], angles[1])
+    return jnp.stack(
+        [parent_rot @ e[AXIS[order[0]]], r1 @ e[AXIS[order[1]]], r2 @ e[AXIS[order[2]]]]
+    )
+
+
+# ---------------------------------------------------------------- quaternions (w, x, y, z)
+
+
+def quat_mul(p: Float[Array, "... 4"], q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
+    pw, pv = p[..., :1], p[..., 1:]
+    qw, qv = q[..., :1], q[..., 1:]
+    w = pw * qw - jnp.sum(pv * qv, -1, keepdims=True)
+    v = pw * qv + qw * pv + jnp.cross(pv, qv)
+    return jnp.concatenate([w, v], -1)
+
+
+def quat_conj(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+
+
+def quat_normalize(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
+    return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def quat_to_matrix(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return jnp.stack(
+        [
+            jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_quat(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4"]:
+    """Rotation matrix to unit quaternion with w >= 0 (branch on the largest diagonal term)."""
+    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    cands = jnp.stack(
+        [
+            jnp.stack([1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
+                       m[..., 1, 0] - m[..., 0, 1]], -1),
+            jnp.stack([m[..., 2, 1] - m[..., 1, 2], 1 + 2 * m[..., 0, 0] - tr,
+                       m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
+            jnp.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0],
+                       1 + 2 * m[..., 1, 1] - tr, m[..., 1, 2] + m[..., 2, 1]], -1),
+            jnp.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0],
+                       m[..., 1, 2] + m[..., 2, 1], 1 + 2 * m[..., 2, 2] - tr], -1),
+        ],
+        -2,
+    )
+    diag = jnp.stack([tr, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], -1)
+    best = jnp.argmax(diag, -1)
+    q = jnp.take_along_axis(cands, best[..., None, None], -2)[..., 0, :]
+    q = quat_normalize(q)
+    return q * jnp.where(q[..., :1] < 0, -1.0, 1.0)
+
+
+def quat_exp(w: Float[Array, "... 3"]) -> Float[Array, "... 4"]:
+    """Unit quaternion of the rotation vector w (angle |w| about w / |w|), smooth at 0."""
+    theta2 = jnp.sum(w * w, -1, keepdims=True)
+    theta = jnp.sqrt(jnp.where(theta2 > 1e-24, theta2, 1.0))
+    small = theta2 < 1e-12
+    half_sinc = jnp.where(small, 0.5 - theta2 / 48.0, jnp.sin(0.5 * theta) / theta)
+    cos_half = jnp.where(small, 1.0 - theta2 / 8.0, jnp.cos(0.5 * theta))
+    return jnp.concatenate([cos_half, half_sinc * w], -1)
+
+
+def quat_log(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
+    """Rotation vector of a unit quaternion (shortest rotation: q and -q give the same)."""
+    q = q * jnp.where(q[..., :1] < 0, -1.0, 1.0)
+    v = q[..., 1:]
+    s2 = jnp.sum(v * v, -1, keepdims=True)
+    s = jnp.sqrt(jnp.where(s2 > 1e-24, s2, 1.0))
+    angle = 2.0 * jnp.arctan2(s, q[..., :1])
+    scale = jnp.where(s2 > 1e-24, angle / s, 2.0 / q[..., :1])
+    return scale * v
+
+
+def rotation_error(r_a: Float[Array, "... 3 3"], r_b: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
+    """World-frame rotation vector e with exp(e) r_b = r_a."""
+    return quat_log(matrix_to_quat(r_a @ jnp.swapaxes(r_b, -1, -2)))

@@ -1,0 +1,214 @@
+"""The end-to-end pipeline: clip -> model -> inverse dynamics -> perturbed and unperturbed rollouts.
+
+    setup = prepare(SimulationConfig())          # embedded clip, default gains, no hit
+    result = run(setup)
+    result.metrics["peak_deviation_deg"]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.resources
+import json
+import os
+import pathlib
+import tempfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import metrics as mx
+from .bvh import BvhClip, read_bvh
+from .config import ConfigError, SimulationConfig
+from .control import Gains, make_gains
+from .dynamics import Reference, Rollout, SimConfig, check_rollout, make_reference, rollout
+from .kinematics import Trajectory, local_rotations, skeleton_edges, skeleton_points, trajectory_from_clip
+from .perturbation import ForcePulses, pulses
+from .rotations import quat_to_matrix
+from .skeleton import Character, Model, build_character
+
+DEFAULT_CLIP_NAME = "mocapbank_19joint.bvh"
+
+
+def default_clip_path() -> pathlib.Path:
+    """Path of the embedded default clip (MocapBank capture, MIT; see data/README.md)."""
+    return pathlib.Path(str(importlib.resources.files("neuromotor") / "data" / DEFAULT_CLIP_NAME))
+
+
+def load_character(path=None, units="auto", up_axis: int = 1) -> tuple[Character, Trajectory]:
+    clip = read_bvh(path or default_clip_path(), units=units)
+    character = build_character(clip, up_axis=up_axis)
+    return character, trajectory_from_clip(character.model, clip)
+
+
+@dataclasses.dataclass
+class Setup:
+    """Everything a rollout needs; ``model``, ``gains``, ``pulses`` and ``ref`` are pytrees."""
+
+    character: Character
+    traj: Trajectory
+    ref: Reference
+    gains: Gains
+    sim: SimConfig
+    pulses: ForcePulses
+    config: SimulationConfig
+
+    @property
+    def model(self) -> Model:
+        return self.character.model
+
+
+def body_lookup(model: Model, source: str = "config"):
+    def index(name: str) -> int:
+        if name not in model.body_names:
+            raise ConfigError(f"{source}: unknown body {name!r}; bodies are {', '.join(model.body_names)}")
+        return model.body_names.index(name)
+
+    return index
+
+
+def prepare(config: SimulationConfig, character: Character | None = None,
+            traj: Trajectory | None = None) -> Setup:
+    if character is None:
+        character, traj = load_character(config.clip, config.units, config.up_axis)
+    model, clip = character.model, character.clip
+    duration = clip.duration - config.start if config.duration is None else config.duration
+    if config.start + duration > clip.duration + 1e-9:
+        raise ConfigError(f"{config.source}: sim.start + sim.duration = {config.start + duration:.3f} s "
+                          f"runs past the clip's end ({clip.duration:.3f} s)")
+    n_steps = int(round(duration / config.h))
+    if n_steps < 1:
+        raise ConfigError(f"{config.source}: sim.duration is shorter than one step")
+    index = body_lookup(model, config.source)
+    driven = []
+    for name in config.driven_joints:
+        b = index(name)
+        if b == 0:
+            raise ConfigError(f"{config.source}: sim.driven_joints: the root is always driven")
+        driven.append(b)
+    driven = tuple(sorted(driven))
+    ref = make_reference(model, traj, config.start, config.h, n_steps)
+    t0 = jnp.asarray(config.start)
+    gains = make_gains(model, traj.q(t0), ref.theta[0], ref.activation, config.ks, config.kd, config.tau_floor)
+    sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit)
+    return Setup(character, traj, ref, gains, sim, pulses(config.perturbations, index), config)
+
+
+@jax.jit
+def _zero(p: ForcePulses) -> ForcePulses:
+    return dataclasses.replace(p, magnitude=jnp.zeros_like(p.magnitude))
+
+
+simulate_jit = jax.jit(rollout, static_argnames=("cfg",))
+
+
+@dataclasses.dataclass
+class RunResult:
+    perturbed: Rollout
+    unperturbed: Rollout
+    metrics: dict
+
+
+def run(setup: Setup, check: bool = True) -> RunResult:
+    """Perturbed and unperturbed rollouts plus the recovery metrics."""
+    model = setup.model
+    pert = simulate_jit(model, setup.gains, setup.pulses, setup.ref, setup.sim)
+    base = simulate_jit(model, setup.gains, _zero(setup.pulses), setup.ref, setup.sim)
+    if check:
+        check_rollout(model, base)
+        check_rollout(model, pert)
+    return RunResult(pert, base, run_metrics(setup, pert, base))
+
+
+def run_metrics(setup: Setup, pert: Rollout, base: Rollout) -> dict:
+    start = min((p["start"] for p in setup.config.perturbations), default=float(setup.ref.time[0]))
+    dev = mx.deviation(pert.theta, base.theta)
+    out = mx.recovery_metrics(pert.time, dev, start)
+    out["unperturbed_rms_error_deg"] = mx.rms_error_deg(base.theta, setup.ref.theta)
+    out["max_kkt_residual"] = float(jnp.maximum(jnp.max(pert.residual), jnp.max(base.residual)))
+    out["max_constraint_violation"] = float(jnp.maximum(jnp.max(pert.violation), jnp.max(base.violation)))
+    out["diverged"] = bool(int(pert.diverged_step) >= 0 or int(base.diverged_step) >= 0)
+    return out
+
+
+def joint_frames_from_state(model: Model, pos, rot, local_ref):
+    """World origin and rotation of every joint: bodies from the state, massless joints from
+    their parent frame and the mocap's local rotations ``local_ref``."""
+    origins, rots = [None] * len(model.joint_names), [None] * len(model.joint_names)
+    for k, parent in enumerate(model.joint_parent):
+        b = model.joint_body[k]
+        if b >= 0:
+            rots[k] = rot[b]
+            origins[k] = pos[b] - rot[b] @ model.com[b]
+        else:
+            origins[k] = origins[parent] + rots[parent] @ model.joint_offset[k]
+            rots[k] = rots[parent] @ local_ref[k]
+    return jnp.stack(origins), jnp.stack(rots)
+
+
+def rollout_points(setup: Setup, run_: Rollout) -> np.ndarray:
+    """(S+1, P, 3) skeleton points (joints then End Sites) of a rollout, for drawing."""
+    model = setup.model
+    q = jax.vmap(setup.traj.q)(run_.time)
+
+    def one(pos, quat, qr):
+        o, r = joint_frames_from_state(model, pos, quat_to_matrix(quat), local_rotations(model, qr))
+        return skeleton_points(model, o, r)
+
+    return np.asarray(jax.vmap(one)(run_.states.pos, run_.states.quat, q))
+
+
+def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
+    """The RUN.npz contract (see README)."""
+    model = setup.model
+    pert, base = result.perturbed, result.unperturbed
+    force = np.asarray(pert.force)
+    total = force.sum(axis=1)
+    pts = np.asarray(pert.points)
+    origin = pts[:, 0, :] if pts.shape[1] else np.zeros_like(total)
+    clip = setup.character.clip
+    return {
+        "time": np.asarray(pert.time),
+        "dof_names": np.array(model.dof_names),
+        "theta": np.asarray(pert.theta),
+        "theta_unperturbed": np.asarray(base.theta),
+        "theta_desired": np.asarray(setup.ref.theta[: pert.time.shape[0]]),
+        "body_names": np.array(model.body_names),
+        "body_pos": np.asarray(pert.states.pos),
+        "body_quat": np.asarray(pert.states.quat),
+        "body_pos_unperturbed": np.asarray(base.states.pos),
+        "body_quat_unperturbed": np.asarray(base.states.quat),
+        "perturbation_force": force,
+        "force_origin": origin,
+        "force_vector": total,
+        "kkt_residual": np.asarray(pert.residual),
+        "constraint_violation": np.asarray(pert.violation),
+        "skeleton_points": rollout_points(setup, pert),
+        "skeleton_points_unperturbed": rollout_points(setup, base),
+        "skeleton_edges": skeleton_edges(model),
+        "skeleton_radii": np.asarray(setup.character.radii)[skeleton_edges(model)[:, 0]],
+        "up_axis": np.asarray(setup.config.up_axis),
+        "source_clip": np.asarray(str(clip.path)),
+        "clip_start": np.asarray(setup.config.start),
+        "metrics_json": np.asarray(json.dumps(result.metrics)),
+    }
+
+
+def save_npz_atomic(path, arrays: dict) -> pathlib.Path:
+    """Write an .npz through a temporary file in the same folder, then rename."""
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".npz", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        pathlib.Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def clip_of(setup: Setup) -> BvhClip:
+    return setup.character.clip
