@@ -1,9 +1,16 @@
+import os
 import pathlib
 
 import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+# Persistent compilation cache: rollouts compile once per shape, also across CLI subprocesses.
+_CACHE = pathlib.Path(__file__).resolve().parents[1] / ".jax_cache"
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(_CACHE))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1")
+jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 SHARED_MOCAP = REPO.parent / "shared" / "mocap"

@@ -66,7 +66,7 @@ DEFAULT_HIT = {
     "body": "Chest2",
     "point": [0.0, 0.1, 0.0],
     "direction": [0.0, 0.0, 1.0],
-    "magnitude": 250.0,
+    "magnitude": 400.0,
     "start": 1.0,
     "duration": 0.1,
     "shape": "half_sine",

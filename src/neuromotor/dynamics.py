@@ -71,6 +71,7 @@ class SimConfig(eqx.Module):
     implicit: bool = eqx.field(static=True, default=True)  # False: K = D = 0 (explicit forces)
     stab_iters: int = eqx.field(static=True, default=3)
     max_speed: float = eqx.field(static=True, default=200.0)  # rad/s or m/s: beyond it, diverged
+    free_root: bool = eqx.field(static=True, default=False)  # drop the 6 driven-root rows
 
 
 class Reference(eqx.Module):
@@ -184,9 +185,10 @@ def _angular_embed(mat: Float[Array, "N 3B"], n: int) -> Float[Array, "N 6B"]:
     return out.reshape(mat.shape[0], 6 * n)
 
 
-def full_constraints(model: Model, driven: tuple[int, ...], rot) -> Float[Array, "nc 6B"]:
-    """J with extra rows for driven joints (relative angular velocity of child and parent)."""
-    jac = constraint_jacobian(model, rot)
+def full_constraints(model: Model, driven: tuple[int, ...], rot, free_root: bool = False) -> Float[Array, "nc 6B"]:
+    """J with extra rows for driven joints (relative angular velocity of child and parent);
+    without the 6 root rows when the root floats free."""
+    jac = constraint_jacobian(model, rot)[6 if free_root else 0:]
     if not driven:
         return jac
     n = model.n_bodies
@@ -199,8 +201,8 @@ def full_constraints(model: Model, driven: tuple[int, ...], rot) -> Float[Array,
     return jnp.concatenate([jac, rows], 0)
 
 
-def full_constraint_error(model, driven, pos, rot, root_origin, root_rot, rel_rot):
-    err = constraint_error(model, pos, rot, root_origin, root_rot)
+def full_constraint_error(model, driven, pos, rot, root_origin, root_rot, rel_rot, free_root=False):
+    err = constraint_error(model, pos, rot, root_origin, root_rot)[6 if free_root else 0:]
     if not driven:
         return err
     drv = jnp.array(driven)
@@ -210,10 +212,10 @@ def full_constraint_error(model, driven, pos, rot, root_origin, root_rot, rel_ro
     return jnp.concatenate([err, extra])
 
 
-def constraint_velocity(model, driven, rot, root_vel, root_omega, rel_omega):
+def constraint_velocity(model, driven, rot, root_vel, root_omega, rel_omega, free_root=False):
     """b of Eq. 2: driven root origin velocity and angular velocity, driven joints' rates."""
     b = jnp.zeros(model.n_constraints, rot.dtype)
-    b = b.at[0:3].set(root_vel).at[3:6].set(root_omega)
+    b = b.at[0:3].set(root_vel).at[3:6].set(root_omega)[6 if free_root else 0:]
     if not driven:
         return b
     par = jnp.array([model.body_parent[bb] for bb in driven])
@@ -234,15 +236,15 @@ def apply_inverse_mass(model, rot, g: Float[Array, "... 6B"]):
     return jnp.concatenate([lin, ang], -1).reshape(g.shape[:-2] + (6 * model.n_bodies,))
 
 
-def post_stabilize(model: Model, driven, pos, quat, targets, iters: int):
+def post_stabilize(model: Model, driven, pos, quat, targets, iters: int, free_root: bool = False):
     """Project positions onto the constraint manifold (Cline & Pai 2003), fixed Newton steps."""
     root_origin, root_rot, rel_rot = targets
 
     def body(carry, _):
         pos, quat = carry
         rot = quat_to_matrix(quat)
-        c = full_constraint_error(model, driven, pos, rot, root_origin, root_rot, rel_rot)
-        jac = full_constraints(model, driven, rot)
+        c = full_constraint_error(model, driven, pos, rot, root_origin, root_rot, rel_rot, free_root)
+        jac = full_constraints(model, driven, rot, free_root)
         minv_jt = apply_inverse_mass(model, rot, jac).T  # (6B, nc)
         mu = jnp.linalg.solve(jac @ minv_jt, -c)
         delta = (minv_jt @ mu).reshape(model.n_bodies, 6)
@@ -252,7 +254,7 @@ def post_stabilize(model: Model, driven, pos, quat, targets, iters: int):
 
     (pos, quat), _ = jax.lax.scan(body, (pos, quat), None, length=iters)
     rot = quat_to_matrix(quat)
-    c = full_constraint_error(model, driven, pos, rot, root_origin, root_rot, rel_rot)
+    c = full_constraint_error(model, driven, pos, rot, root_origin, root_rot, rel_rot, free_root)
     return pos, quat, c
 
 
@@ -282,13 +284,13 @@ def step(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, ref: R
     f_pert, per_body, points = generalized_forces(pulses, t, n, state.pos, rot, model.com)
     kvec = k_stiff + gravity + f_pert
     m = mass_matrix(model, rot)
-    jac = full_constraints(model, cfg.driven, rot)
+    jac = full_constraints(model, cfg.driven, rot, cfg.free_root)
     nc = jac.shape[0]
     v = state.v
     a11 = m - h * dmat - h * h * kmat
     lhs = jnp.block([[a11, -jac.T], [jac, jnp.zeros((nc, nc), rot.dtype)]])
     b = constraint_velocity(model, cfg.driven, rot, ref.root_vel[k + 1], ref.root_omega[k + 1],
-                            ref.rel_omega[k + 1])
+                            ref.rel_omega[k + 1], cfg.free_root)
     rhs = jnp.concatenate([m @ v + h * (kvec - dmat @ v), b])
     sol = jnp.linalg.solve(lhs, rhs)
     residual = jnp.linalg.norm(lhs @ sol - rhs) / jnp.maximum(jnp.linalg.norm(rhs), 1e-300)
@@ -297,8 +299,8 @@ def step(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, ref: R
     pos = state.pos + h * vel
     quat = quat_normalize(quat_mul(quat_exp(h * omega), state.quat))
     targets = (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
-    pos, quat, c = post_stabilize(model, cfg.driven, pos, quat, targets, cfg.stab_iters)
-    info = StepInfo(residual, jnp.max(jnp.abs(c)), per_body, points, sol[6 * n:] / h)
+    pos, quat, c = post_stabilize(model, cfg.driven, pos, quat, targets, cfg.stab_iters, cfg.free_root)
+    info = StepInfo(residual, jnp.max(jnp.abs(c)) if c.size else jnp.zeros((), rot.dtype), per_body, points, sol[6 * n:] / h)
     return State(pos, quat, vel, omega), info
 
 

@@ -189,7 +189,8 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
         "skeleton_edges": skeleton_edges(model),
         "skeleton_radii": np.asarray(setup.character.radii)[skeleton_edges(model)[:, 0]],
         "up_axis": np.asarray(setup.config.up_axis),
-        "source_clip": np.asarray(str(clip.path)),
+        "source_clip": np.asarray(str(pathlib.Path(clip.path).resolve())),
+        "source_units": np.asarray(str(setup.config.units)),
         "clip_start": np.asarray(setup.config.start),
         "metrics_json": np.asarray(json.dumps(result.metrics)),
     }

@@ -1,0 +1,84 @@
+"""Write a simulated run back as BVH in the source clip's skeleton, channel orders and units.
+
+Simulated DOFs take the simulated Euler angles; the root (driven along the mocap) and any
+channel that is not simulated take the mocap's values at the simulation times. The frame time
+is the simulation step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .bvh import read_bvh, write_bvh
+from .rotations import matrix_to_euler, quat_to_matrix
+from .simulate import load_character
+
+REQUIRED = ("time", "theta", "dof_names", "source_clip", "source_units", "up_axis")
+
+
+def _load_run(path) -> dict:
+    path = pathlib.Path(path)
+    try:
+        data = dict(np.load(path, allow_pickle=False))
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: cannot read run file: {e}") from None
+    for key in REQUIRED:
+        if key not in data:
+            raise ValueError(f"{path}: run file lacks the array {key!r}")
+    return data
+
+
+def export_bvh(run_path, out_path) -> pathlib.Path:
+    run = _load_run(run_path)
+    units = str(run["source_units"])
+    units = float(units) if units.replace(".", "", 1).isdigit() else units
+    character, traj = load_character(str(run["source_clip"]), units, int(run["up_axis"]))
+    clip, model = character.clip, character.model
+    if tuple(str(n) for n in run["dof_names"]) != model.dof_names:
+        raise ValueError(f"{run_path}: its DOFs do not match the clip {clip.path}")
+    times = np.asarray(run["time"])
+    motion = np.zeros((len(times), clip.n_channels))
+    # Every channel from the mocap first (file convention: degrees, metres)...
+    frame_times = np.arange(clip.n_frames) * clip.frame_time
+    raw = np.asarray(clip.motion, dtype=np.float64)
+    for c in range(clip.n_channels):
+        col = raw[:, c]
+        is_rot = any(c in j.rotation_columns for j in clip.joints)
+        if is_rot:
+            col = np.rad2deg(np.unwrap(np.deg2rad(col)))
+        motion[:, c] = np.interp(times, frame_times, col)
+    # ...the root exactly on the splined path it was driven along...
+    root = clip.joints[0]
+    q = np.asarray(jax.vmap(traj.q)(jnp.asarray(times)))
+    motion[:, list(root.translation_columns)] = q[:, 0:3]
+    quat = q[:, 3:7] / np.linalg.norm(q[:, 3:7], axis=1, keepdims=True)
+    ref = jnp.deg2rad(jnp.asarray(motion[:, list(root.rotation_columns)]))
+    ang = matrix_to_euler(quat_to_matrix(jnp.asarray(quat)), root.rotation_order, ref)
+    motion[:, list(root.rotation_columns)] = np.rad2deg(np.asarray(ang))
+    # ...and the simulated DOFs from the run.
+    theta = np.rad2deg(np.asarray(run["theta"]))
+    for i, name in enumerate(model.dof_names):
+        joint_name, channel = name.split(".")
+        joint = clip.joints[clip.joint_index(joint_name)]
+        slot = joint.rotation_order.index(channel[0])
+        motion[:, joint.rotation_columns[slot]] = theta[:, i]
+    step = float(times[1] - times[0]) if len(times) > 1 else clip.frame_time
+    out = dataclasses.replace(clip, frame_time=step, motion=motion)
+    write_bvh(out_path, out)
+    return pathlib.Path(out_path)
+
+
+def reread_angles(bvh_path, units, dof_names) -> np.ndarray:
+    """Simulated-DOF channels of a BVH file, radians (used to check a round trip)."""
+    clip = read_bvh(bvh_path, units=units)
+    cols = []
+    for name in dof_names:
+        joint_name, channel = str(name).split(".")
+        joint = clip.joints[clip.joint_index(joint_name)]
+        cols.append(joint.rotation_columns[joint.rotation_order.index(channel[0])])
+    return np.deg2rad(np.asarray(clip.motion)[:, cols])
