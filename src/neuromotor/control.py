@@ -30,9 +30,17 @@ degrees of flexion for every gain we tried. With one weight per joint the feedba
 Floor. Where the feedforward torque passes through zero the feedback would vanish; a_j is
 replaced by ``max(a_j, floor_j)`` with ``floor_j = tau_floor * rms_t(|T_j|)`` (default
 ``tau_floor = 0.5``: the feedback never drops below half its value at typical load).
+
+High-gain tracking for contrast (Zordan & Hodgins 2002, the controller the paper argues
+against). ``Gains.feedforward`` (1: the paper's model, 0: none) weights the feedforward term
+and ``Gains.signal_dependence`` (1: stiffness grows with |T_j|, 0: constant) its effect on the
+feedback. With both 0 and ``tau_floor = 1`` the controller is a plain PD servo whose gains are
+``ks I_j`` and ``kd I_j``: :func:`pd_tracking_gains`.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -54,6 +62,9 @@ class Gains(eqx.Module):
     kd: Float[Array, ""]
     scale: Float[Array, " n"]  # s_j = I_j / rms|T_j| per DOF of joint j (kg m^2 / N m)
     floor: Float[Array, " n"]  # torque floor per DOF (N m)
+    reference_torque: Float[Array, " n"]  # rms_t |T_j| of each DOF's joint (N m)
+    feedforward: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1.0))
+    signal_dependence: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1.0))
 
     def per_dof(self) -> tuple[Float[Array, " n"], Float[Array, " n"]]:
         return self.ks * self.scale, self.kd * self.scale
@@ -103,7 +114,18 @@ def make_gains(
     rms = jnp.maximum(rms, 1e-6 * jnp.max(rms))
     scale = inertia / rms
     dtype = scale.dtype
-    return Gains(jnp.asarray(ks, dtype), jnp.asarray(kd, dtype), scale, tau_floor * rms)
+    return Gains(jnp.asarray(ks, dtype), jnp.asarray(kd, dtype), scale, tau_floor * rms, rms)
+
+
+def pd_tracking_gains(gains: Gains) -> Gains:
+    """The same per-DOF scaling as a high-gain PD tracker: no feedforward, constant stiffness.
+
+    The floor becomes the joint's RMS torque, so ``floor * scale = I_j`` and the feedback
+    torque of DOF i is ``ks I_j (theta_d - theta) + kd I_j (thetadot_d - thetadot)``.
+    """
+    zero = jnp.zeros_like(gains.ks)
+    return dataclasses.replace(gains, floor=gains.reference_torque, feedforward=zero,
+                               signal_dependence=zero)
 
 
 def joint_torque_magnitude(model: Model, axes: Float[Array, "T n 3"], tau: Float[Array, "T n"]) -> Float[Array, "T n"]:
@@ -136,6 +158,6 @@ def feedback_multipliers(
     :func:`joint_torque_projection`).
     """
     ks, kd = gains.per_dof()
-    magnitude = jnp.maximum(activation, gains.floor)
-    out = tau + magnitude * (ks * angle_error + kd * rate_error)
+    magnitude = jnp.maximum(gains.signal_dependence * activation, gains.floor)
+    out = gains.feedforward * tau + magnitude * (ks * angle_error + kd * rate_error)
     return out if active is None else out * active

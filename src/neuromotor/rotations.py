@@ -70,8 +70,8 @@ def matrix_to_euler(
     """
     i, j, k = (AXIS[a] for a in order)
     s = order_parity(order)
-    sin_b = jnp.clip(s * r[..., i, k], -1.0, 1.0)
-    b = jnp.arcsin(sin_b)
+    # atan2 rather than arcsin: near lock sin(t2) rounds to 1 but cos(t2) is still resolved.
+    b = jnp.arctan2(s * r[..., i, k], jnp.hypot(r[..., j, k], r[..., k, k]))
     a = jnp.arctan2(-s * r[..., j, k], r[..., k, k])
     c = jnp.arctan2(-s * r[..., i, j], r[..., i, i])
     sol1 = jnp.stack([a, b, c], -1)

@@ -1,0 +1,138 @@
+"""Export of the character to MuJoCo's MJCF (for cross-checks against MuJoCo and speed comparisons).
+
+    xml = model_to_mjcf(character)
+    export_mjcf(character, "character.xml")
+
+The MJCF describes the same skeleton and mass model as :class:`neuromotor.skeleton.Model`:
+
+* one MuJoCo body per model body, nested as the tree (joints without a body, the massless
+  leaves, are skipped); the body frame is the BVH joint frame, so a body's ``pos`` is its
+  joint's fixed offset in the parent joint's frame and its rest rotation is the identity;
+* ``<inertial pos=com mass=m fullinertia="ixx iyy izz ixy ixz iyz"/>`` from ``model.com``,
+  ``model.mass`` and ``model.inertia`` (about the COM, body frame); ``inertiafromgeom="false"``
+  so the drawing geoms add no mass;
+* the root body has a ``<freejoint/>`` named after the root joint. MuJoCo's free joint state is
+  ``qpos = [origin (world), quat (w, x, y, z)]``, ``qvel = [origin velocity (world), angular
+  velocity (root body frame)]``, and its generalized force is ``[force (world) at the body
+  origin, torque about the body origin (root body frame)]``;
+* every other body has one hinge per rotation channel, named like our DOFs
+  (``"LeftKnee.Zrotation"``; MuJoCo accepts dots in names), axes ``e_a1, e_a2, e_a3`` in the
+  channel order. MuJoCo composes the hinges of one body in order,
+  ``R_body = R_parent R_a1(q1) R_a2(q2) R_a3(q3)``, which is exactly the BVH Euler convention
+  (``skeleton.Model.joint_order``), so hinge qpos are our Euler angles theta (radians) and the
+  hinge generalized force is ``h_i . T`` with ``T`` the world torque of the joint on its child;
+* capsules along each bone for viewing only (``contype=0 conaffinity=0``, no mass);
+* ``<option gravity=model.gravity timestep integrator="implicitfast">``;
+* one ``<position>`` servo (PD, ``kp``/``kv``) per hinge, named like the hinge.
+
+Units are SI (metres, kilograms, seconds, radians).
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import tempfile
+import xml.etree.ElementTree as ET
+
+import numpy as np
+
+from .skeleton import Character
+
+AXIS_VEC = {"X": "1 0 0", "Y": "0 1 0", "Z": "0 0 1"}
+
+
+def _fmt(values) -> str:
+    return " ".join(repr(float(v)) for v in np.ravel(values))
+
+
+def model_to_mjcf(
+    character: Character,
+    timestep: float = 1.0 / 120.0,
+    kp: float = 100.0,
+    kv: float = 10.0,
+    name: str | None = None,
+) -> str:
+    """MJCF XML text of the character (see the module docstring for the conventions)."""
+    model = character.model
+    joint_names = model.joint_names
+    mass = np.asarray(model.mass, dtype=np.float64)
+    com = np.asarray(model.com, dtype=np.float64)
+    inertia = np.asarray(model.inertia, dtype=np.float64)
+    offsets = np.asarray(model.joint_offset, dtype=np.float64)
+    end_offsets = np.asarray(model.end_site_offset, dtype=np.float64).reshape(-1, 3)
+    radii = np.asarray(character.radii, dtype=np.float64)
+
+    root = ET.Element("mujoco", model=name or pathlib.Path(str(character.clip.path)).stem)
+    ET.SubElement(root, "compiler", angle="radian", inertiafromgeom="false", autolimits="true")
+    ET.SubElement(root, "option", gravity=_fmt(model.gravity), timestep=repr(float(timestep)),
+                  integrator="implicitfast")
+    default = ET.SubElement(root, "default")
+    ET.SubElement(default, "joint", damping="0", armature="0", limited="false")
+    ET.SubElement(default, "geom", contype="0", conaffinity="0", mass="0", rgba="0.7 0.6 0.5 1")
+    world = ET.SubElement(root, "worldbody")
+
+    children: dict[int, list[int]] = {}
+    for k, p in enumerate(model.joint_parent):
+        children.setdefault(p, []).append(k)
+    ends: dict[int, list[int]] = {}
+    for e, k in enumerate(model.end_site_joint):
+        ends.setdefault(k, []).append(e)
+
+    hinges: list[str] = []
+
+    def add_body(parent_el, b: int) -> None:
+        k = model.body_joint[b]
+        pos = offsets[k]
+        body = ET.SubElement(parent_el, "body", name=joint_names[k], pos=_fmt(pos))
+        i = inertia[b]
+        ET.SubElement(body, "inertial", pos=_fmt(com[b]), mass=repr(float(mass[b])),
+                      fullinertia=_fmt([i[0, 0], i[1, 1], i[2, 2], i[0, 1], i[0, 2], i[1, 2]]))
+        if model.body_parent[b] < 0:
+            ET.SubElement(body, "freejoint", name=joint_names[k])
+        else:
+            for axis in model.joint_order[k]:
+                hinge = f"{joint_names[k]}.{axis}rotation"
+                ET.SubElement(body, "joint", name=hinge, type="hinge", axis=AXIS_VEC[axis],
+                              pos="0 0 0")
+                hinges.append(hinge)
+        # Viewing geoms: one capsule per bone (to each child joint and End Site).
+        r = float(max(radii[k], 1e-3))
+        bone_ends = [offsets[c] for c in children.get(k, [])] + [end_offsets[e] for e in ends.get(k, [])]
+        drawn = False
+        for end in bone_ends:
+            if np.linalg.norm(end) > 1e-6:
+                ET.SubElement(body, "geom", type="capsule", size=repr(r),
+                              fromto=_fmt(np.concatenate([np.zeros(3), end])))
+                drawn = True
+        if not drawn:
+            ET.SubElement(body, "geom", type="sphere", size=repr(r))
+        for c in children.get(k, []):
+            cb = model.joint_body[c]
+            if cb >= 0:
+                add_body(body, cb)
+
+    add_body(world, 0)
+    actuator = ET.SubElement(root, "actuator")
+    for hinge in hinges:
+        ET.SubElement(actuator, "position", name=hinge, joint=hinge, kp=repr(float(kp)),
+                      kv=repr(float(kv)))
+    ET.indent(root)
+    return ET.tostring(root, encoding="unicode") + "\n"
+
+
+def export_mjcf(character: Character, path, **kwargs) -> pathlib.Path:
+    """Write :func:`model_to_mjcf` to ``path`` atomically (temp file in the same folder + replace)."""
+    path = pathlib.Path(path)
+    text = model_to_mjcf(character, **kwargs)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
