@@ -4,7 +4,8 @@ A pulse on body b at body-frame point p (metres, relative to the body's joint or
 the world force ``F(t) = magnitude * direction * shape((t - start) / duration)`` at the moving
 point, i.e. force F on the body and torque ``(x_p - c_b) x F`` about its COM. Shapes (unit peak):
 ``square`` (1 on [0, 1)), ``half_sine`` (sin(pi s) on [0, 1]), ``triangle``. An impulse of
-``magnitude`` N s is a square pulse of one time step and magnitude / h newtons.
+``magnitude`` N s is a square pulse of one time step and magnitude / h newtons, applied in the
+step that starts at the grid time nearest ``start``.
 
 Every numeric field is an array leaf with a leading axis P (several pulses per run), so a batch
 of magnitudes, directions, bodies or start times is a ``vmap`` over this container.
@@ -51,16 +52,20 @@ def pulses(specs: list[dict], body_index) -> ForcePulses:
         if not norm > 0:
             raise ValueError(f"perturbation direction must be non-zero, got {s.get('direction')}")
         magnitude, duration, shape = s["magnitude"], s.get("duration", 0.1), s.get("shape", "half_sine")
+        start = float(s.get("start", 0.5))
         if s.get("kind", "force") == "impulse":
             step = s["step"]
             magnitude, duration, shape = magnitude / step, step, "square"
+            # Centre the one-step window on ``start`` so that exactly one sample of the time
+            # grid falls inside it, whatever the round-off of t_k = t_0 + k h.
+            start -= 0.5 * step
         if shape not in SHAPES:
             raise ValueError(f"perturbation shape must be one of {SHAPES}, got {shape!r}")
         cols["body"].append(body_index(s["body"]))
         cols["point"].append(jnp.asarray(s.get("point", (0.0, 0.0, 0.0)), jnp.float64))
         cols["direction"].append(direction / norm)
         cols["magnitude"].append(float(magnitude))
-        cols["start"].append(float(s.get("start", 0.5)))
+        cols["start"].append(start)
         cols["duration"].append(float(duration))
         shapes.append(shape)
     return ForcePulses(

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import contact
 from . import metrics as mx
 from .bvh import BvhClip, read_bvh
 from .config import ConfigError, SimulationConfig
@@ -53,6 +54,7 @@ class Setup:
     sim: SimConfig
     pulses: ForcePulses
     config: SimulationConfig
+    ball: "contact.BallSetup | None" = None  # a [ball] config: the flying ball and its contacts
 
     @property
     def model(self) -> Model:
@@ -92,7 +94,10 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     t0 = jnp.asarray(config.start)
     gains = make_gains(model, traj.q(t0), ref.theta[0], ref.activation, config.ks, config.kd, config.tau_floor)
     sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit)
-    return Setup(character, traj, ref, gains, sim, pulses(config.perturbations, index), config)
+    # An impulse is a one-step square pulse: it needs the step to know its force.
+    specs = [dict(p, step=config.h) for p in config.perturbations]
+    ball = contact.ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
+    return Setup(character, traj, ref, gains, sim, pulses(specs, index), config, ball)
 
 
 @jax.jit
@@ -108,10 +113,13 @@ class RunResult:
     perturbed: Rollout
     unperturbed: Rollout
     metrics: dict
+    ball: "contact.ContactRollout | None" = None
 
 
 def run(setup: Setup, check: bool = True) -> RunResult:
     """Perturbed and unperturbed rollouts plus the recovery metrics."""
+    if setup.ball is not None:
+        return contact.run_ball(setup, check)
     model = setup.model
     pert = simulate_jit(model, setup.gains, setup.pulses, setup.ref, setup.sim)
     base = simulate_jit(model, setup.gains, _zero(setup.pulses), setup.ref, setup.sim)
@@ -122,7 +130,10 @@ def run(setup: Setup, check: bool = True) -> RunResult:
 
 
 def run_metrics(setup: Setup, pert: Rollout, base: Rollout) -> dict:
-    start = min((p["start"] for p in setup.config.perturbations), default=float(setup.ref.time[0]))
+    starts = [p["start"] for p in setup.config.perturbations]
+    if setup.ball is not None:
+        starts.append(float(setup.ball.ball.launch))
+    start = min(starts, default=float(setup.ref.time[0]))
     dev = mx.deviation(pert.theta, base.theta)
     out = mx.recovery_metrics(pert.time, dev, start)
     out["unperturbed_rms_error_deg"] = mx.rms_error_deg(base.theta, setup.ref.theta)
@@ -168,7 +179,7 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
     pts = np.asarray(pert.points)
     origin = pts[:, 0, :] if pts.shape[1] else np.zeros_like(total)
     clip = setup.character.clip
-    return {
+    arrays = {
         "time": np.asarray(pert.time),
         "dof_names": np.array(model.dof_names),
         "theta": np.asarray(pert.theta),
@@ -194,6 +205,9 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
         "clip_start": np.asarray(setup.config.start),
         "metrics_json": np.asarray(json.dumps(result.metrics)),
     }
+    if getattr(result, "ball", None) is not None:
+        arrays.update(contact.ball_arrays(setup, result))
+    return arrays
 
 
 def save_npz_atomic(path, arrays: dict) -> pathlib.Path:
