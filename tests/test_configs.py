@@ -1,0 +1,34 @@
+"""Every shipped config in configs/ validates, and the default one is the CLI's default hit."""
+
+import pathlib
+
+import pytest
+
+from neuromotor.config import DEFAULT_HIT, ConfigError, load_simulation_config, simulation_config
+
+CONFIGS = sorted((pathlib.Path(__file__).resolve().parents[1] / "configs").glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
+def test_shipped_config_validates(path):
+    cfg = load_simulation_config(path)
+    if cfg.clip is not None:
+        assert pathlib.Path(cfg.clip).exists(), cfg.clip
+
+
+def test_default_config_is_the_default_hit():
+    cfg = load_simulation_config(CONFIGS[0].parent / "simulate_default.toml")
+    assert cfg.perturbations == [DEFAULT_HIT]
+    assert cfg.duration == 3.0
+
+
+def test_unknown_table_and_bad_values_name_the_field(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[sim]\nh = -0.01\n")
+    with pytest.raises(ConfigError, match=r"bad\.toml: field 'sim\.h' must be > 0"):
+        load_simulation_config(bad)
+    with pytest.raises(ConfigError, match=r"field 'simulation' is not a known field"):
+        simulation_config({"simulation": {}}, "x.toml")
+    bad.write_text("[sim\nh = 1\n")
+    with pytest.raises(ConfigError, match=r"bad\.toml: invalid TOML"):
+        load_simulation_config(bad)
