@@ -1,0 +1,12 @@
+"""Speed benchmark of issue 6 (thin wrapper of ``neuromotor bench``; see neuromotor.bench).
+
+    .venv/bin/python experiments/bench.py --idyn ../shared/mocap/mocapbank_19joint.bvh \
+        ../shared/mocap/walk_22joint_zyx.bvh --plot docs/bench_throughput.png --json out/bench.json
+"""
+
+import sys
+
+from neuromotor.bench import main
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

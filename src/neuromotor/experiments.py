@@ -1,0 +1,291 @@
+"""The paper's experiments (Section 6), each driven by a config file in ``configs/``.
+
+* **Arm** (:func:`arm`): every joint except one arm is driven along the mocap
+  (``sim.driven_joints``); a pulse at the forearm deflects the free arm, which returns to the
+  captured motion while the rest of the body stays exactly on it.
+* **Full body** (:func:`full_body`): the whole body is simulated and hit at the chest or head;
+  Figure 2 as a filmstrip (original above, perturbed below) and a video, via
+  :func:`neuromotor.render.render_run`.
+* **High-gain contrast** (:func:`contrast`): the same hit under several controllers, by default
+  the paper's feedforward + low-gain feedback, a high-gain PD tracker without feedforward
+  (Zordan & Hodgins 2002) and, to show why the tracker needs its high gains, the same PD tracker
+  at the low gains; deviation curves, tracking error and recovery numbers.
+
+Every experiment writes into its output folder ``run*.npz`` (the RUN.npz contract),
+``metrics.json`` and PNG figures, all through temporary files. The ``[experiment]`` table::
+
+    [experiment]
+    kind = "arm"                  # arm | full_body | contrast
+    output = "out/exp_arm"        # relative to the config file
+    frames = 6                    # filmstrip panels
+    video = "video.gif"           # full_body: "" for none; .mp4 or .gif
+    arm = ["LeftShoulder", "LeftElbow", "LeftWrist"]   # arm: the free joints to plot
+    magnitudes = [100.0, 200.0]   # contrast: also sweep these magnitudes (sweep module)
+
+    [[experiment.controller]]     # contrast: any number; default: the three described above
+    label = "PD tracker, high gain"
+    controller = "pd"             # neuromotor | pd
+    ks = 10000.0
+    kd = 200.0
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+from typing import Any
+
+import numpy as np
+
+from . import metrics as mx
+from .config import ConfigError, SimulationConfig, _Fields, read_toml, simulation_config
+from .sweep import CONTROLLERS, GainSetting, _atomic_write, _number_list, gains_for, save_figure
+
+KINDS = ("arm", "full_body", "contrast")
+DEFAULT_CONTRAST = (
+    GainSetting(400.0, 20.0, "neuromotor", "feedforward + low-gain feedback (paper)"),
+    GainSetting(10000.0, 200.0, "pd", "high-gain PD tracker (Zordan & Hodgins)"),
+    GainSetting(400.0, 20.0, "pd", "PD tracker at the low gains"),
+)
+
+
+@dataclasses.dataclass
+class Experiment:
+    kind: str
+    output: pathlib.Path
+    frames: int = 6
+    video: str = "video.gif"
+    arm: list[str] = dataclasses.field(default_factory=lambda: ["LeftShoulder", "LeftElbow", "LeftWrist"])
+    controllers: list[GainSetting] = dataclasses.field(default_factory=lambda: list(DEFAULT_CONTRAST))
+    magnitudes: list[float] | None = None
+
+
+def experiment_spec(data: dict, cfg: SimulationConfig, base_dir=None, default_kind: str | None = None) -> Experiment:
+    source = cfg.source
+    f = _Fields(data.get("experiment", {}), "experiment", source)
+    kind = f.choice("kind", default_kind, KINDS)
+    out = f.get("output", f"out/exp_{kind}")
+    if not isinstance(out, str):
+        f.fail("output", f"must be a path string, got {out!r}")
+    frames = f.get("frames", 6)
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+        f.fail("frames", f"must be a positive integer, got {frames!r}")
+    video = f.get("video", "video.gif")
+    if not isinstance(video, str) or (video and not video.endswith((".mp4", ".gif"))):
+        f.fail("video", f"must be a file name ending .mp4 or .gif, or \"\", got {video!r}")
+    arm = f.string_list("arm", ["LeftShoulder", "LeftElbow", "LeftWrist"])
+    mags = _number_list(f, "magnitudes", None, nonneg=True)
+    tables = f.get("controller", None)
+    controllers = list(DEFAULT_CONTRAST)
+    if tables is not None:
+        if not isinstance(tables, list) or not tables:
+            f.fail("controller", "must be an array of tables ([[experiment.controller]])")
+        controllers = []
+        for i, t in enumerate(tables):
+            g = _Fields(t, f"experiment.controller[{i}]", source)
+            controllers.append(GainSetting(g.number("ks", cfg.ks, nonneg=True), g.number("kd", cfg.kd, nonneg=True),
+                                           g.choice("controller", "neuromotor", CONTROLLERS), str(g.get("label", ""))))
+            g.done()
+    f.done()
+    if not cfg.perturbations:
+        raise ConfigError(f"{source}: field 'perturbation' is required: every experiment hits the character")
+    output = pathlib.Path(out)
+    if base_dir is not None and not output.is_absolute():
+        output = (pathlib.Path(base_dir) / output).resolve()
+    return Experiment(kind, output, frames, video, arm, controllers, mags)
+
+
+def load_experiment(path, default_kind: str | None = None) -> tuple[SimulationConfig, Experiment]:
+    path = pathlib.Path(path)
+    data = read_toml(path)
+    cfg = simulation_config(data, str(path), path.parent)
+    return cfg, experiment_spec(data, cfg, path.parent, default_kind)
+
+
+def write_json(obj: Any, path) -> pathlib.Path:
+    return _atomic_write(path, lambda fh: json.dump(obj, fh, indent=2, default=float), ".json")
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _hit_span(cfg: SimulationConfig):
+    p = cfg.perturbations[0]
+    return p["start"], p["start"] + (p["duration"] if p["kind"] == "force" else cfg.h)
+
+
+def _simulate(cfg: SimulationConfig, out: pathlib.Path, name: str = "run.npz", setting: GainSetting | None = None,
+              setup=None):
+    """One perturbed + unperturbed pair, saved as RUN.npz; returns (setup, result, npz path)."""
+    from .simulate import prepare, run, run_arrays, save_npz_atomic
+
+    if setup is None:
+        setup = prepare(cfg)
+    if setting is not None:
+        setup = dataclasses.replace(setup, gains=gains_for(setup.gains, setting))
+    result = run(setup, check=False)
+    path = save_npz_atomic(out / name, run_arrays(setup, result))
+    return setup, result, path
+
+
+def _render(npz, out: pathlib.Path, exp: Experiment, video: bool) -> dict[str, str]:
+    """Filmstrip (and video) when the renderer is available; never fails the experiment."""
+    files = {}
+    try:
+        from .render import render_run
+    except ImportError as e:  # renderer not installed in this environment
+        return {"render_skipped": str(e)}
+    try:
+        files["filmstrip"] = str(render_run(npz, out / "filmstrip.png", frames=exp.frames, progress=False) or
+                                 out / "filmstrip.png")
+        if video and exp.video:
+            files["video"] = str(render_run(npz, out / exp.video, progress=False) or out / exp.video)
+    except Exception as e:  # e.g. no off-screen OpenGL: keep the numbers and plots
+        files["render_error"] = f"{type(e).__name__}: {e}"
+    return files
+
+
+def _dof_groups(model, names):
+    return {n: [i for i, d in enumerate(model.dof_names) if d.split(".")[0] == n] for n in names}
+
+
+def arm(cfg: SimulationConfig, exp: Experiment) -> dict:
+    """The arm experiment; returns the numbers written to ``metrics.json``."""
+    out = exp.output
+    setup, result, npz = _simulate(cfg, out)
+    model = setup.model
+    groups = _dof_groups(model, exp.arm)
+    missing = [n for n, dofs in groups.items() if not dofs]
+    if missing:
+        raise ConfigError(f"{cfg.source}: field 'experiment.arm': no simulated joint named {missing[0]!r}")
+    arm_dofs = sorted(i for dofs in groups.values() for i in dofs)
+    rest = [i for i in range(model.n_dofs) if i not in arm_dofs]
+    pert, base = np.asarray(result.perturbed.theta), np.asarray(result.unperturbed.theta)
+    t = np.asarray(result.perturbed.time)
+    dev_arm = np.asarray(mx.deviation(pert, base, arm_dofs))
+    start, end = _hit_span(cfg)
+    numbers = {
+        "arm": mx.recovery_metrics(t, dev_arm, start),
+        "all_dofs": result.metrics,
+        "rest_of_body_max_deviation_deg": float(np.rad2deg(np.abs(pert[:, rest] - base[:, rest]).max())) if rest else 0.0,
+        "per_joint_peak_deg": {n: float(np.rad2deg(np.abs(pert[:, d] - base[:, d]).max())) for n, d in groups.items()},
+        "driven_joints": list(cfg.driven_joints),
+    }
+    plt = _plt()
+    rows = len(groups) + 1
+    fig, axes = plt.subplots(rows, 1, figsize=(7, 1.7 * rows + 0.6), dpi=90, sharex=True)
+    axes[0].plot(t, dev_arm, color="C3")
+    axes[0].axvspan(start, end, color="C1", alpha=0.25, lw=0, label="hit")
+    axes[0].set_ylabel("arm deviation\n(deg)")
+    axes[0].legend(fontsize=7, loc="upper right")
+    desired = np.asarray(setup.ref.theta[: len(t)])
+    for ax, (name, dofs) in zip(axes[1:], groups.items()):
+        for k, i in enumerate(dofs):
+            c = f"C{k}"
+            ax.plot(t, np.rad2deg(desired[:, i]), ":", color=c, lw=1)
+            ax.plot(t, np.rad2deg(base[:, i]), "--", color=c, lw=1)
+            ax.plot(t, np.rad2deg(pert[:, i]), "-", color=c, lw=1.4, label=model.dof_names[i].split(".")[1])
+        ax.axvspan(start, end, color="C1", alpha=0.25, lw=0)
+        ax.set_ylabel(f"{name}\n(deg)")
+        ax.legend(fontsize=6, loc="upper right", ncol=3)
+    axes[-1].set_xlabel("clip time (s)  -  solid: perturbed, dashed: unperturbed, dotted: mocap")
+    fig.suptitle("Arm hit at the forearm; rest of the body driven along the mocap", fontsize=10)
+    fig.tight_layout()
+    numbers["files"] = {"run": str(npz), "plot": str(save_figure(fig, out / "arm.png"))}
+    numbers["files"].update(_render(npz, out, exp, video=bool(exp.video)))
+    write_json(numbers, out / "metrics.json")
+    return numbers
+
+
+def full_body(cfg: SimulationConfig, exp: Experiment) -> dict:
+    """The full-body experiment (Figure 2)."""
+    out = exp.output
+    setup, result, npz = _simulate(cfg, out)
+    t = np.asarray(result.perturbed.time)
+    dev = np.asarray(mx.deviation(result.perturbed.theta, result.unperturbed.theta))
+    start, end = _hit_span(cfg)
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 2.6), dpi=90)
+    ax.plot(t, dev, color="C3", label="deviation from the unperturbed run")
+    ax.axhline(result.metrics["recovery_threshold_deg"], color="0.5", ls=":", lw=1, label="recovery threshold")
+    ax.axvspan(start, end, color="C1", alpha=0.25, lw=0, label="hit")
+    ax.set(xlabel="clip time (s)", ylabel="RMS deviation (deg)")
+    ax.legend(fontsize=7)
+    hit = cfg.perturbations[0]
+    ax.set_title(f"Full body, {hit['magnitude']:g} N {hit['shape']} pulse on {hit['body']}", fontsize=10)
+    fig.tight_layout()
+    numbers = {"metrics": result.metrics, "hit": hit,
+               "files": {"run": str(npz), "deviation": str(save_figure(fig, out / "deviation.png"))}}
+    numbers["files"].update(_render(npz, out, exp, video=True))
+    write_json(numbers, out / "metrics.json")
+    return numbers
+
+
+def contrast(cfg: SimulationConfig, exp: Experiment, progress: bool = True) -> dict:
+    """The same hit under each controller of ``exp.controllers``."""
+    from .simulate import prepare
+
+    out = exp.output
+    base_setup = prepare(cfg)
+    start, end = _hit_span(cfg)
+    numbers: dict[str, Any] = {"hit": cfg.perturbations[0], "controllers": []}
+    curves = []
+    for i, setting in enumerate(exp.controllers):
+        setup, result, npz = _simulate(cfg, out, f"run_{i}.npz", setting, setup=base_setup)
+        t = np.asarray(result.perturbed.time)
+        pert, base = np.asarray(result.perturbed.theta), np.asarray(result.unperturbed.theta)
+        desired = np.asarray(setup.ref.theta[: len(t)])
+        dev = np.asarray(mx.deviation(pert, base))
+        track = np.asarray(mx.deviation(base, desired))
+        curves.append((setting, t, dev, track))
+        numbers["controllers"].append({"label": setting.name, "controller": setting.controller, "ks": setting.ks,
+                                       "kd": setting.kd, **result.metrics, "run": str(npz)})
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.4), dpi=90)
+    for setting, t, dev, track in curves:
+        axes[0].plot(t, dev, label=setting.name)
+        axes[1].plot(t, track, label=setting.name)
+    for ax in axes:
+        ax.axvspan(start, end, color="C1", alpha=0.25, lw=0)
+        ax.set_xlabel("clip time (s)")
+        ax.grid(alpha=0.3)
+    axes[0].set(ylabel="deviation from own unperturbed run (deg)", title="deflection and recovery")
+    axes[1].set(ylabel="unperturbed run vs mocap (deg)", title="tracking error without the hit", yscale="log")
+    axes[1].set_ylim(bottom=1e-3)  # the first sample starts on the mocap (0)
+    axes[1].legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    numbers["files"] = {"plot": str(save_figure(fig, out / "contrast.png"))}
+    if exp.magnitudes:
+        from .simulate import body_lookup
+        from .sweep import SweepSpec, Sweeper, plot_sweep, run_sweep, write_csv
+
+        spec = SweepSpec(exp.magnitudes, list(exp.controllers))
+        sweeper = Sweeper(base_setup.model, base_setup.ref, base_setup.sim, chunk=len(spec.magnitudes) * len(spec.gains))
+        res = run_sweep(sweeper, base_setup.gains, base_setup.pulses, spec.runs(cfg.perturbations[0]),
+                        body_lookup(base_setup.model), base_setup.model.body_names, progress=progress)
+        numbers["files"]["sweep_csv"] = str(write_csv(res.rows, out / "sweep.csv"))
+        numbers["files"]["sweep_plot"] = str(plot_sweep(res.rows, out / "contrast_sweep.png",
+                                                        title="same hit, growing magnitude"))
+    write_json(numbers, out / "metrics.json")
+    return numbers
+
+
+def run_experiment(path, kind: str | None = None, output=None, progress: bool = True) -> dict:
+    """Run the experiment a config describes (``experiment.kind``, or ``kind`` as default)."""
+    cfg, exp = load_experiment(path, kind)
+    if kind is not None and exp.kind != kind:
+        raise ConfigError(f"{cfg.source}: field 'experiment.kind' is {exp.kind!r}, this script runs {kind!r}")
+    if output is not None:
+        exp.output = pathlib.Path(output)
+    if exp.kind == "arm":
+        return arm(cfg, exp)
+    if exp.kind == "full_body":
+        return full_body(cfg, exp)
+    return contrast(cfg, exp, progress)
