@@ -1,0 +1,232 @@
+"""Targets for gain calibration: recovery trajectories read from files, and response features.
+
+Trajectory files
+----------------
+A trajectory target is a time series of joint angles (all DOFs or a named subset) or of body
+COM positions after a perturbation. Times are clip times in seconds (the same clock as
+``sim.start`` and the perturbations' ``start``); the target is linearly interpolated onto the
+simulation grid inside the fit window, which must lie inside the file's time span.
+
+NPZ layout::
+
+    time    (T,)                 seconds, strictly increasing
+    names   (k,)  str            DOF names ("Chest.Zrotation") or body names ("Chest2")
+    values  (T, k) or (C, T, k)  joint angles, one slice per perturbation case C
+            (T, k, 3) or (C, T, k, 3) body positions (world, metres)
+
+CSV layout (one header row, comma separated, ``#`` lines are comments)::
+
+    case,time,Chest.Zrotation,Chest.Xrotation,...        joint angles
+    case,time,Chest2.x,Chest2.y,Chest2.z,...             body positions (m)
+
+``case`` (optional; default 0 for every row) is the 0-based index of the ``[[perturbation]]``
+the row belongs to; every case must list the same times. Angles are radians unless the config
+says ``angle_unit = "deg"``.
+
+Feature targets
+---------------
+Numbers such as the peak deviation after a push, given per perturbation case with a standard
+deviation; see :data:`FEATURES`. Features are computed from the deviation signal
+``d(t) = rms_i (theta_i - theta_unperturbed_i)`` in degrees over a set of DOFs (see
+:mod:`neuromotor.metrics`), with smooth surrogates so the fit can differentiate them.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import pathlib
+
+import numpy as np
+
+from .config import ConfigError
+
+FEATURES = {
+    "peak_deviation_deg": "largest deviation d(t) (deg)",
+    "time_to_peak_s": "time of the peak after the perturbation's start (s)",
+    "recovery_time_s": "time after the start until d(t) stays below the threshold (s)",
+    "overshoot_deg": "largest deviation after d(t) first returns below the threshold (deg)",
+}
+AXES = ("x", "y", "z")
+
+
+@dataclasses.dataclass
+class TargetTable:
+    """A trajectory target as read from disk, before matching to a model."""
+
+    time: np.ndarray  # (T,)
+    names: tuple[str, ...]  # DOF or body names
+    values: np.ndarray  # (C, T, k) angles or (C, T, k, 3) positions
+    quantity: str  # "joint_angles" | "body_positions"
+    source: str
+
+
+def _fail(source, field, msg):
+    raise ConfigError(f"{source}: field '{field}' {msg}")
+
+
+def read_target(path, quantity: str = "joint_angles") -> TargetTable:
+    """Read an NPZ or CSV trajectory target (layout in the module docstring)."""
+    path = pathlib.Path(path)
+    src = str(path)
+    if not path.exists():
+        raise ConfigError(f"{src}: target file not found")
+    if quantity not in ("joint_angles", "body_positions"):
+        raise ValueError(f"quantity must be joint_angles or body_positions, got {quantity!r}")
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        table = _read_npz(path, quantity)
+    elif suffix == ".csv":
+        table = _read_csv(path, quantity)
+    else:
+        raise ConfigError(f"{src}: target file must be .npz or .csv, got {path.suffix!r}")
+    t = table.time
+    if t.ndim != 1 or t.size < 2 or not np.all(np.isfinite(t)) or not np.all(np.diff(t) > 0):
+        _fail(src, "time", "must be a strictly increasing finite 1-D array with at least 2 samples")
+    if not np.all(np.isfinite(table.values)):
+        _fail(src, "values", "contains NaN or infinite entries")
+    if len(set(table.names)) != len(table.names):
+        _fail(src, "names", "contains duplicates")
+    return table
+
+
+def _read_npz(path, quantity) -> TargetTable:
+    src = str(path)
+    try:
+        data = np.load(path, allow_pickle=False)
+    except Exception as e:  # zipfile / numpy errors
+        raise ConfigError(f"{src}: cannot read NPZ target: {e}") from None
+    for key in ("time", "names", "values"):
+        if key not in data.files:
+            _fail(src, key, f"is missing (keys present: {sorted(data.files)})")
+    time = np.asarray(data["time"], np.float64)
+    names = tuple(str(n) for n in np.atleast_1d(data["names"]))
+    values = np.asarray(data["values"], np.float64)
+    raw_shape = values.shape
+    k = len(names)
+    if quantity == "joint_angles":
+        if values.ndim == 2:
+            values = values[None]
+        want = f"(T, k) or (C, T, k) with T = {time.size}, k = {k}"
+        if values.ndim != 3 or values.shape[1:] != (time.size, k):
+            _fail(src, "values", f"has shape {raw_shape}; expected {want}")
+    else:
+        if values.ndim == 3:
+            values = values[None]
+        want = f"(T, k, 3) or (C, T, k, 3) with T = {time.size}, k = {k}"
+        if values.ndim != 4 or values.shape[1:] != (time.size, k, 3):
+            _fail(src, "values", f"has shape {raw_shape}; expected {want}")
+    return TargetTable(time, names, values, quantity, src)
+
+
+def _read_csv(path, quantity) -> TargetTable:
+    src = str(path)
+    with open(path, newline="", encoding="utf-8") as fh:
+        rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
+    if not rows:
+        raise ConfigError(f"{src}: empty CSV target")
+    header = [h.strip() for h in rows[0]]
+    if "time" not in header:
+        _fail(src, "time", f"column is missing (header: {header})")
+    body = rows[1:]
+    if not body:
+        raise ConfigError(f"{src}: CSV target has a header but no rows")
+    try:
+        arr = np.array([[float(x) for x in r] for r in body], np.float64)
+    except ValueError as e:
+        raise ConfigError(f"{src}: non-numeric entry in CSV target: {e}") from None
+    if arr.shape[1] != len(header):
+        raise ConfigError(f"{src}: rows have {arr.shape[1]} columns, header has {len(header)}")
+    case = arr[:, header.index("case")].astype(int) if "case" in header else np.zeros(len(arr), int)
+    data_cols = [i for i, h in enumerate(header) if h not in ("case", "time")]
+    if not data_cols:
+        raise ConfigError(f"{src}: CSV target has no data columns besides case/time")
+    n_cases = int(case.max()) + 1
+    if case.min() < 0 or set(np.unique(case)) != set(range(n_cases)):
+        _fail(src, "case", f"must number the cases 0..C-1 without gaps, got {sorted(set(case.tolist()))}")
+    time = arr[case == 0, header.index("time")]
+    per_case = []
+    for c in range(n_cases):
+        sel = arr[case == c]
+        if sel.shape[0] != time.size or not np.allclose(sel[:, header.index("time")], time):
+            _fail(src, "time", f"of case {c} differ from those of case 0 (every case needs the same times)")
+        per_case.append(sel[:, data_cols])
+    values = np.stack(per_case)  # (C, T, cols)
+    cols = [header[i] for i in data_cols]
+    if quantity == "joint_angles":
+        return TargetTable(time, tuple(cols), values, quantity, src)
+    bodies: list[str] = []
+    for name in cols:
+        body, _, axis = name.rpartition(".")
+        if axis not in AXES or not body:
+            _fail(src, name, "must be BODY.x, BODY.y or BODY.z for body positions")
+        if body not in bodies:
+            bodies.append(body)
+    out = np.empty((n_cases, time.size, len(bodies), 3))
+    for bi, body in enumerate(bodies):
+        for ai, axis in enumerate(AXES):
+            name = f"{body}.{axis}"
+            if name not in cols:
+                _fail(src, name, "column is missing (each body needs .x, .y and .z)")
+            out[:, :, bi, ai] = values[:, :, cols.index(name)]
+    return TargetTable(time, tuple(bodies), out, quantity, src)
+
+
+def window_indices(sim_time: np.ndarray, window, source: str, field: str) -> tuple[int, int]:
+    """[i0, i1) of the simulation samples inside ``window = (t0, t1)`` (clip seconds)."""
+    t0, t1 = float(window[0]), float(window[1])
+    tol = 1e-9
+    if not t1 > t0:
+        _fail(source, field, f"must be [t0, t1] with t1 > t0, got {list(window)}")
+    if t0 < sim_time[0] - tol or t1 > sim_time[-1] + tol:
+        _fail(source, field, f"{list(window)} is outside the simulated span "
+                             f"[{sim_time[0]:.4f}, {sim_time[-1]:.4f}] s")
+    inside = np.nonzero((sim_time >= t0 - tol) & (sim_time <= t1 + tol))[0]
+    if inside.size < 2:
+        _fail(source, field, f"{list(window)} holds fewer than 2 simulation samples")
+    return int(inside[0]), int(inside[-1]) + 1
+
+
+def resample(table: TargetTable, times: np.ndarray, field: str = "window") -> np.ndarray:
+    """Linear interpolation of every column onto ``times`` (which must lie inside the file)."""
+    tol = 1e-9
+    if times[0] < table.time[0] - tol or times[-1] > table.time[-1] + tol:
+        _fail(table.source, field, f"[{times[0]:.4f}, {times[-1]:.4f}] s is outside the target's time "
+                                   f"span [{table.time[0]:.4f}, {table.time[-1]:.4f}] s")
+    flat = table.values.reshape(table.values.shape[0], table.time.size, -1)
+    out = np.stack([[np.interp(times, table.time, col) for col in case.T] for case in flat])  # (C, k', T)
+    out = np.swapaxes(out, 1, 2)
+    return out.reshape((table.values.shape[0], times.size) + table.values.shape[2:])
+
+
+def write_target_csv(path, time, names, values, quantity="joint_angles", header_comment=None):
+    """Write a trajectory target in the CSV layout (temp file then rename)."""
+    import os
+    import tempfile
+
+    path = pathlib.Path(path)
+    values = np.asarray(values)
+    if quantity == "joint_angles":
+        cols = list(names)
+        flat = values
+    else:
+        cols = [f"{n}.{a}" for n in names for a in AXES]
+        flat = values.reshape(values.shape[0], values.shape[1], -1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".csv", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", newline="", encoding="utf-8") as fh:
+            if header_comment:
+                for line in header_comment.splitlines():
+                    fh.write(f"# {line}\n")
+            w = csv.writer(fh)
+            w.writerow(["case", "time"] + cols)
+            for c in range(flat.shape[0]):
+                for i, t in enumerate(time):
+                    w.writerow([c, repr(float(t))] + [f"{float(v):.10g}" for v in flat[c, i]])
+        os.chmod(tmp, 0o644)  # mkstemp makes it owner-only
+        os.replace(tmp, path)
+    except BaseException:
+        pathlib.Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
