@@ -27,6 +27,22 @@ Simulation config (every table and key optional)::
     start = 1.0                    # s, clip time
     duration = 0.1                 # s (force only)
     shape = "half_sine"            # square | half_sine | triangle
+
+    [ball]                         # a flying ball (see neuromotor.contact); optional
+    radius = 0.11                  # m
+    mass = 0.45                    # kg
+    position = [1.5, 1.3, 2.3]     # world centre at launch (m)
+    speed = 12.0                   # m/s, with either target (a body to aim at) or direction,
+    target = "Chest2"              #   or give velocity = [vx, vy, vz] instead of speed
+    launch = 1.0                   # s, clip time of release
+    restitution = 0.6              # Newton's coefficient, 0..1
+    friction = 0.5                 # Coulomb coefficient
+    restitution_threshold = 0.25   # m/s: slower impacts do not bounce
+    friction_directions = 8        # sides of the friction pyramid (>= 4)
+    max_contacts = 4               # nearest contact candidates solved per step
+    pgs_iterations = 40            # projected Gauss-Seidel sweeps
+    ground = true                  # the ball also hits the ground plane (up . x = ground_height)
+    ground_height = 0.0
 """
 
 from __future__ import annotations
@@ -58,6 +74,7 @@ class SimulationConfig:
     kd: float = DEFAULT_KD
     tau_floor: float = DEFAULT_TAU_FLOOR
     perturbations: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    ball: dict[str, Any] | None = None
     source: str = "<defaults>"
 
 
@@ -170,6 +187,51 @@ def parse_perturbation(table: dict, where: str, source: str) -> dict[str, Any]:
     return out
 
 
+def parse_ball(table: dict, source: str) -> dict[str, Any]:
+    """The ``[ball]`` table (see the module docstring); errors name the field."""
+    f = _Fields(table, "ball", source)
+    out = {
+        "radius": f.number("radius", 0.11, positive=True),
+        "mass": f.number("mass", 0.45, positive=True),
+        "position": f.vector("position", None) if "position" in table else f.fail("position", "is required"),
+        "launch": f.number("launch", 0.0, nonneg=True),
+        "restitution": f.number("restitution", 0.6, nonneg=True),
+        "friction": f.number("friction", 0.5, nonneg=True),
+        "restitution_threshold": f.number("restitution_threshold", 0.25, nonneg=True),
+        "ground_height": f.number("ground_height", 0.0),
+        "ground": f.boolean("ground", True),
+    }
+    if out["restitution"] > 1.0:
+        f.fail("restitution", f"must be in [0, 1], got {out['restitution']!r}")
+    for key, default, low in (("friction_directions", 8, 4), ("max_contacts", 4, 1), ("pgs_iterations", 40, 1)):
+        val = f.get(key, default)
+        if isinstance(val, bool) or not isinstance(val, int) or val < low:
+            f.fail(key, f"must be an integer >= {low}, got {val!r}")
+        out[key] = val
+    given = [k for k in ("velocity", "speed", "direction", "target") if k in table]
+    if "velocity" in table:
+        if len(given) > 1:
+            f.fail("velocity", f"give either velocity or speed with direction/target, not {given}")
+        out["velocity"] = f.vector("velocity", None)
+    else:
+        out["speed"] = f.number("speed", None, nonneg=True)
+        if out["speed"] is None:
+            f.fail("speed", "is required (or give velocity = [vx, vy, vz])")
+        if ("direction" in table) == ("target" in table):
+            f.fail("direction", "give exactly one of direction (a vector) or target (a body name)")
+        if "direction" in table:
+            out["direction"] = f.vector("direction", None)
+            if not any(out["direction"]):
+                f.fail("direction", "must be non-zero")
+        else:
+            target = f.get("target")
+            if not isinstance(target, str):
+                f.fail("target", f"must be a body (joint) name, got {target!r}")
+            out["target"] = target
+    f.done()
+    return out
+
+
 def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> SimulationConfig:
     top = _Fields(data, "", source)
     cfg = SimulationConfig(source=source)
@@ -203,6 +265,8 @@ def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> Simu
     if not isinstance(perts, list):
         top.fail("perturbation", "must be an array of tables ([[perturbation]])")
     cfg.perturbations = [parse_perturbation(p, f"perturbation[{i}]", source) for i, p in enumerate(perts)]
+    if "ball" in data:
+        cfg.ball = parse_ball(top.get("ball"), source)
     top.done(allowed_tables=("fit", "sweep", "experiment", "ball"))
     return cfg
 
