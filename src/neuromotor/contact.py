@@ -640,22 +640,35 @@ def never_launched(ball: Ball) -> Ball:
     return eqx.tree_at(lambda b: b.launch, ball, jnp.full_like(ball.launch, jnp.inf))
 
 
+@eqx.filter_jit
+def _com_at(model: Model, traj, body, t):
+    from .kinematics import body_poses
+
+    return body_poses(model, traj.q(t))[0][body]
+
+
 def aim_ball(model: Model, traj, position, speed: float, target_body: int, launch: float,
              iterations: int = 20) -> np.ndarray:
     """Unit launch direction u so that the ballistic path from ``position`` at ``speed``,
     ``x(T) = position + speed u T + g T^2 / 2``, meets the target body's mocap COM at launch + T.
 
     The flight time solves ``|target(launch + T) - position - g T^2 / 2| = speed T`` by fixed-point
-    iteration (a contraction for the throws of interest: target speed and g T << ball speed)."""
-    from .kinematics import body_poses
-
+    iteration (a contraction for the throws of interest: target speed and g T << ball speed).
+    Raises ValueError when it does not converge (a ball too slow to reach the target)."""
     position = np.asarray(position, np.float64)
     g = np.asarray(model.gravity)
-    com_at = jax.jit(lambda t: body_poses(model, traj.q(t))[0][target_body])
-    flight = 0.0
+    flight = previous = 0.0
     for _ in range(iterations):
-        d = np.asarray(com_at(jnp.asarray(launch + flight, jnp.float64))) - position - 0.5 * g * flight**2
-        flight = float(np.linalg.norm(d)) / speed
+        com = np.asarray(_com_at(model, traj, jnp.asarray(target_body), jnp.asarray(launch + flight, jnp.float64)))
+        d = com - position - 0.5 * g * flight**2
+        flight, previous = float(np.linalg.norm(d)) / speed, flight
+        if not flight < 1e6:  # running away: out of reach
+            break
+    # A ball too slow to reach the target makes the iteration diverge (or crawl): refuse it
+    # rather than aim at nothing (a miss of more than 1 mm along the path).
+    if not (math.isfinite(flight) and speed * abs(flight - previous) <= 1e-3):
+        raise ValueError(f"is too low: a ball at {speed:g} m/s cannot reach the target from {position.tolist()} "
+                         f"(the aim does not converge)")
     return d / np.linalg.norm(d)
 
 
@@ -675,25 +688,59 @@ def ball_setup(spec: dict, character: Character, traj, body_index, source: str =
     from .config import ConfigError
 
     model = character.model
-    if "velocity" in spec:
-        ball = make_ball(spec["radius"], spec["mass"], spec["position"], velocity=spec["velocity"],
-                         restitution=spec["restitution"], friction=spec["friction"], launch=spec["launch"])
-    else:
-        direction = spec.get("direction")
-        if "target" in spec:
-            if not spec["speed"] > 0:
-                raise ConfigError(f"{source}: field 'ball.speed' must be > 0 to aim at a target")
-            direction = aim_ball(model, traj, spec["position"], spec["speed"], body_index(spec["target"]),
-                                 spec["launch"])
-        ball = make_ball(spec["radius"], spec["mass"], spec["position"], speed=spec["speed"],
-                         direction=direction, restitution=spec["restitution"], friction=spec["friction"],
-                         launch=spec["launch"])
+    try:
+        ball = ball_from_spec(spec, model, traj, body_index)
+    except ConfigError:
+        raise
+    except ValueError as e:
+        raise ConfigError(f"{source}: field 'ball.speed' {e}") from None
     settings = ContactSettings(
         friction_directions=spec.get("friction_directions", 8), max_contacts=spec.get("max_contacts", 4),
         pgs_iterations=spec.get("pgs_iterations", 40),
         restitution_threshold=spec.get("restitution_threshold", 0.25), ground=spec.get("ground", True),
         ground_height=spec.get("ground_height", 0.0))
     return BallSetup(ball, fit_capsules(character), settings)
+
+
+def ball_from_spec(spec: dict, model: Model, traj, body_index) -> Ball:
+    """The :class:`Ball` of a parsed ``[ball]`` table; aims it when the table names a target.
+    Raises ValueError when the aim is impossible (speed <= 0, or too slow to reach it)."""
+    if "velocity" in spec:
+        return make_ball(spec["radius"], spec["mass"], spec["position"], velocity=spec["velocity"],
+                         restitution=spec["restitution"], friction=spec["friction"], launch=spec["launch"])
+    direction = spec.get("direction")
+    if "target" in spec:
+        if not spec["speed"] > 0:
+            raise ValueError("must be > 0 to aim at a target")
+        direction = aim_ball(model, traj, spec["position"], spec["speed"], body_index(spec["target"]),
+                             spec["launch"])
+    return make_ball(spec["radius"], spec["mass"], spec["position"], speed=spec["speed"], direction=direction,
+                     restitution=spec["restitution"], friction=spec["friction"], launch=spec["launch"])
+
+
+def balls_at_speeds(setup, speeds) -> Ball:
+    """The config's ball at each speed (leading axis = speed): exactly the ball that
+    ``simulate.prepare`` builds for the config with ``ball.speed`` set to that speed. A ball
+    aimed at a ``target`` is re-aimed per speed (a slower ball needs a higher arc); a
+    ``direction`` or ``velocity`` keeps its direction. Raises ValueError for a speed that
+    cannot reach the target."""
+    from .config import ConfigError
+    from .simulate import body_lookup
+
+    spec = dict(setup.config.ball)
+    if "velocity" in spec:  # speed + direction of the given velocity
+        spec["direction"] = np.asarray(setup.ball.ball.direction).tolist()
+        del spec["velocity"]
+    index = body_lookup(setup.model, setup.config.source)
+    balls = []
+    for s in speeds:
+        try:
+            balls.append(ball_from_spec(dict(spec, speed=float(s)), setup.model, setup.traj, index))
+        except ConfigError:
+            raise
+        except ValueError as e:
+            raise ValueError(f"speed {float(s):g} m/s {e}") from None
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *balls)
 
 
 def run_ball(setup, check: bool = True):

@@ -38,6 +38,16 @@ Config (``[sweep]`` table of a simulation config; the grid is the Cartesian prod
     inner_batch = 1                   # rollouts vmapped together inside each shard's loop
     output = "out/sweep"              # folder for sweep.csv and the plots (relative to the config)
     fitted = "fit.json"               # optional: fitted (ks, kd) to mark on the gains map, or [ks, kd]
+
+Ball-speed sweeps (issue 7): when the config has a ``[ball]`` table, ``magnitudes`` are ball
+speeds (m/s) and every run is a contact rollout (:mod:`neuromotor.contact`) of that ball at that
+speed; its twin is the same gains with the ball never launched. A ball aimed at ``ball.target``
+is re-aimed for every speed, so each row equals ``neuromotor simulate`` of the config with
+``ball.speed`` set to the row's magnitude. ``bodies``, ``directions`` and ``starts`` do not
+apply (the aim and launch time come from ``[ball]``), and the config may not also hold
+``[[perturbation]]`` tables. The gains grid, ``chunk``, ``inner_batch``, ``output`` and
+``fitted`` work as for pulses. The table gets ``kind = "ball"``, the peak contact impulse on
+the character and the body that received it (:data:`BALL_COLUMNS`).
 """
 
 from __future__ import annotations
@@ -65,6 +75,7 @@ from .control import Gains, pd_tracking_gains
 from .dynamics import Reference, SimConfig, rollout
 from .perturbation import ForcePulses
 from .skeleton import Model
+from . import contact as ct
 
 AXIS = "runs"
 CONTROLLERS = ("neuromotor", "pd")
@@ -73,6 +84,13 @@ METRIC_KEYS = ("peak_deviation_deg", "time_of_peak_s", "recovery_time_s", "final
 COLUMNS = ("run", "label", "controller", "ks", "kd", "body", "magnitude", "direction_x", "direction_y",
            "direction_z", "start", "duration", *METRIC_KEYS, "max_kkt_residual",
            "max_constraint_violation", "diverged", "diverged_step", "diverged_time_s", "diverged_body")
+# Ball-speed sweeps: magnitude = speed (m/s), direction = launch direction (re-aimed per speed when
+# the ball has a target), body = the target ("" without one), start = launch time; outputs add the
+# peak contact impulse on the character (N s), the body that received it and the first contact.
+BALL_COLUMNS = ("run", "kind", "label", "controller", "ks", "kd", "body", "magnitude", "direction_x",
+                "direction_y", "direction_z", "start", *METRIC_KEYS, "peak_impulse_Ns", "hit_body",
+                "first_contact_s", "max_kkt_residual", "max_constraint_violation", "diverged", "diverged_step",
+                "diverged_time_s", "diverged_body")
 
 
 # ----------------------------------------------------------------------------- the grid
@@ -105,6 +123,7 @@ class SweepSpec:
     inner_batch: int = 1
     output: pathlib.Path | None = None
     fitted: tuple[float, float] | None = None
+    kind: str = "force"  # "ball": magnitudes are ball speeds (m/s) of the config's [ball]
 
     def runs(self, base: dict) -> list[dict]:
         """Flat list of run descriptions (dicts), gain setting outermost, magnitude innermost."""
@@ -322,6 +341,128 @@ def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[di
     return SweepResult(rows, np.concatenate(curves) if keep_curves else None, time)
 
 
+# ----------------------------------------------------------------------------- ball-speed sweeps
+
+
+class BallBatch(eqx.Module):
+    """Inputs of a batch of ball runs: every leaf has a leading run axis."""
+
+    gains: Gains
+    ball: ct.Ball
+
+
+class BallRunOut(eqx.Module):
+    """What a contact rollout leaves behind in a sweep (per run)."""
+
+    theta: Float[Array, "S1 n"]
+    diverged_step: Int[Array, ""]
+    diverged_body: Int[Array, ""]  # n_bodies: the ball
+    max_residual: Float[Array, ""]
+    max_violation: Float[Array, ""]
+    peak_impulse: Float[Array, ""]  # largest |impulse| of one step on a body of the character (N s)
+    hit_body: Int[Array, ""]  # the body that received it; -1: the ball never touched the character
+    first_contact: Int[Array, ""]  # first sample with a contact on the character; -1: none
+
+
+class BallSweeper(Sweeper):
+    """:class:`Sweeper` of contact rollouts: runs are (gains, ball) pairs, the capsules, contact
+    settings and (empty) force pulses are shared by all of them."""
+
+    def __init__(self, model: Model, ref: Reference, sim: SimConfig, ball_setup: ct.BallSetup,
+                 pulses: ForcePulses, **kw):
+        self.capsules, self.settings, self.pulses = ball_setup.capsules, ball_setup.settings, pulses
+        super().__init__(model, ref, sim, **kw)
+
+    def _one(self, shared, run: BallBatch) -> BallRunOut:
+        model = eqx.combine(shared[0], self.model_static)
+        r = ct.contact_rollout(model, run.gains, self.pulses, shared[1], self.sim, run.ball, self.capsules,
+                               self.settings)
+        bodies = ct.candidate_bodies(self.capsules, self.settings)
+        on_char = bodies >= 0  # not the ground
+        imp = jnp.linalg.norm(r.contact.impulse, axis=-1) * on_char  # (S+1, C)
+        peak = jnp.max(imp)
+        cand = jnp.argmax(jnp.max(imp, axis=0))
+        touched = jnp.any((r.contact.normal_impulse > 0) & on_char, axis=-1)
+        return BallRunOut(r.run.theta, r.run.diverged_step, r.run.diverged_body, jnp.max(r.run.residual),
+                          jnp.max(r.run.violation), peak, jnp.where(peak > 0, bodies[cand], -1),
+                          jnp.where(jnp.any(touched), jnp.argmax(touched), -1))
+
+
+def run_ball_sweep(sweeper: BallSweeper, setup, speeds: Sequence[float], gain_settings: Sequence[GainSetting], *,
+                   balls: ct.Ball | None = None, keep_curves: bool = False, progress: bool = True) -> SweepResult:
+    """Contact rollouts of the config's ball at every speed x gain setting (gain setting
+    outermost), chunked like :func:`run_sweep`, measured against the ball never launched.
+    ``balls``: :func:`neuromotor.contact.balls_at_speeds` of ``speeds``, if already built."""
+    from tqdm.auto import tqdm
+
+    spec, model = setup.config.ball, setup.model
+    body_names = model.body_names
+    speeds = [float(v) for v in speeds]
+    if balls is None:
+        balls = ct.balls_at_speeds(setup, speeds)  # (n_speeds,) leaves
+    runs = [(g, i) for g in gain_settings for i in range(len(speeds))]
+    n = len(runs)
+    settings = {g: gains_for(setup.gains, g) for g in gain_settings}
+    gains = _stack([settings[g] for g, _ in runs])
+    take = np.array([i for _, i in runs])
+    batch = BallBatch(gains, jax.tree_util.tree_map(lambda x: np.asarray(x)[take], balls))
+    slot = np.array([list(settings).index(g) for g, _ in runs])
+    # Twins: one per gain setting, the ball never launched (no contact, no force at all).
+    base_batch = BallBatch(_stack(list(settings.values())),
+                           _stack([ct.never_launched(setup.ball.ball)] * len(settings)))
+    time = np.asarray(sweeper.shared[1].time)[: sweeper.n_steps + 1]
+    launch = float(setup.ball.ball.launch)
+    n_base, c = len(settings), sweeper.chunk
+    bar = tqdm(total=n_base + n, desc="ball sweep", unit="run", disable=not progress)
+    base_theta, base_bad = [], []
+    for lo in range(0, n_base, c):
+        hi = min(lo + c, n_base)
+        out = sweeper.simulate_chunk(sweeper.pad(base_batch, lo, hi))
+        base_theta.append(_gather(out.theta)[: hi - lo])
+        base_bad.append(_gather(out.diverged_step)[: hi - lo])
+        bar.update(hi - lo)
+    base_theta_arr = jnp.asarray(np.concatenate(base_theta))
+    base_step = np.concatenate(base_bad)
+    direction = np.asarray(batch.ball.direction)
+    rows, curves = [], []
+    for lo in range(0, n, c):
+        hi = min(lo + c, n)
+        out = sweeper.simulate_chunk(sweeper.pad(batch, lo, hi))
+        slot_c = np.minimum(np.arange(lo, lo + c), hi - 1)
+        dev = _gather(_chunk_deviation(out.theta, base_theta_arr, jnp.asarray(slot[slot_c])))[: hi - lo]
+        host = {k: _gather(getattr(out, k))[: hi - lo] for k in (
+            "diverged_step", "diverged_body", "max_residual", "max_violation", "peak_impulse", "hit_body",
+            "first_contact")}
+        for j in range(hi - lo):
+            i = lo + j
+            g, k = runs[i]
+            hit, first = int(host["hit_body"][j]), int(host["first_contact"][j])
+            row = {"run": i, "kind": "ball", "label": g.name, "controller": g.controller, "ks": g.ks, "kd": g.kd,
+                   "body": spec.get("target", ""), "magnitude": speeds[k], "direction_x": float(direction[i, 0]),
+                   "direction_y": float(direction[i, 1]), "direction_z": float(direction[i, 2]), "start": launch}
+            row.update(mx.recovery_metrics(time, dev[j], launch))
+            row.update(peak_impulse_Ns=float(host["peak_impulse"][j]), hit_body=body_names[hit] if hit >= 0 else "",
+                       first_contact_s=float(time[first]) if first >= 0 else float("nan"),
+                       max_kkt_residual=float(host["max_residual"][j]),
+                       max_constraint_violation=float(host["max_violation"][j]))
+            s_run, bstep = int(host["diverged_step"][j]), int(base_step[slot[i]])
+            if s_run >= 0 or bstep >= 0:
+                s = s_run if s_run >= 0 else bstep
+                b = int(host["diverged_body"][j])
+                row.update({key: float("nan") for key in METRIC_KEYS})
+                row.update(diverged=True, diverged_step=s, diverged_time_s=float(time[min(s + 1, len(time) - 1)]),
+                           diverged_body=("baseline" if s_run < 0 else body_names[b] if b < len(body_names)
+                                          else "ball"))
+            else:
+                row.update(diverged=False, diverged_step=-1, diverged_time_s=float("nan"), diverged_body="")
+            rows.append(row)
+        if keep_curves:
+            curves.append(dev)
+        bar.update(hi - lo)
+    bar.close()
+    return SweepResult(rows, np.concatenate(curves) if keep_curves else None, time)
+
+
 # ----------------------------------------------------------------------------- config
 
 
@@ -391,11 +532,29 @@ def read_fitted(value, source: str = "fitted") -> tuple[float, float]:
 def sweep_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> SweepSpec:
     """The ``[sweep]`` table of a config (see the module docstring)."""
     source = cfg.source
-    if not cfg.perturbations:
-        raise ConfigError(f"{source}: field 'perturbation' is required: a sweep varies perturbation[0]")
     f = _Fields(data.get("sweep", {}), "sweep", source)
-    base = cfg.perturbations[0]
-    mags = _number_list(f, "magnitudes", [base["magnitude"]], nonneg=True)
+    kind = "force"
+    if cfg.ball is not None:
+        kind = "ball"
+        if cfg.perturbations:
+            raise ConfigError(f"{source}: field 'perturbation': a sweep of a [ball] config varies the ball speed "
+                              "(sweep.magnitudes in m/s); remove the [[perturbation]] tables, or the [ball] "
+                              "table to sweep the force pulse")
+        for key in ("bodies", "directions", "starts"):
+            if key in f.table:
+                f.fail(key, "does not apply to a ball sweep: sweep.magnitudes are ball speeds (m/s); "
+                            "aim and launch time come from [ball]")
+        ball = cfg.ball
+        speed = float(np.linalg.norm(ball["velocity"])) if "velocity" in ball else ball["speed"]
+        mags = _number_list(f, "magnitudes", [speed], nonneg=True)
+        if "target" in ball and any(m <= 0 for m in mags):
+            f.fail("magnitudes", "ball speeds must be > 0 when the ball aims at a target (ball.target)")
+    elif not cfg.perturbations:
+        raise ConfigError(f"{source}: field 'perturbation' is required: a sweep varies perturbation[0] "
+                          "(or give a [ball] table to sweep the ball speed)")
+    else:
+        base = cfg.perturbations[0]
+        mags = _number_list(f, "magnitudes", [base["magnitude"]], nonneg=True)
     starts = _number_list(f, "starts", None, nonneg=True, allow_range=False)
     bodies = f.get("bodies", None)
     if bodies is not None and (not isinstance(bodies, list) or not bodies or not all(isinstance(b, str) for b in bodies)):
@@ -448,7 +607,7 @@ def sweep_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> SweepSpec:
         if base_dir is not None and not output.is_absolute():
             output = (pathlib.Path(base_dir) / output).resolve()
     return SweepSpec(mags, gains, bodies, [list(map(float, d)) for d in directions] if directions else None,
-                     starts, chunk, inner, output, fitted_pair)
+                     starts, chunk, inner, output, fitted_pair, kind)
 
 
 def load_sweep_config(path) -> tuple[SimulationConfig, SweepSpec]:
@@ -475,11 +634,12 @@ def _atomic_write(path: pathlib.Path, write, suffix: str, mode: str = "w"):
     return path
 
 
-def write_csv(rows: list[dict], path) -> pathlib.Path:
-    """One row per run (COLUMNS), written through a temporary file and renamed."""
+def write_csv(rows: list[dict], path, columns: Sequence[str] = COLUMNS) -> pathlib.Path:
+    """One row per run (``columns``: COLUMNS, or BALL_COLUMNS for a ball-speed sweep), written
+    through a temporary file and renamed."""
 
     def write(fh):
-        w = csv.DictWriter(fh, fieldnames=list(COLUMNS), extrasaction="ignore")
+        w = csv.DictWriter(fh, fieldnames=list(columns), extrasaction="ignore")
         w.writeheader()
         for r in rows:
             w.writerow({k: (repr(float(v)) if isinstance(v, (float, np.floating)) else v) for k, v in r.items()})
@@ -490,7 +650,7 @@ def write_csv(rows: list[dict], path) -> pathlib.Path:
 def read_csv(path) -> list[dict]:
     """Rows of :func:`write_csv`, numbers parsed back."""
     ints = {"run", "diverged_step"}
-    text = {"label", "controller", "body", "diverged_body"}
+    text = {"label", "controller", "body", "diverged_body", "kind", "hit_body"}
     out = []
     with open(path, newline="", encoding="utf-8") as fh:
         for r in csv.DictReader(fh):
@@ -518,12 +678,15 @@ def save_figure(fig, path) -> pathlib.Path:
 
 
 def _series_key(r: dict) -> tuple:
+    if r.get("kind") == "ball":  # an aimed ball's direction changes with its speed: one series
+        return (r["label"], r["body"], 0.0, 0.0, 0.0, r["start"])
     return (r["label"], r["body"], r["direction_x"], r["direction_y"], r["direction_z"], r["start"])
 
 
-def plot_sweep(rows: list[dict], path, title: str = "") -> pathlib.Path:
+def plot_sweep(rows: list[dict], path, title: str = "", xlabel: str | None = None) -> pathlib.Path:
     """Peak deviation and recovery time against magnitude, one line per gain setting (and per
-    body / direction / start when those vary too). Diverged runs: red crosses on the axis."""
+    body / direction / start when those vary too). Diverged runs: red crosses on the axis.
+    ``xlabel`` defaults to the pulse magnitude, or the ball speed for ball rows."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -557,8 +720,10 @@ def plot_sweep(rows: list[dict], path, title: str = "") -> pathlib.Path:
             if bad.any():
                 ax.plot(m[bad], np.zeros(bad.sum()), "x", color="red", ms=7, clip_on=False,
                         transform=ax.get_xaxis_transform(), label="diverged" if ax is axes[0] else None)
-    axes[0].set(xlabel="pulse magnitude (N)", ylabel="peak deviation (deg)")
-    axes[1].set(xlabel="pulse magnitude (N)", ylabel="recovery time (s)")
+    if xlabel is None:
+        xlabel = "ball speed (m/s)" if rows and rows[0].get("kind") == "ball" else "pulse magnitude (N)"
+    axes[0].set(xlabel=xlabel, ylabel="peak deviation (deg)")
+    axes[1].set(xlabel=xlabel, ylabel="recovery time (s)")
     axes[1].set_title("open triangle: not recovered by the window's end; red x: diverged", fontsize=7)
     for ax in axes:
         ax.grid(alpha=0.3)
@@ -628,7 +793,8 @@ def plot_gains_map(rows: list[dict], path, fitted: tuple[float, float] | None = 
 def sweep_from_config(path, output=None, *, devices=None, chunk=None, inner_batch=None, fitted=None,
                       progress: bool = True) -> tuple[SweepResult, dict[str, pathlib.Path]]:
     """Run the sweep of a config file; write ``sweep.csv``, ``sweep.png`` and, when ks and kd
-    both vary, ``gains_map.png`` into ``output`` (default: the config's ``sweep.output``)."""
+    both vary, ``gains_map.png`` into ``output`` (default: the config's ``sweep.output``).
+    A config with a ``[ball]`` table sweeps the ball speed (see the module docstring)."""
     from .simulate import body_lookup, prepare
 
     cfg, spec = load_sweep_config(path)
@@ -637,24 +803,40 @@ def sweep_from_config(path, output=None, *, devices=None, chunk=None, inner_batc
         spec.fitted = read_fitted(fitted, "--fitted")
     setup = prepare(cfg)
     model = setup.model
-    index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'")
-    for b in spec.bodies or []:
-        index(b)
-    sweeper = Sweeper(model, setup.ref, setup.sim, chunk=chunk or spec.chunk,
-                      inner_batch=inner_batch or spec.inner_batch,
-                      mesh=None if devices is None else device_mesh(devices))
-    runs = spec.runs(cfg.perturbations[0])
     lead = jax.process_index() == 0  # with several hosts, every process computes, one writes
-    result = run_sweep(sweeper, setup.gains, setup.pulses, runs, index, model.body_names, progress=progress and lead)
+    mesh = None if devices is None else device_mesh(devices)
+    if spec.kind == "ball":
+        # Aim every speed first: a speed that cannot reach the target is a config error.
+        try:
+            balls = ct.balls_at_speeds(setup, spec.magnitudes)
+        except ConfigError:
+            raise
+        except ValueError as e:
+            raise ConfigError(f"{cfg.source}: field 'sweep.magnitudes': {e}") from None
+        sweeper = BallSweeper(model, setup.ref, setup.sim, setup.ball, setup.pulses, chunk=chunk or spec.chunk,
+                              inner_batch=inner_batch or spec.inner_batch, mesh=mesh)
+        result = run_ball_sweep(sweeper, setup, spec.magnitudes, spec.gains, balls=balls, progress=progress and lead)
+    else:
+        index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'")
+        for b in spec.bodies or []:
+            index(b)
+        sweeper = Sweeper(model, setup.ref, setup.sim, chunk=chunk or spec.chunk,
+                          inner_batch=inner_batch or spec.inner_batch, mesh=mesh)
+        runs = spec.runs(cfg.perturbations[0])
+        result = run_sweep(sweeper, setup.gains, setup.pulses, runs, index, model.body_names,
+                           progress=progress and lead)
     if not lead:
         return result, {}
-    files = {"csv": write_csv(result.rows, out / "sweep.csv")}
+    files = {"csv": write_csv(result.rows, out / "sweep.csv", BALL_COLUMNS if spec.kind == "ball" else COLUMNS)}
     name = pathlib.Path(path).stem
     if len(spec.magnitudes) > 1:
         files["plot"] = plot_sweep(result.rows, out / "sweep.png", title=name)
     if len({g.ks for g in spec.gains}) > 1 and len({g.kd for g in spec.gains}) > 1:
-        hit = cfg.perturbations[0]
-        if len(spec.magnitudes) == 1:
+        if len(spec.magnitudes) == 1 and spec.kind == "ball":
+            aim = f"at {cfg.ball['target']}" if "target" in cfg.ball else "thrown"
+            name += f": {spec.magnitudes[0]:g} m/s ball {aim}, launched at {cfg.ball['launch']:g} s"
+        elif len(spec.magnitudes) == 1:
+            hit = cfg.perturbations[0]
             name += f": {spec.magnitudes[0]:g} N {hit['shape']} pulse on {hit['body']} at {hit['start']:g} s"
         files["gains_map"] = plot_gains_map(result.rows, out / "gains_map.png", spec.fitted, title=name)
     return result, files
