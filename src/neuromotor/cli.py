@@ -4,8 +4,13 @@
     neuromotor idyn [CLIP.bvh] -o OUT.npz
     neuromotor simulate [CONFIG.toml] -o RUN.npz [--ks KS --kd KD] [--json]
     neuromotor render RUN.npz -o OUT.png|OUT.mp4|OUT.gif
+    neuromotor plot RUN.npz -o OUT.png    # deviation and joint angles vs time (matplotlib)
     neuromotor export-bvh RUN.npz -o OUT.bvh
+    neuromotor sweep CONFIG.toml [-o DIR] [--fitted KS KD | --fitted-json FIT.json]  # batch grid -> CSV + plots
+    neuromotor fit CONFIG.toml [-o DIR] [--solver NAME]   # calibrate (ks, kd) -> fit.json + fit.png
     neuromotor demo [-o DIR]        # the main job: simulate the default hit, render it
+    neuromotor bench [CLIP.bvh] [--plot PNG] [--json OUT]   # speed figures (docs/benchmarks.md)
+    neuromotor export-mjcf [CLIP.bvh] -o MODEL.xml          # the same model for MuJoCo
 
 Every command writes its outputs atomically and exits non-zero with a one-line message on bad
 input, leaving no partial file behind.
@@ -139,6 +144,47 @@ def cmd_render(args) -> int:
     return 0
 
 
+def cmd_plot(args) -> int:
+    from .render import plot_run
+
+    plot_run(args.run, args.output)
+    print(f"wrote {args.output}")
+    return 0
+
+
+def cmd_sweep(args) -> int:
+    from .sweep import sweep_from_config
+
+    fitted = tuple(args.fitted) if args.fitted else args.fitted_json
+    result, files = sweep_from_config(args.config, args.output, chunk=args.chunk, inner_batch=args.inner_batch,
+                                      fitted=fitted, progress=not args.no_progress)
+    bad = sum(r["diverged"] for r in result.rows)
+    print(f"{len(result.rows)} runs ({bad} diverged); wrote " + ", ".join(str(f) for f in files.values()))
+    return 0
+
+
+def cmd_fit(args) -> int:
+    from .fitting import FitError, calibrate, load_calibration, write_synthetic_target
+
+    if args.write_synthetic:
+        path = write_synthetic_target(args.config, *args.write_synthetic, noise_deg=args.noise_deg, seed=args.seed)
+        print(f"wrote {path}")
+        return 0
+    cal = load_calibration(args.config, solver=args.solver)
+    try:
+        res, _ = calibrate(cal, args.output, progress=not args.no_progress)
+    except FitError as e:
+        print(f"neuromotor fit: error: {e}", file=sys.stderr)
+        return 3
+    print(f"{res.solver}: ks = {res.ks:.6g} +- {res.se_ks:.3g} 1/s^2, kd = {res.kd:.6g} +- {res.se_kd:.3g} 1/s "
+          f"(corr {res.correlation:+.2f}); residual {res.residual_norm:.4g}, {res.iterations} iterations, "
+          f"{res.wall_time_s:.1f} s; wrote {args.output}/fit.json, fit.png")
+    if not res.converged:
+        print(f"neuromotor fit: error: {res.status}: {res.message}", file=sys.stderr)
+        return 3
+    return 0
+
+
 def cmd_export_bvh(args) -> int:
     from .export import export_bvh
 
@@ -152,11 +198,29 @@ def cmd_demo(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     ns = argparse.Namespace(config=None, ks=None, kd=None, json=False, output=out / "run.npz")
     cmd_simulate(ns)
-    from .render import render_run
+    from .render import plot_run, render_run
 
     for name in ("filmstrip.png", "video.mp4"):
         render_run(out / "run.npz", out / name)
         print(f"wrote {out / name}")
+    plot_run(out / "run.npz", out / "deviation.png")
+    print(f"wrote {out / 'deviation.png'}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from .bench import run_from_args
+
+    return run_from_args(args)
+
+
+def cmd_export_mjcf(args) -> int:
+    from .mjcf import export_mjcf
+    from .simulate import load_character
+
+    character, _ = load_character(args.clip, args.units, args.up_axis)
+    export_mjcf(character, args.output, timestep=args.timestep)
+    print(f"wrote {args.output}")
     return 0
 
 
@@ -193,10 +257,54 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--frames", type=int, default=6)
     sp.set_defaults(func=cmd_render)
 
+    sp = sub.add_parser("plot", help="PNG plots of a run: deviation and joint angles vs time")
+    sp.add_argument("run")
+    sp.add_argument("-o", "--output", required=True)
+    sp.set_defaults(func=cmd_plot)
+
+    sp = sub.add_parser("sweep", help="batch grid of perturbed runs (sharded over devices) -> CSV + plots")
+    sp.add_argument("config")
+    sp.add_argument("-o", "--output", help="folder (default: the config's sweep.output)")
+    sp.add_argument("--chunk", type=int, help="runs per device call")
+    sp.add_argument("--inner-batch", type=int, help="rollouts vmapped together inside each shard")
+    sp.add_argument("--fitted", type=float, nargs=2, metavar=("KS", "KD"), help="fitted pair to mark on the gains map")
+    sp.add_argument("--fitted-json", help="JSON file with the fitted ks and kd")
+    sp.add_argument("--no-progress", action="store_true")
+    sp.set_defaults(func=cmd_sweep)
+
     sp = sub.add_parser("export-bvh", help="write the perturbed motion as BVH")
     sp.add_argument("run")
     sp.add_argument("-o", "--output", required=True)
     sp.set_defaults(func=cmd_export_bvh)
+
+    sp = sub.add_parser("fit", help="calibrate the gain pair (ks, kd) to a target response -> fit.json + fit.png")
+    sp.add_argument("config")
+    sp.add_argument("-o", "--output", default="out/fit")
+    sp.add_argument("--solver", default=None, help="override fit.solver (optimistix_lm, optimistix_gn, "
+                    "optimistix_bfgs, jaxopt_lm, jaxopt_lbfgs)")
+    sp.add_argument("--no-progress", action="store_true")
+    sp.add_argument("--write-synthetic", nargs=2, type=float, metavar=("KS", "KD"),
+                    help="instead of fitting, simulate the config's target file at these gains")
+    sp.add_argument("--noise-deg", type=float, default=0.0)
+    sp.add_argument("--seed", type=int, default=0)
+    sp.set_defaults(func=cmd_fit)
+
+    sp = sub.add_parser("bench", help="speed: steps/s, real-time factor, batch throughput, vs MuJoCo")
+    sp.add_argument("clip", nargs="?", default=None, help="BVH clip (default: the embedded 19-joint clip)")
+    sp.add_argument("--solver", choices=("tree", "dense"), default="tree")
+    sp.add_argument("--sizes", type=int, nargs="+", default=[1, 8, 64, 256], help="vmap batch sizes")
+    sp.add_argument("--repeats", type=int, default=5, help="timed repeats; the best is reported")
+    sp.add_argument("--idyn", nargs="*", default=[], help="clips for the inverse-dynamics figure")
+    sp.add_argument("--plot", default=None, help="PNG of throughput against batch size")
+    sp.add_argument("--json", default=None, help="write all figures as JSON")
+    sp.add_argument("--no-dense", action="store_true", help="skip the dense reference path")
+    sp.set_defaults(func=cmd_bench)
+
+    sp = sub.add_parser("export-mjcf", help="write the character as MuJoCo MJCF (hinges, position servos)")
+    clip_args(sp)
+    sp.add_argument("-o", "--output", required=True)
+    sp.add_argument("--timestep", type=float, default=1.0 / 120.0)
+    sp.set_defaults(func=cmd_export_mjcf)
 
     sp = sub.add_parser("demo", help="main job: simulate the default hit on the embedded clip and render it")
     sp.add_argument("-o", "--output", default="out/demo")

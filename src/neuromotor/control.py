@@ -43,12 +43,14 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from .kinematics import body_kinematics
 from .skeleton import Model
-from .system import dof_axes
+from .system import dof_axes, dofs_to_per_joint, per_joint_to_dofs
 
 DEFAULT_KS = 400.0  # 1/s^2: natural frequency 20 rad/s (3.2 Hz) at typical load
 DEFAULT_KD = 20.0  # 1/s: damping ratio 0.5
@@ -76,16 +78,19 @@ def distal_inertia(model: Model, q0: Float[Array, " Q"], theta0: Float[Array, " 
     pos, rot, *_ = body_kinematics(model, q0, zeros, zeros)
     axes = dof_axes(model, rot, theta0)
     iw = rot @ model.inertia @ jnp.swapaxes(rot, -1, -2)
-    subtree = _subtrees(model)
-    out = []
-    for i, b in enumerate(model.dof_body):
-        origin = pos[b] - rot[b] @ model.com[b]
-        total = jnp.zeros((3, 3), q0.dtype)
-        for c in subtree[b]:
-            r = pos[c] - origin
-            total = total + iw[c] + model.mass[c] * (jnp.dot(r, r) * jnp.eye(3) - jnp.outer(r, r))
-        out.append(axes[i] @ total @ axes[i])
-    return jnp.stack(out)
+    # in_sub[b, c] = 1 if body c is in the subtree of body b (static mask: one contraction
+    # instead of a Python double loop over bodies).
+    in_sub = np.zeros((model.n_bodies, model.n_bodies))
+    for b, members in enumerate(_subtrees(model)):
+        in_sub[b, members] = 1.0
+    origin = pos - jnp.einsum("bij,bj->bi", rot, model.com)  # joint origin of each body
+    r = pos[None, :, :] - origin[:, None, :]  # (b, c, 3): body c's COM from joint b
+    eye = jnp.eye(3, dtype=q0.dtype)
+    steiner = model.mass[None, :, None, None] * (
+        jnp.sum(r * r, -1)[..., None, None] * eye - r[..., :, None] * r[..., None, :])
+    total = jnp.einsum("bc,bcij->bij", in_sub, iw[None] + steiner)
+    per_body = total[np.array(model.dof_body)]
+    return jnp.einsum("ni,nij,nj->n", axes, per_body, axes)
 
 
 def _subtrees(model: Model) -> list[list[int]]:
@@ -95,6 +100,7 @@ def _subtrees(model: Model) -> list[list[int]]:
     return sub
 
 
+@jax.jit
 def make_gains(
     model: Model,
     q0: Float[Array, " Q"],
@@ -105,10 +111,8 @@ def make_gains(
     tau_floor: float = DEFAULT_TAU_FLOOR,
 ) -> Gains:
     per_dof = distal_inertia(model, q0, theta0)
-    inertia = jnp.zeros_like(per_dof)
-    for b in range(1, model.n_bodies):
-        dofs = jnp.array(model.dofs_of_body(b))
-        inertia = inertia.at[dofs].set(jnp.mean(per_dof[dofs]))
+    # One value per joint: the mean over its three DOF axes.
+    inertia = per_joint_to_dofs(model, jnp.repeat(jnp.mean(dofs_to_per_joint(model, per_dof), -1, keepdims=True), 3, -1))
     rms = jnp.sqrt(jnp.mean(activation**2, axis=0))
     # A DOF that carries no load at all still gets feedback at a tiny reference torque.
     rms = jnp.maximum(rms, 1e-6 * jnp.max(rms))
@@ -134,13 +138,10 @@ def joint_torque_magnitude(model: Model, axes: Float[Array, "T n 3"], tau: Float
     Unlike the individual tau_i, which grow large with opposite signs near gimbal lock, the
     joint torque stays bounded.
     """
-    contrib = axes * tau[..., None]
-    out = jnp.zeros_like(tau)
-    for b in range(1, model.n_bodies):
-        dofs = jnp.array(model.dofs_of_body(b))
-        total = jnp.linalg.norm(jnp.sum(contrib[:, dofs], axis=1), axis=-1)
-        out = out.at[:, dofs].set(total[:, None])
-    return out
+    contrib = dofs_to_per_joint(model, jnp.moveaxis(axes * tau[..., None], -2, 0))  # (C, 3, T, 3)
+    total = jnp.linalg.norm(jnp.sum(contrib, axis=1), axis=-1)  # (C, T)
+    out = per_joint_to_dofs(model, jnp.repeat(total[:, None, :], 3, 1))  # (n, T)
+    return jnp.moveaxis(out, 0, -1)
 
 
 def feedback_multipliers(

@@ -14,20 +14,35 @@ Positions then move with v+ (quaternions by the exponential map) and are project
 the constraint manifold (Cline & Pai 2003): ``(J M^-1 J^T) mu = -C(x)``, ``x <- x + M^-1 J^T mu``,
 a fixed number of Newton iterations so the step stays differentiable in both modes.
 
+Two solvers give the same step (``SimConfig.solver``; a test checks agreement to round-off):
+
+* ``"tree"`` (default): K and D by ``jax.jacfwd`` of a per-joint torque function (a joint's
+  muscle torque depends on its two bodies only) vmapped over joints, kept as 3x3 blocks on the
+  body tree (:func:`stiff_blocks`); Eq. 2 and each post-stabilization Newton step solved by
+  block elimination along the tree in linear time (:mod:`neuromotor.treesolve`).
+* ``"dense"``: one dense ``jacfwd`` over all bodies (:func:`stiff_jacobians`) and one dense
+  LU of the (6B + nc) square matrix -- the reference path, and the assembly functions that
+  other solvers (ball contact) build on.
+
 The rollout is one ``lax.scan``; divergence is recorded in the carry (first bad step and body)
-and raised on the host by :func:`check_rollout`.
+and raised on the host by :func:`check_rollout`. Joint angles and rates are computed after the
+scan for all states at once.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .control import Gains, feedback_multipliers, joint_torque_magnitude
-from .inverse import inverse_dynamics, mocap_angles, sim_columns
-from .kinematics import Trajectory, body_kinematics
+from .inverse import inverse_dynamics, sim_columns
+from .kinematics import Trajectory, body_kinematics, joint_angles_from_q
 from .perturbation import ForcePulses, generalized_forces, no_pulses
 from .rotations import (
     matrix_to_quat,
@@ -37,10 +52,19 @@ from .rotations import (
     quat_normalize,
     quat_to_matrix,
     rotation_error,
+    skew,
 )
+from . import treesolve
 from .skeleton import Model
 from .system import (
     State,
+    dofs_to_per_joint,
+    euler_axes_batched,
+    joint_jacobian_blocks,
+    per_joint_to_dofs,
+    root_lever,
+    solve3,
+    topology,
     constraint_error,
     constraint_jacobian,
     dof_axes,
@@ -49,8 +73,7 @@ from .system import (
     joint_angles,
     joint_rates,
     mass_matrix,
-    muscle_jacobian,
-    relative_rotations,
+    world_inertia,
 )
 
 
@@ -72,6 +95,9 @@ class SimConfig(eqx.Module):
     stab_iters: int = eqx.field(static=True, default=3)
     max_speed: float = eqx.field(static=True, default=200.0)  # rad/s or m/s: beyond it, diverged
     free_root: bool = eqx.field(static=True, default=False)  # drop the 6 driven-root rows
+    # "tree": linear-time block elimination along the body tree with K, D from per-joint
+    # Jacobians (fast); "dense": one dense jacfwd and one dense KKT solve (reference path).
+    solver: str = eqx.field(static=True, default="tree")
 
 
 class Reference(eqx.Module):
@@ -92,22 +118,33 @@ class Reference(eqx.Module):
 
 
 def make_reference(model: Model, traj: Trajectory, t0: float, h: float, n_steps: int) -> Reference:
+    """Sample the mocap targets on the simulation grid (inverse dynamics of Eq. 3 included)."""
+    return _make_reference(model, traj, jnp.asarray(t0, jnp.float64), jnp.asarray(h, jnp.float64), n_steps)
+
+
+# One compiled program rather than hundreds of eagerly dispatched small ops (each eager op is
+# compiled on its own, which made preparing a run take longer than compiling the rollout).
+@functools.partial(jax.jit, static_argnames=("n_steps",))
+def _make_reference(model: Model, traj: Trajectory, t0, h, n_steps: int) -> Reference:
     times = t0 + h * jnp.arange(n_steps + 1)
     q = jax.vmap(traj.q)(times)
     qd = jax.vmap(traj.qd)(times)
     qdd = jax.vmap(traj.qdd)(times)
     kin = jax.vmap(lambda a, b, c: body_kinematics(model, a, b, c))(q, qd, qdd)
     pos, rot, vel, omega = kin[0], kin[1], kin[2], kin[3]
-    theta, theta_dot, _ = jax.vmap(lambda t: mocap_angles(model, traj, t))(times)
     cols = sim_columns(model)
+    theta = jax.vmap(lambda a, t: joint_angles_from_q(model, a, traj.angle_reference(t)))(q, times)[:, cols]
     sol = inverse_dynamics(model, traj, times)
+    # Euler rates from sum_i h_i thetadot_i = omega_child - omega_parent (exact, and much
+    # cheaper to compile than a jvp through the Euler decomposition).
+    theta_dot = jax.vmap(lambda ax, w: joint_rates(model, ax, w))(sol.axes, omega)
     activation = joint_torque_magnitude(model, sol.axes, sol.tau)
     par = jnp.array([max(p, 0) for p in model.body_parent], dtype=jnp.int32)
     rel = jnp.swapaxes(rot[:, par], -1, -2) @ rot
     rel_w = jnp.einsum("tbji,tbj->tbi", rot[:, par], omega - omega[:, par])
     init = State(pos[0], matrix_to_quat(rot[0]), vel[0], omega[0])
     root_origin = pos[:, 0] - jnp.einsum("tij,j->ti", rot[:, 0], model.com[0])
-    return Reference(times, sol.tau, activation, theta[:, cols], theta_dot[:, cols], root_origin,
+    return Reference(times, sol.tau, activation, theta, theta_dot, root_origin,
                      rot[:, 0], qd[:, 0:3], omega[:, 0], rel, rel_w, init)
 
 
@@ -118,9 +155,21 @@ def _active_mask(model: Model, driven: tuple[int, ...], dtype) -> Float[Array, "
 DAMPING = 0.02  # damped least squares at gimbal lock (singular value scale of the Euler axes)
 
 
-def damped_solve(a: Float[Array, "3 3"], e: Float[Array, " 3"], mu: float = DAMPING):
+def damped_solve(a: Float[Array, "... 3 3"], e: Float[Array, "... 3"], mu: float = DAMPING):
     """x = A^T (A A^T + mu^2 I)^-1 e: A^-1 e away from singularity, bounded at gimbal lock."""
-    return a.T @ jnp.linalg.solve(a @ a.T + mu**2 * jnp.eye(3, dtype=a.dtype), e)
+    at = jnp.swapaxes(a, -1, -2)
+    gram = a @ at + mu**2 * jnp.eye(3, dtype=a.dtype)
+    return jnp.einsum("...ij,...j->...i", at, solve3(gram, e))
+
+
+def _joint_errors(rot_p, rot_c, w_p, w_c, a, rel_d, rel_w_d):
+    """Angle and rate errors of joints (any leading shape) resolved along their axes ``a``
+    (columns h_i); see :func:`dof_errors`."""
+    rel = jnp.swapaxes(rot_p, -1, -2) @ rot_c
+    e_local = quat_log(matrix_to_quat(rel_d @ jnp.swapaxes(rel, -1, -2)))
+    e_world = jnp.einsum("...ij,...j->...i", rot_p, e_local)
+    w_err = jnp.einsum("...ij,...j->...i", rot_p, rel_w_d) - (w_c - w_p)
+    return damped_solve(a, e_world), damped_solve(a, w_err)
 
 
 def dof_errors(model: Model, rot, omega, axes, rel_d, rel_w_d):
@@ -132,18 +181,50 @@ def dof_errors(model: Model, rot, omega, axes, rel_d, rel_w_d):
     the BVH decomposition, it is always the shortest rotation (no wrapping issue), and it stays
     bounded at gimbal lock, where Euler differences are ill-defined.
     """
-    par = jnp.array([max(p, 0) for p in model.body_parent])
-    rel = jnp.swapaxes(rot[par], -1, -2) @ rot
-    e_local = quat_log(matrix_to_quat(rel_d @ jnp.swapaxes(rel, -1, -2)))
-    e_world = jnp.einsum("bij,bj->bi", rot[par], e_local)
-    w_err = jnp.einsum("bij,bj->bi", rot[par], rel_w_d) - (omega - omega[par])
-    d_theta, d_rate = [], []
-    for b in range(1, model.n_bodies):
-        dofs = jnp.array(model.dofs_of_body(b))
-        a = axes[dofs].T
-        d_theta.append(damped_solve(a, e_world[b]))
-        d_rate.append(damped_solve(a, w_err[b]))
-    return jnp.concatenate(d_theta), jnp.concatenate(d_rate)
+    topo = topology(model)
+    c, p = topo["child"], topo["parent"]
+    a = jnp.swapaxes(dofs_to_per_joint(model, axes), -1, -2)
+    d_theta, d_rate = _joint_errors(rot[p], rot[c], omega[p], omega[c], a, rel_d[c], rel_w_d[c])
+    return per_joint_to_dofs(model, d_theta), per_joint_to_dofs(model, d_rate)
+
+
+def _joint_inputs(model: Model, gains: Gains, ref_k, active):
+    """Per-joint slices (leading axis C) of the reference and of the per-DOF gains."""
+    tau, act, theta_d, rel_d, rel_w_d = ref_k
+    c = topology(model)["child"]
+    per = lambda x: dofs_to_per_joint(model, x)
+    return (per(tau), per(act), per(theta_d), rel_d[c], rel_w_d[c], per(gains.scale),
+            per(gains.floor), per(gains.reference_torque), per(active))
+
+
+def _joint_torque(order: str, gains: Gains, rot_p, rot_c, w_p, w_c, inputs):
+    """World muscle torque ``T_j = sum_i h_i (psi_i + gamma_i)`` of one joint on its child
+    (Eq. 4 and Section 5.2; the parent gets -T_j). Depends on the joint's two bodies only."""
+    tau, act, theta_d, rel_d, rel_w_d, scale, floor, ref_torque, active = inputs
+    a = jnp.swapaxes(euler_axes_batched(rot_p, theta_d, order), -1, -2)  # columns h_i
+    d_theta, d_rate = _joint_errors(rot_p, rot_c, w_p, w_c, a, rel_d, rel_w_d)
+    g = dataclasses.replace(gains, scale=scale, floor=floor, reference_torque=ref_torque)
+    mult = feedback_multipliers(g, tau, act, d_theta, d_rate, active)
+    return jnp.einsum("...ij,...j->...i", a, mult)
+
+
+def _joint_torques(model: Model, gains: Gains, ref_k, active, rot, omega) -> Float[Array, "C 3"]:
+    topo = topology(model)
+    c, p = topo["child"], topo["parent"]
+    inputs = _joint_inputs(model, gains, ref_k, active)
+    out = jnp.zeros((model.n_bodies - 1, 3), rot.dtype)
+    for order, bodies, rows in topo["groups"]:
+        sub = jax.tree_util.tree_map(lambda x: x[rows], inputs)
+        part = _joint_torque(order, gains, rot[p[rows]], rot[c[rows]], omega[p[rows]], omega[c[rows]], sub)
+        out = part if len(rows) == model.n_bodies - 1 else out.at[rows].set(part)
+    return out
+
+
+def _body_torques(model: Model, joint_torque: Float[Array, "C 3"]) -> Float[Array, "B 3"]:
+    """+T_j on each joint's child, -T_j on its parent (static one-hot selectors, no scatter)."""
+    topo = topology(model)
+    sel = np.eye(model.n_bodies)[topo["child"]] - np.eye(model.n_bodies)[topo["parent"]]
+    return jnp.einsum("cb,ci->bi", sel, joint_torque)
 
 
 def muscle_and_gyro(model: Model, gains: Gains, ref_k, active, rot, omega):
@@ -153,11 +234,9 @@ def muscle_and_gyro(model: Model, gains: Gains, ref_k, active, rot, omega):
     frame: exactly Eq. 4 on the mocap, and the feedforward sum h_i tau_i stays well-conditioned
     near gimbal lock where the individual tau_i are large and of opposite signs.
     """
-    tau, act, theta_d, rel_d, rel_w_d = ref_k
-    axes = dof_axes(model, rot, theta_d)
-    d_theta, d_rate = dof_errors(model, rot, omega, axes, rel_d, rel_w_d)
-    mult = feedback_multipliers(gains, tau, act, d_theta, d_rate, active)
-    return gyroscopic_forces(model, rot, omega) + muscle_jacobian(model, axes).T @ mult
+    torque = _body_torques(model, _joint_torques(model, gains, ref_k, active, rot, omega))
+    muscle = jnp.concatenate([jnp.zeros_like(torque), torque], -1).reshape(-1)
+    return gyroscopic_forces(model, rot, omega) + muscle
 
 
 def _rotate(delta: Float[Array, "B 3"], rot: Float[Array, "B 3 3"]) -> Float[Array, "B 3 3"]:
@@ -176,6 +255,66 @@ def stiff_jacobians(model, gains, ref_k, active, rot, omega):
     kmat = jax.jacfwd(f, argnums=0)(zero, omega).reshape(6 * n, 3 * n)
     dmat = jax.jacfwd(f, argnums=1)(zero, omega).reshape(6 * n, 3 * n)
     return k, kmat, dmat
+
+
+class StiffBlocks(eqx.Module):
+    """K = dk/dx and D = dk/dv of the stiff torques, angular 3x3 blocks on the body tree."""
+
+    k: Float[Array, "B 3"]  # stiff torques per body (muscles and gyroscopic term)
+    k_diag: Float[Array, "B 3 3"]
+    k_up: Float[Array, "C 3 3"]  # d torque(child) / d rotation(parent)
+    k_down: Float[Array, "C 3 3"]  # d torque(parent) / d rotation(child)
+    d_diag: Float[Array, "B 3 3"]
+    d_up: Float[Array, "C 3 3"]
+    d_down: Float[Array, "C 3 3"]
+
+
+def stiff_blocks(model: Model, gains: Gains, ref_k, active, rot, omega) -> StiffBlocks:
+    """The same K and D as :func:`stiff_jacobians`, by ``jax.jacfwd`` of a per-joint function
+    (12 inputs: both bodies' rotation and angular velocity) vmapped over joints, plus the
+    gyroscopic term per body. The tree sparsity is exact, not an approximation: joint j's torque
+    depends on its two bodies only."""
+    topo = topology(model)
+    c, p = topo["child"], topo["parent"]
+    inputs = _joint_inputs(model, gains, ref_k, active)
+    nj = model.n_bodies - 1
+    tq = jnp.zeros((nj, 3), rot.dtype)
+    jac = jnp.zeros((nj, 3, 12), rot.dtype)
+    zero = jnp.zeros(6, rot.dtype)
+    for order, bodies, rows in topo["groups"]:
+        def one(x, rp, rc, wp, wc, inp, order=order):
+            # x = [d_parent, d_child, w_parent, w_child]: rotations as exp(d) R (Eq. 2's tangent).
+            return _joint_torque(order, gains, _rotate(x[0:3], rp), _rotate(x[3:6], rc),
+                                 x[6:9], x[9:12], inp)
+
+        def val_jac(rp, rc, wp, wc, inp):
+            x = jnp.concatenate([zero, wp, wc])
+            return one(x, rp, rc, wp, wc, inp), jax.jacfwd(one)(x, rp, rc, wp, wc, inp)
+
+        sub = jax.tree_util.tree_map(lambda x: x[rows], inputs)
+        t_g, j_g = jax.vmap(val_jac)(rot[p[rows]], rot[c[rows]], omega[p[rows]], omega[c[rows]], sub)
+        full = len(rows) == nj
+        tq = t_g if full else tq.at[rows].set(t_g)
+        jac = j_g if full else jac.at[rows].set(j_g)
+
+    def gyro(x, r, ib):
+        rr = _rotate(x[:3], r)
+        iw = rr @ ib @ rr.T
+        return -jnp.cross(x[3:], iw @ x[3:])
+
+    def gyro_val_jac(r, w, ib):
+        x = jnp.concatenate([jnp.zeros(3, r.dtype), w])
+        return gyro(x, r, ib), jax.jacfwd(gyro)(x, r, ib)
+
+    g, gj = jax.vmap(gyro_val_jac)(rot, omega, model.inertia)
+    sel_c = np.eye(model.n_bodies)[c]
+    sel_p = np.eye(model.n_bodies)[p]
+    # Child rows get +dT, parent rows -dT; diagonal blocks gather both ends of every joint.
+    diag = lambda dp, dc: jnp.einsum("cb,cij->bij", sel_c, dc) - jnp.einsum("cb,cij->bij", sel_p, dp)
+    k_diag = gj[:, :, :3] + diag(jac[:, :, 0:3], jac[:, :, 3:6])
+    d_diag = gj[:, :, 3:] + diag(jac[:, :, 6:9], jac[:, :, 9:12])
+    torque = g + _body_torques(model, tq)
+    return StiffBlocks(torque, k_diag, jac[:, :, 0:3], -jac[:, :, 3:6], d_diag, jac[:, :, 6:9], -jac[:, :, 9:12])
 
 
 def _angular_embed(mat: Float[Array, "N 3B"], n: int) -> Float[Array, "N 6B"]:
@@ -258,6 +397,143 @@ def post_stabilize(model: Model, driven, pos, quat, targets, iters: int, free_ro
     return pos, quat, c
 
 
+# ---------------------------------------------------------------- tree (fast) path
+
+
+def _tree_constraints(model: Model, driven: tuple[int, ...], rot, free_root: bool):
+    """Rows of :func:`full_constraints` grouped by owner: the root's rows and, per non-root
+    body, its ball joint's 3 rows followed (when any joint is driven) by 3 driven-joint rows
+    or 3 padding rows."""
+    dtype = rot.dtype
+    eye = jnp.eye(3, dtype=dtype)
+    zero3 = jnp.zeros((3, 3), dtype)
+    r0 = root_lever(model, rot)
+    j_root = jnp.block([[eye, -skew(r0)], [zero3, eye]])[: 0 if free_root else 6]
+    j_par, j_own = joint_jacobian_blocks(model, rot)
+    nj = model.n_bodies - 1
+    pad = jnp.zeros((nj, 3), dtype)
+    if driven:
+        is_drv = np.zeros((nj, 1, 1))
+        is_drv[np.array(driven) - 1] = 1.0
+        ang = jnp.asarray(is_drv) * jnp.concatenate([jnp.zeros((3, 3), dtype), eye], -1)
+        j_own = jnp.concatenate([j_own, ang], 1)
+        j_par = jnp.concatenate([j_par, -ang], 1)
+        pad = jnp.concatenate([pad, jnp.asarray(1.0 - is_drv[:, :, 0]) * jnp.ones((nj, 3), dtype)], 1)
+    return j_root, j_own, j_par, pad
+
+
+def _split_rows(model: Model, driven, values: Float[Array, " nc"], free_root: bool):
+    """A vector over the rows of :func:`full_constraints` in tree layout (root, (C, m))."""
+    m0 = 0 if free_root else 6
+    nj = model.n_bodies - 1
+    root, joints = values[:m0], values[m0:m0 + 3 * nj].reshape(nj, 3)
+    if driven:
+        extra = jnp.zeros((nj, 3), values.dtype).at[np.array(driven) - 1].set(
+            values[m0 + 3 * nj:].reshape(-1, 3))
+        joints = jnp.concatenate([joints, extra], 1)
+    return root, joints
+
+
+def _join_rows(driven, root, joints):
+    """Inverse of :func:`_split_rows` (padding rows dropped)."""
+    out = [root, joints[:, :3].reshape(-1)]
+    if driven:
+        out.append(joints[np.array(driven) - 1, 3:].reshape(-1))
+    return jnp.concatenate(out)
+
+
+def _embed_angular(blocks: Float[Array, "... 3 3"]) -> Float[Array, "... 6 6"]:
+    z = jnp.zeros(blocks.shape[:-2] + (3, 3), blocks.dtype)
+    return jnp.concatenate([jnp.concatenate([z, z], -1), jnp.concatenate([z, blocks], -1)], -2)
+
+
+def _mass_blocks(model: Model, rot) -> Float[Array, "B 6 6"]:
+    lin = model.mass[:, None, None] * jnp.eye(3, dtype=rot.dtype)
+    z = jnp.zeros_like(lin)
+    ang = world_inertia(model, rot)
+    return jnp.concatenate([jnp.concatenate([lin, z], -1), jnp.concatenate([z, ang], -1)], -2)
+
+
+def post_stabilize_tree(model: Model, driven, pos, quat, targets, iters: int, free_root: bool = False):
+    """:func:`post_stabilize` with each Newton step's system ``[M -J^T; J 0][dx; mu] = [0; -C]``
+    solved by tree elimination (the same projection: dx = M^-1 J^T mu, J dx = -C)."""
+    root_origin, root_rot, rel_rot = targets
+
+    def body(carry, _):
+        pos, quat = carry
+        rot = quat_to_matrix(quat)
+        c = full_constraint_error(model, driven, pos, rot, root_origin, root_rot, rel_rot, free_root)
+        j_root, j_own, j_par, pad = _tree_constraints(model, driven, rot, free_root)
+        zero = jnp.zeros((model.n_bodies - 1, 6, 6), rot.dtype)
+        sys = treesolve.TreeKKT(_mass_blocks(model, rot), zero, zero, j_root, j_own, j_par, pad)
+        c_root, c_joint = _split_rows(model, driven, c, free_root)
+        # Full Newton (refactored at every iterate), exactly as the dense projection.
+        delta, _, _ = treesolve.solve(sys, model.body_parent, jnp.zeros((model.n_bodies, 6), rot.dtype),
+                                      -c_root, -c_joint)
+        pos = pos + delta[:, :3]
+        quat = quat_normalize(quat_mul(quat_exp(delta[:, 3:]), quat))
+        return (pos, quat), None
+
+    (pos, quat), _ = jax.lax.scan(body, (pos, quat), None, length=iters)
+    rot = quat_to_matrix(quat)
+    c = full_constraint_error(model, driven, pos, rot, root_origin, root_rot, rel_rot, free_root)
+    return pos, quat, c
+
+
+def _step_tree(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, ref: Reference, k, state: State):
+    """Eq. 2 with the block structure of the tree (see :mod:`neuromotor.treesolve`)."""
+    h = cfg.h
+    n = model.n_bodies
+    rot = state.rot
+    dtype = rot.dtype
+    active = _active_mask(model, cfg.driven, dtype)
+    ref_k = (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
+    mass = _mass_blocks(model, rot)
+    if cfg.implicit:
+        sb = stiff_blocks(model, gains, ref_k, active, rot, state.omega)
+        torque = sb.k
+        a_diag = mass - _embed_angular(h * sb.d_diag + h * h * sb.k_diag)
+        a_up = -_embed_angular(h * sb.d_up + h * h * sb.k_up)
+        a_down = -_embed_angular(h * sb.d_down + h * h * sb.k_down)
+        # D v over the tree: diagonal, body <- parent, and parent <- child couplings.
+        topo = topology(model)
+        c, p = topo["child"], topo["parent"]
+        w = state.omega
+        sel_c, sel_p = np.eye(n)[c], np.eye(n)[p]  # one-hot sums: no scatter under vmap
+        dv = (jnp.einsum("bij,bj->bi", sb.d_diag, w)
+              + jnp.einsum("cb,cij,cj->bi", sel_c, sb.d_up, w[p])
+              + jnp.einsum("cb,cij,cj->bi", sel_p, sb.d_down, w[c]))
+    else:
+        k_stiff = muscle_and_gyro(model, gains, ref_k, active, rot, state.omega).reshape(n, 6)
+        torque = k_stiff[:, 3:]
+        a_diag = mass
+        a_up = a_down = jnp.zeros((n - 1, 6, 6), dtype)
+        dv = jnp.zeros((n, 3), dtype)
+    f_pert, per_body, points = generalized_forces(pulses, ref.time[k], n, state.pos, rot, model.com)
+    kvec = (gravity_forces(model) + f_pert).reshape(n, 6)
+    kvec = kvec.at[:, 3:].add(torque)
+    mv = jnp.einsum("bij,bj->bi", mass, state.v.reshape(n, 6))
+    r = mv + h * kvec.at[:, 3:].add(-dv)
+    j_root, j_own, j_par, pad = _tree_constraints(model, cfg.driven, rot, cfg.free_root)
+    sys = treesolve.TreeKKT(a_diag, a_up, a_down, j_root, j_own, j_par, pad)
+    b = constraint_velocity(model, cfg.driven, rot, ref.root_vel[k + 1], ref.root_omega[k + 1],
+                            ref.rel_omega[k + 1], cfg.free_root)
+    s_root, s_joint = _split_rows(model, cfg.driven, b, cfg.free_root)
+    v_new, lam_root, lam = treesolve.solve(sys, model.body_parent, r, s_root, s_joint)
+    top, bot_root, bot = treesolve.matvec(sys, model.body_parent, v_new, lam_root, lam)
+    res = jnp.concatenate([(top - r).reshape(-1), bot_root - s_root, (bot - s_joint).reshape(-1)])
+    rhs_norm = jnp.sqrt(jnp.sum(r**2) + jnp.sum(s_root**2) + jnp.sum(s_joint**2))
+    residual = jnp.linalg.norm(res) / jnp.maximum(rhs_norm, 1e-300)
+    vel, omega = v_new[:, :3], v_new[:, 3:]
+    pos = state.pos + h * vel
+    quat = quat_normalize(quat_mul(quat_exp(h * omega), state.quat))
+    targets = (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
+    pos, quat, cerr = post_stabilize_tree(model, cfg.driven, pos, quat, targets, cfg.stab_iters, cfg.free_root)
+    violation = jnp.max(jnp.abs(cerr)) if cerr.size else jnp.zeros((), dtype)
+    info = StepInfo(residual, violation, per_body, points, _join_rows(cfg.driven, lam_root, lam) / h)
+    return State(pos, quat, vel, omega), info
+
+
 class StepInfo(eqx.Module):
     residual: Float[Array, ""]  # relative residual of the KKT solve of Eq. 2
     violation: Float[Array, ""]  # max |C(x)| after post-stabilization (m or rad)
@@ -267,7 +543,15 @@ class StepInfo(eqx.Module):
 
 
 def step(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, ref: Reference, k, state: State):
-    """One linearly implicit step from t_k to t_k + h (Eq. 2 plus post-stabilization)."""
+    """One linearly implicit step from t_k to t_k + h (Eq. 2 plus post-stabilization).
+
+    ``cfg.solver`` picks the tree elimination (default) or the dense reference solve; both
+    solve the same equations and agree to round-off.
+    """
+    if cfg.solver == "tree":
+        return _step_tree(model, gains, pulses, cfg, ref, k, state)
+    if cfg.solver != "dense":
+        raise ValueError(f"SimConfig.solver must be 'tree' or 'dense', got {cfg.solver!r}")
     h = cfg.h
     n = model.n_bodies
     rot = state.rot
@@ -351,23 +635,25 @@ def rollout(model: Model, gains: Gains, pulses: ForcePulses, ref: Reference, cfg
         bad_body = jnp.where(first, jnp.argmax(score), bad_body)
         # After a blow-up keep the last good state so NaNs do not spread through the batch.
         new = jax.tree_util.tree_map(lambda a, b: jnp.where(bad_step >= 0, a, b), state, new)
-        theta, theta_dot = observe(model, new, ref, k + 1)
-        return (new, bad_step, bad_body), (new, theta, theta_dot, info)
+        return (new, bad_step, bad_body), (new, info)
 
     init = ref.init
     carry0 = (init, jnp.asarray(-1), jnp.asarray(-1))
-    (_, bad_step, bad_body), (states, theta, theta_dot, info) = jax.lax.scan(
+    (_, bad_step, bad_body), (states, info) = jax.lax.scan(
         body, carry0, jnp.arange(cfg.n_steps)
     )
-    theta0, theta_dot0 = observe(model, init, ref, 0)
     stack = lambda a, b: jnp.concatenate([a[None], b], 0)
     states = jax.tree_util.tree_map(stack, init, states)
+    # Joint angles and rates of all states at once after the scan: the per-step loop keeps
+    # only the dynamics, and the observation runs as a few wide vectorized ops.
+    theta, theta_dot = jax.vmap(lambda st, k: observe(model, st, ref, k))(
+        states, jnp.arange(cfg.n_steps + 1))
     _, f0, p0 = generalized_forces(pulses, ref.time[0], model.n_bodies, init.pos, init.rot, model.com)
     return Rollout(
         ref.time[: cfg.n_steps + 1],
         states,
-        stack(theta0, theta),
-        stack(theta_dot0, theta_dot),
+        theta,
+        theta_dot,
         info.residual,
         info.violation,
         stack(f0, info.force),

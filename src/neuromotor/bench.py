@@ -1,0 +1,330 @@
+"""Speed benchmark (issue 6, with the figures of issues 2 and 3): ``neuromotor bench``.
+
+Prints, after compilation, for the 19-joint default clip at h = 1/120 s:
+
+* one trajectory: steps per second, real-time factor, compile time, and the split of a step
+  between the Jacobians K, D (Eq. 2), the KKT solve, post-stabilization and the rest;
+* a ``vmap`` batch at sizes 1, 8, 64, 256 (short rollouts): total simulated steps per second;
+* ``jax.jacfwd`` over (ks, kd) through a 1 s rollout, relative to the rollout itself;
+* inverse dynamics of whole clips (Eq. 3) after compile and its compile time;
+* MuJoCo (optional) on the exported MJCF (:func:`neuromotor.mjcf.model_to_mjcf`): one thread,
+  implicitfast, PD servos on every hinge, same skeleton, masses and time step; and the ratio.
+
+Every time is the best of several repeats (the figures are meant for a shared machine).
+Component times are measured on their own inside a ``lax.scan`` over the states of a rollout,
+so dispatch overhead does not count; "rest" is the full step minus the measured parts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import dynamics as dy
+from . import treesolve
+from .config import DEFAULT_HIT, SimulationConfig
+from .inverse import inverse_dynamics
+from .simulate import load_character, prepare
+
+H = 1.0 / 120.0
+
+
+def _best(fn, repeats: int) -> float:
+    best = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def _compile(fn, *args):
+    """(compiled, wall seconds to trace and compile)."""
+    t = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    return compiled, time.perf_counter() - t
+
+
+def cpu_name() -> str:
+    try:
+        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
+def machine() -> str:
+    dev = jax.devices()[0]
+    import os
+
+    return (f"{os.cpu_count()}-core CPU ({cpu_name()}), JAX {jax.__version__} on {dev.platform}, "
+            f"float64" + ("" if dev.platform == "cpu" else f" ({dev.device_kind})"))
+
+
+def _setup(clip, seconds: float, solver: str):
+    character, traj = load_character(clip)
+    config = SimulationConfig(clip=None if clip is None else str(clip), duration=seconds,
+                              perturbations=[dict(DEFAULT_HIT, start=min(0.3, seconds / 2))])
+    setup = prepare(config, character, traj)
+    setup.sim = dataclasses.replace(setup.sim, solver=solver)
+    return setup
+
+
+def single(setup, repeats: int) -> dict:
+    """One trajectory: speed, compile time and the split of a step."""
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    run_fn = lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg)
+    comp, compile_s = _compile(run_fn, m, g, p, ref)
+    run = comp(m, g, p, ref)
+    total = _best(lambda: comp(m, g, p, ref), repeats)
+    per_step = total / cfg.n_steps
+    states = jax.tree_util.tree_map(lambda x: x[:-1], run.states)
+    active = dy._active_mask(m, cfg.driven, jnp.float64)
+    ks = jnp.arange(cfg.n_steps)
+
+    def scan_of(body):
+        def f(states, ref):
+            def step(acc, xs):
+                k, st = xs
+                out = body(k, st, ref)
+                return acc + sum(jnp.sum(x) for x in jax.tree_util.tree_leaves(out)), None
+
+            return jax.lax.scan(step, jnp.zeros(()), (ks, states))[0]
+
+        c, _ = _compile(f, states, ref)
+        return _best(lambda: c(states, ref), repeats) / cfg.n_steps
+
+    ref_k = lambda k, ref: (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
+    if cfg.solver == "tree":
+        jac = scan_of(lambda k, st, ref: dy.stiff_blocks(m, g, ref_k(k, ref), active, st.rot, st.omega))
+
+        def solve(k, st, ref):
+            rot = st.rot
+            n = m.n_bodies
+            blocks = dy._mass_blocks(m, rot)
+            a = blocks.at[:, 3:, 3:].add(0.01 * jnp.eye(3))  # a stand-in for the K, D terms
+            cpl = jnp.full((n - 1, 6, 6), 1e-3)
+            j_root, j_own, j_par, pad = dy._tree_constraints(m, cfg.driven, rot, cfg.free_root)
+            sys = treesolve.TreeKKT(a, cpl, cpl, j_root, j_own, j_par, pad)
+            return treesolve.solve(sys, m.body_parent, st.v.reshape(n, 6), jnp.ones(j_root.shape[0]),
+                                   jnp.zeros(j_own.shape[:2]))
+
+        kkt = scan_of(solve)
+        post_fn = dy.post_stabilize_tree
+    else:
+        jac = scan_of(lambda k, st, ref: dy.stiff_jacobians(m, g, ref_k(k, ref), active, st.rot, st.omega))
+
+        def solve(k, st, ref):
+            n6 = 6 * m.n_bodies
+            jm = dy.full_constraints(m, cfg.driven, st.rot, cfg.free_root)
+            nc = jm.shape[0]
+            lhs = jnp.block([[dy.mass_matrix(m, st.rot) + 1e-3, -jm.T], [jm, jnp.zeros((nc, nc))]])
+            return jnp.linalg.solve(lhs, jnp.ones(n6 + nc))
+
+        kkt = scan_of(solve)
+        post_fn = dy.post_stabilize
+    targets = lambda k, ref: (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
+    post = scan_of(lambda k, st, ref: post_fn(m, cfg.driven, st.pos, st.quat, targets(k, ref),
+                                              cfg.stab_iters, cfg.free_root))
+    return {
+        "solver": cfg.solver,
+        "steps": cfg.n_steps,
+        "compile_s": compile_s,
+        "step_us": per_step * 1e6,
+        "steps_per_s": 1.0 / per_step,
+        "real_time_factor": cfg.h / per_step,
+        "split_us": {"jacobians": jac * 1e6, "kkt_solve": kkt * 1e6, "post_stabilization": post * 1e6,
+                     "rest": max(per_step - jac - kkt - post, 0.0) * 1e6},
+    }
+
+
+def batched(setup, sizes, repeats: int) -> list[dict]:
+    """Total steps per second of a vmap over pulse magnitudes."""
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    out = []
+    for size in sizes:
+        mags = jnp.linspace(0.5, 1.5, size)[:, None] * p.magnitude[None]
+
+        def many(mags, g, ref):
+            one = lambda mag: dy.rollout(m, g, dataclasses.replace(p, magnitude=mag), ref, cfg).theta
+            return jax.vmap(one)(mags)
+
+        comp, compile_s = _compile(many, mags, g, ref)
+        t = _best(lambda: comp(mags, g, ref), repeats)
+        out.append({"batch": size, "steps": cfg.n_steps, "seconds": t, "compile_s": compile_s,
+                    "steps_per_s": size * cfg.n_steps / t, "real_time_factor": size * cfg.n_steps * cfg.h / t})
+    return out
+
+
+def gain_jacobian(setup, repeats: int) -> dict:
+    """jacfwd over (ks, kd) through the rollout, against the rollout alone."""
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+
+    def theta(x, g, ref):
+        gg = dataclasses.replace(g, ks=x[0], kd=x[1])
+        return dy.rollout(m, gg, p, ref, cfg).theta
+
+    x = jnp.stack([g.ks, g.kd])
+    fwd, c1 = _compile(theta, x, g, ref)
+    jac, c2 = _compile(jax.jacfwd(theta), x, g, ref)
+    t_fwd = _best(lambda: fwd(x, g, ref), repeats)
+    t_jac = _best(lambda: jac(x, g, ref), repeats)
+    return {"seconds_simulated": cfg.n_steps * cfg.h, "rollout_s": t_fwd, "jacfwd_s": t_jac,
+            "ratio": t_jac / t_fwd, "compile_rollout_s": c1, "compile_jacfwd_s": c2}
+
+
+def inverse(clips, repeats: int) -> list[dict]:
+    """Inverse dynamics (Eq. 3) on every frame of whole clips."""
+    out = []
+    for clip in clips:
+        character, traj = load_character(clip)
+        times = jnp.asarray(np.arange(character.clip.n_frames) * character.clip.frame_time)
+        t = time.perf_counter()
+        jax.block_until_ready(inverse_dynamics(character.model, traj, times))
+        first = time.perf_counter() - t
+        best = _best(lambda: inverse_dynamics(character.model, traj, times), repeats)
+        out.append({"clip": pathlib.Path(str(character.clip.path)).name, "frames": int(times.shape[0]),
+                    "first_call_s": first, "seconds": best, "us_per_frame": best / times.shape[0] * 1e6})
+    return out
+
+
+def mujoco_reference(setup, steps: int, repeats: int) -> dict | None:
+    """MuJoCo on the same skeleton, masses and step (one thread, implicitfast, PD servos)."""
+    try:
+        import mujoco
+    except ImportError:
+        return None
+    from .mjcf import model_to_mjcf
+
+    mj = mujoco.MjModel.from_xml_string(model_to_mjcf(setup.character, timestep=setup.sim.h))
+    data = mujoco.MjData(mj)
+    # Start from the mocap's first pose and hold it with the servos.
+    theta0 = np.asarray(setup.ref.theta[0])
+    if mj.nq == 7 + theta0.shape[0]:  # hinges are our DOFs, in our order (see mjcf.py)
+        data.qpos[7:] = theta0
+    data.ctrl[:] = data.qpos[7:7 + mj.nu]
+    mujoco.mj_forward(mj, data)
+    qpos0, qvel0 = data.qpos.copy(), data.qvel.copy()
+
+    def run():
+        data.qpos[:] = qpos0
+        data.qvel[:] = qvel0
+        for _ in range(steps):
+            mujoco.mj_step(mj, data)
+        return np.zeros(())
+
+    t = _best(run, repeats)
+    return {"version": mujoco.__version__, "nv": int(mj.nv), "nu": int(mj.nu), "steps": steps,
+            "step_us": t / steps * 1e6, "steps_per_s": steps / t, "real_time_factor": steps * setup.sim.h / t}
+
+
+def plot_throughput(rows: list[dict], mujoco_sps: float | None, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    sizes = [r["batch"] for r in rows]
+    ax.loglog(sizes, [r["steps_per_s"] for r in rows], "o-", label="neuromotor (vmap, tree solver)")
+    if mujoco_sps:
+        ax.axhline(mujoco_sps, color="k", ls="--", label="MuJoCo, one thread")
+    ax.axhline(100 / H, color="0.6", ls=":", label="100x real time")
+    ax.set_xlabel("batch size (trajectories)")
+    ax.set_ylabel("simulated steps per second")
+    ax.set_title("19-joint clip, h = 1/120 s, float64")
+    ax.legend(fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run_all(clip=None, solver: str = "tree", sizes=(1, 8, 64, 256), batch_seconds: float = 0.25,
+            repeats: int = 5, idyn_clips=(), plot=None, log=print, dense_too: bool = True) -> dict:
+    """Run every benchmark and print the figures as they come."""
+    log(f"machine: {machine()}")
+    res: dict = {"machine": machine()}
+    setup = _setup(clip, 1.0, solver)
+    log(f"model: {setup.model.n_bodies} bodies, {setup.model.n_dofs} DOFs, h = {setup.sim.h:.6f} s")
+    res["single"] = single(setup, repeats)
+    _log_single(res["single"], log)
+    if dense_too and solver != "dense":
+        res["single_dense"] = single(_setup(clip, 1.0, "dense"), max(2, repeats // 2))
+        _log_single(res["single_dense"], log)
+    res["jacfwd"] = gain_jacobian(setup, repeats)
+    j = res["jacfwd"]
+    log(f"jacfwd over (ks, kd), {j['seconds_simulated']:.2f} s rollout: {j['jacfwd_s'] * 1e3:.1f} ms vs "
+        f"{j['rollout_s'] * 1e3:.1f} ms -> {j['ratio']:.2f}x (compile {j['compile_jacfwd_s']:.1f} s)")
+    res["mujoco"] = mujoco_reference(setup, 2000, repeats)
+    if res["mujoco"] is None:
+        log("MuJoCo: not installed (pip install mujoco); skipped")
+    else:
+        mj = res["mujoco"]
+        log(f"MuJoCo {mj['version']}: {mj['step_us']:.1f} us/step, {mj['steps_per_s']:.0f} steps/s, "
+            f"RTF {mj['real_time_factor']:.0f}; ours/MuJoCo per-step time: "
+            f"{res['single']['step_us'] / mj['step_us']:.2f}x")
+    bsetup = _setup(clip, batch_seconds, solver)
+    res["batch"] = batched(bsetup, sizes, max(2, repeats // 2))
+    for r in res["batch"]:
+        ratio = "" if res["mujoco"] is None else f" ({r['steps_per_s'] / res['mujoco']['steps_per_s']:.2f}x MuJoCo)"
+        log(f"batch {r['batch']:4d}: {r['steps_per_s']:10.0f} steps/s{ratio}, compile {r['compile_s']:.1f} s")
+    if idyn_clips:
+        res["inverse_dynamics"] = inverse(idyn_clips, repeats)
+        for r in res["inverse_dynamics"]:
+            log(f"inverse dynamics {r['clip']}: {r['frames']} frames in {r['seconds'] * 1e3:.1f} ms "
+                f"({r['us_per_frame']:.1f} us/frame); first call (compile) {r['first_call_s']:.1f} s")
+    if plot:
+        plot_throughput(res["batch"], None if res["mujoco"] is None else res["mujoco"]["steps_per_s"], plot)
+        log(f"wrote {plot}")
+    return res
+
+
+def _log_single(s: dict, log) -> None:
+    sp = s["split_us"]
+    log(f"[{s['solver']}] one trajectory: {s['step_us']:.1f} us/step, {s['steps_per_s']:.0f} steps/s, "
+        f"real-time factor {s['real_time_factor']:.1f}, compile {s['compile_s']:.1f} s")
+    log(f"[{s['solver']}]   split (us/step): Jacobians {sp['jacobians']:.1f}, KKT solve {sp['kkt_solve']:.1f}, "
+        f"post-stabilization {sp['post_stabilization']:.1f}, rest {sp['rest']:.1f}")
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_arguments(ap)
+    return run_from_args(ap.parse_args(argv))
+
+
+def add_arguments(ap) -> None:
+    ap.add_argument("clip", nargs="?", default=None, help="BVH clip (default: the embedded 19-joint clip)")
+    ap.add_argument("--solver", choices=("tree", "dense"), default="tree")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1, 8, 64, 256])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--idyn", nargs="*", default=[], help="clips for the inverse-dynamics figure")
+    ap.add_argument("--plot", default=None, help="PNG of throughput against batch size")
+    ap.add_argument("--json", default=None, help="write all figures as JSON")
+    ap.add_argument("--no-dense", action="store_true", help="skip the dense reference path")
+
+
+def run_from_args(args) -> int:
+    res = run_all(args.clip, args.solver, tuple(args.sizes), repeats=args.repeats, idyn_clips=tuple(args.idyn),
+                  plot=args.plot, dense_too=not args.no_dense)
+    if args.json:
+        pathlib.Path(args.json).write_text(json.dumps(res, indent=2, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
