@@ -10,7 +10,8 @@ the model output y(x) stacks over cases either
 * the simulated trajectory inside the fit window (joint angles of all or named DOFs, or body
   COM positions), or
 * smooth response features of the deviation from the unperturbed twin (peak deviation, time to
-  peak, recovery time, overshoot), the unperturbed run being one extra member of the batch;
+  peak, recovery time, overshoot, peak angular acceleration), the unperturbed run being one
+  extra member of the batch;
 
 and the residual is ``r(x) = w * (y(x) - y_target)`` with per-entry weights w (a per-DOF
 weight, or 1/sd for a feature). **What is minimized**: ``L(x) = 1/2 ||r(x)||^2``, the residual
@@ -68,7 +69,8 @@ from .skeleton import Model
 
 SOLVERS = ("optimistix_lm", "optimistix_gn", "optimistix_bfgs", "jaxopt_lm", "jaxopt_lbfgs")
 KINDS = ("joint_angles", "body_positions", "features")
-FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg")
+FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg",
+                 "peak_acceleration_deg_s2")
 
 
 class FitError(RuntimeError):
@@ -92,6 +94,7 @@ class ResponseSpec:
     ``i0 <= k < i1`` of the simulation grid form the window. Feature surrogates: ``beta``
     (1/deg) sharpens the soft peak, ``width`` is the sigmoid width as a fraction of the
     threshold, and the recovery threshold is ``max(fraction * peak, floor_deg)``.
+    ``accel_beta`` (s^2/deg) sharpens the softmax-weighted peak of the angular acceleration.
     """
 
     kind: str
@@ -103,6 +106,7 @@ class ResponseSpec:
     width: float = 0.1
     fraction: float = mx.RECOVERY_FRACTION
     floor_deg: float = mx.RECOVERY_FLOOR_DEG
+    accel_beta: float = 0.1
 
 
 class FitProblem(eqx.Module):
@@ -134,7 +138,11 @@ class FitProblem(eqx.Module):
         return jax.vmap(lambda p: rollout(self.model, gains, p, self.ref, self.sim))(self.pulses)
 
     def outputs(self, x: Float[Array, " 2"]) -> tuple[Float[Array, " m"], Float[Array, "C T c"], Int[Array, " R"]]:
-        """Model output y (flat), the curves to plot per case, and each run's diverged step."""
+        """Model output y (flat), the curves to plot per case, and each run's diverged step.
+
+        For feature targets the curves are, per case, the deviation d(t) (deg) and the
+        acceleration a(t) (deg/s^2) of :func:`acceleration_deg`.
+        """
         runs = self.rollouts(x)
         s = self.spec
         if s.kind == "joint_angles":
@@ -146,12 +154,15 @@ class FitProblem(eqx.Module):
         time = runs.time[0, s.i0:s.i1]
         base = runs.theta[-1, s.i0:s.i1]
         dofs = jnp.asarray(s.columns) if s.columns else None
+        base_rate = runs.theta_dot[-1, s.i0:s.i1]
+        h = self.sim.h
         feats, devs = [], []
         for c in range(self.n_cases):
             dev = deviation_deg(runs.theta[c, s.i0:s.i1], base, dofs)
-            f = response_features(time, dev, self.start[c], s)
+            acc = acceleration_deg(runs.theta_dot[c, s.i0:s.i1], base_rate, h, dofs)
+            f = response_features(time, dev, self.start[c], s, acc)
             feats.append(jnp.stack([f[name] for name in s.features]))
-            devs.append(dev[:, None])
+            devs.append(jnp.stack([dev, acc], axis=-1))
         return jnp.concatenate(feats), jnp.stack(devs), runs.diverged_step
 
     def residuals(self, x, target, weights) -> Float[Array, " m"]:
@@ -172,6 +183,38 @@ def deviation_deg(theta, theta_ref, dofs=None) -> Float[Array, " T"]:
     u = jnp.mean(diff**2, axis=-1)
     pos = u > 0
     return jnp.rad2deg(jnp.where(pos, jnp.sqrt(jnp.where(pos, u, 1.0)), 0.0))
+
+
+def acceleration_deg(theta_dot, theta_dot_ref, h: float, dofs=None) -> Float[Array, " T"]:
+    """Angular acceleration of the deviation, ``a(t) = rms_i d^2/dt^2 (theta_i - theta_ref_i)``
+    in deg/s^2 over ``dofs`` (default all), per sample of the step grid.
+
+    The second derivative is the central difference of the simulated joint rates,
+    ``(w[k+1] - w[k-1]) / 2h`` with ``w = theta_dot - theta_dot_ref`` (the rates come from the
+    body angular velocities, so this is one difference, not the two of a second difference of
+    the angles); the first and last samples, which lack a neighbour, are 0. The RMS over DOFs
+    matches :func:`deviation_deg` (same zero-safe square root).
+    """
+    w = theta_dot - theta_dot_ref
+    acc = (w[2:] - w[:-2]) / (2.0 * h)
+    inner = deviation_deg(acc, jnp.zeros_like(acc), dofs)
+    return jnp.pad(inner, (1, 1))
+
+
+def soft_max_weighted(signal, beta: float):
+    """Smooth peak of a signal: the softmax(beta * signal)-weighted mean of the signal.
+
+    Below the exact maximum by about ``1 / (2 beta)`` near a rounded peak, whatever the
+    signal's length (the log-sum-exp :func:`neuromotor.metrics.soft_peak` is low by up to
+    ``log(T) / beta``, too much at the smoothing scale an acceleration in deg/s^2 needs).
+    """
+    w = jax.nn.softmax(beta * signal)
+    return jnp.sum(w * signal)
+
+
+def exact_peak_acceleration(acc) -> float:
+    """The non-smooth counterpart of the ``peak_acceleration_deg_s2`` surrogate: max a(t)."""
+    return float(np.max(np.asarray(acc)))
 
 
 def loss(problem: FitProblem, x, target, weights) -> Float[Array, ""]:
@@ -198,11 +241,13 @@ def soft_recovery(time, dev, start, threshold, width: float):
     return jnp.sum(gate * (1.0 - never_again)) * dt
 
 
-def response_features(time, dev, start, spec: ResponseSpec) -> dict:
-    """Smooth peak deviation, time to peak, recovery time and overshoot of a deviation signal.
+def response_features(time, dev, start, spec: ResponseSpec, acc=None) -> dict:
+    """Smooth peak deviation, time to peak, recovery time and overshoot of a deviation signal,
+    and (given the acceleration signal ``acc`` of :func:`acceleration_deg`) its peak angular
+    acceleration.
 
     Exact counterparts: :func:`neuromotor.metrics.recovery_metrics` (time to peak there is
-    absolute; here it is measured from ``start``).
+    absolute; here it is measured from ``start``) and :func:`exact_peak_acceleration`.
     """
     peak = mx.soft_peak(dev, spec.beta)
     t_peak = mx.soft_time_of_peak(time, dev, spec.beta)
@@ -215,8 +260,11 @@ def response_features(time, dev, start, spec: ResponseSpec) -> dict:
     still = jnp.cumprod(1.0 - after_peak * (1.0 - jax.nn.sigmoid((dev - thr) / (spec.width * thr))))
     t_return = t_peak + jnp.sum(still * after_peak) * dt
     overshoot = mx.soft_overshoot(time, dev, t_return, spec.beta)
-    return {"peak_deviation_deg": peak, "time_to_peak_s": t_peak - start,
-            "recovery_time_s": rec, "overshoot_deg": overshoot}
+    out = {"peak_deviation_deg": peak, "time_to_peak_s": t_peak - start,
+           "recovery_time_s": rec, "overshoot_deg": overshoot}
+    if acc is not None:
+        out["peak_acceleration_deg_s2"] = soft_max_weighted(acc, spec.accel_beta)
+    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -838,7 +886,8 @@ def calibration_from_dict(data: dict, source: str = "<dict>", base_dir=None, sol
     surrogate = dict(beta=t.number("beta", 20.0, positive=True),
                      width=t.number("width", 0.1, positive=True),
                      fraction=t.number("recovery_fraction", mx.RECOVERY_FRACTION, positive=True),
-                     floor_deg=t.number("recovery_floor_deg", mx.RECOVERY_FLOOR_DEG, nonneg=True))
+                     floor_deg=t.number("recovery_floor_deg", mx.RECOVERY_FLOOR_DEG, nonneg=True),
+                     accel_beta=t.number("accel_beta", ResponseSpec.accel_beta, positive=True))
     cases = t.get("case", [])
     if not isinstance(cases, list) or not cases:
         t.fail("case", "must be one or more [[fit.target.case]] tables (one per [[perturbation]])")
@@ -916,7 +965,8 @@ def _feature_report(cal: Calibration, ev: ResponseEvaluator, res: FitResult) -> 
         exact = mx.recovery_metrics(cal.time, dev, start, s.fraction, s.floor_deg)
         exact_named = {"peak_deviation_deg": exact["peak_deviation_deg"],
                        "time_to_peak_s": exact["time_of_peak_s"] - start,
-                       "recovery_time_s": exact["recovery_time_s"], "overshoot_deg": exact["overshoot_deg"]}
+                       "recovery_time_s": exact["recovery_time_s"], "overshoot_deg": exact["overshoot_deg"],
+                       "peak_acceleration_deg_s2": exact_peak_acceleration(fitted.curves[c, :, 1])}
         out.append({n: {"target": row.get(n, {}).get("value"), "sd": row.get(n, {}).get("sd"),
                         "source": row.get(n, {}).get("source"), "fitted_surrogate": float(y[c, j]),
                         "fitted_exact": exact_named[n]} for j, n in enumerate(s.features)})
@@ -934,8 +984,8 @@ def plot_fit(cal: Calibration, ev_start: Evaluation, ev_fit: Evaluation, path, r
     t = cal.time
     n_cases = cal.problem.n_cases
     feats = cal.problem.spec.kind == "features"
-    if feats:
-        cols = [0]
+    if feats:  # deviation, and the acceleration when it is fitted
+        cols = [0, 1] if "peak_acceleration_deg_s2" in cal.problem.spec.features else [0]
     else:
         tgt = cal.target_curves()
         # Show the columns the gains move most (start vs fitted), not those the mocap moves most.
@@ -951,7 +1001,14 @@ def plot_fit(cal: Calibration, ev_start: Evaluation, ev_fit: Evaluation, path, r
                 ax.plot(t, scale * tgt[c, :, col], "k.", ms=3, label="target")
             ax.plot(t, scale * ev_fit.curves[c, :, col], "C0-", lw=1.6, label="fitted")
             ax.plot(t, scale * ev_start.curves[c, :, col], "C3--", lw=1.2, label="start")
-            if feats:
+            if feats and col == 1:
+                row = cal.feature_table[c]
+                if "peak_acceleration_deg_s2" in row:
+                    v, sd = row["peak_acceleration_deg_s2"]["value"], row["peak_acceleration_deg_s2"]["sd"]
+                    ax.axhspan(v - sd, v + sd, color="k", alpha=0.12, label="target peak ± sd")
+                ax.set_ylabel("acceleration (deg/s²)")
+                ax.set_title(f"case {c}: angular acceleration of the deviation", fontsize=9)
+            elif feats:
                 start = float(cal.problem.start[c])
                 row = cal.feature_table[c]
                 if "peak_deviation_deg" in row:
@@ -968,7 +1025,7 @@ def plot_fit(cal: Calibration, ev_start: Evaluation, ev_fit: Evaluation, path, r
                 ax.set_title(f"case {c}: {cal.labels[col]}", fontsize=9)
                 ax.set_ylabel(unit)
             ax.set_xlabel("clip time (s)")
-            if c == 0 and j == 0:
+            if c == 0 and (j == 0 or feats):
                 ax.legend(fontsize=7)
     if res is not None:
         fig.suptitle(f"{res.solver}: ks = {res.ks:.4g} ± {res.se_ks:.2g} 1/s², kd = {res.kd:.4g} ± {res.se_kd:.2g} 1/s\n"

@@ -28,7 +28,9 @@ Feature targets
 Numbers such as the peak deviation after a push, given per perturbation case with a standard
 deviation; see :data:`FEATURES`. Features are computed from the deviation signal
 ``d(t) = rms_i (theta_i - theta_unperturbed_i)`` in degrees over a set of DOFs (see
-:mod:`neuromotor.metrics`), with smooth surrogates so the fit can differentiate them.
+:mod:`neuromotor.metrics`), and the peak acceleration from ``a(t)``, the RMS over the same
+DOFs of the second time derivative of that difference in deg/s^2 (a central difference of the
+simulated joint rates), with smooth surrogates so the fit can differentiate them.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ FEATURES = {
     "time_to_peak_s": "time of the peak after the perturbation's start (s)",
     "recovery_time_s": "time after the start until d(t) stays below the threshold (s)",
     "overshoot_deg": "largest deviation after d(t) first returns below the threshold (deg)",
+    "peak_acceleration_deg_s2": "largest a(t) = rms_i d^2/dt^2 (theta_i - theta_unperturbed_i) (deg/s^2)",
 }
 AXES = ("x", "y", "z")
 
