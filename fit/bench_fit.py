@@ -18,7 +18,6 @@ Prints:
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import pathlib
 import platform
@@ -28,7 +27,6 @@ import time
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 

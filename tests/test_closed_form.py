@@ -13,7 +13,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from neuromotor.bvh import parse_bvh
 from neuromotor.config import SimulationConfig

@@ -4,9 +4,7 @@ Every physics test shares one compiled evaluation (rollouts of two pushes, vmapp
 forward-mode Jacobian) over a 0.3 s window of the real MocapBank clip at h = 1/120 s.
 """
 
-import dataclasses
 import json
-import math
 
 import jax
 import jax.numpy as jnp

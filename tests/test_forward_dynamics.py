@@ -10,9 +10,8 @@ import pytest
 from conftest import CLIPS
 from neuromotor import metrics as mx
 from neuromotor.config import DEFAULT_HIT, ConfigError, SimulationConfig, simulation_config
-from neuromotor.dynamics import SimConfig, SimulationDiverged, check_rollout, dof_errors, rollout
-from neuromotor.perturbation import ForcePulses
-from neuromotor.rotations import euler_axes, euler_to_matrix, matrix_to_euler
+from neuromotor.dynamics import SimulationDiverged, check_rollout, dof_errors, rollout
+from neuromotor.rotations import euler_to_matrix, matrix_to_euler
 from neuromotor.simulate import load_character, prepare, run, simulate_jit
 
 H = 1.0 / 120.0

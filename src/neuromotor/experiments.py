@@ -104,7 +104,7 @@ def load_experiment(path, default_kind: str | None = None) -> tuple[SimulationCo
 
 
 def write_json(obj: Any, path) -> pathlib.Path:
-    return _atomic_write(path, lambda fh: json.dump(obj, fh, indent=2, default=float), ".json")
+    return _atomic_write(path, lambda fh: json.dump(obj, fh, indent=2, default=float))
 
 
 def _plt():

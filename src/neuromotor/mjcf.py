@@ -30,13 +30,12 @@ Units are SI (metres, kilograms, seconds, radians).
 
 from __future__ import annotations
 
-import os
 import pathlib
-import tempfile
 import xml.etree.ElementTree as ET
 
 import numpy as np
 
+from .atomic import atomic_path
 from .skeleton import Character
 
 AXIS_VEC = {"X": "1 0 0", "Y": "0 1 0", "Z": "0 0 1"}
@@ -125,14 +124,6 @@ def export_mjcf(character: Character, path, **kwargs) -> pathlib.Path:
     """Write :func:`model_to_mjcf` to ``path`` atomically (temp file in the same folder + replace)."""
     path = pathlib.Path(path)
     text = model_to_mjcf(character, **kwargs)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
     return path

@@ -32,16 +32,15 @@ and the field.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import pathlib
-import tempfile
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 import numpy as np
 
+from .atomic import atomic_path
 FORCE_SCALE_N_PER_M = 500.0   # arrow length: 1 m per 500 N
 FORCE_VISIBLE_FRACTION = 0.01  # draw the arrow while |F| > 1% of its peak
 CAMERA_ELEVATION_DEG = 12.0
@@ -170,24 +169,6 @@ def _check(path, d):
 # ----------------------------------------------------------------------------------------------
 # Output
 # ----------------------------------------------------------------------------------------------
-
-@contextlib.contextmanager
-def _atomic_output(out_path):
-    """Yield a temporary path beside ``out_path`` (same suffix); rename it on success."""
-    out = pathlib.Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.stem}-", suffix=out.suffix, dir=out.parent)
-    os.close(fd)
-    tmp = pathlib.Path(tmp)
-    try:
-        yield tmp
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)   # mkstemp makes 0600; give the usual permissions
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
-
 
 def _write_png(path, img):
     import imageio.v3 as iio
@@ -634,11 +615,11 @@ def _render_video(scene: _Scene, out_tmp, ext, progress=True, ghost=True):
         _add_skeleton(pl, g_pert, COLOR_PERTURBED, COLOR_PERTURBED_JOINT)
         arrow = _ArrowGeometry()
         arrow_actor = pl.add_mesh(arrow.mesh, color=COLOR_FORCE, smooth_shading=False)
-        ball = ball_actor = None
+        ball = None
         if scene.has_ball:
             ball = pv.Sphere(radius=float(scene.d["ball_radius"]), theta_resolution=24, phi_resolution=16)
             ball_dirs = np.asarray(ball.points).copy()
-            ball_actor = pl.add_mesh(ball, color=COLOR_BALL, smooth_shading=True)
+            pl.add_mesh(ball, color=COLOR_BALL, smooth_shading=True)
         pl.add_text("original", position="upper_left", font_size=10, color=COLOR_ORIGINAL_JOINT)
         pl.add_text("perturbed", position="upper_right", font_size=10, color=COLOR_PERTURBED_JOINT)
         clock = pl.add_text("", position="lower_left", font_size=10, color="black")
@@ -705,7 +686,7 @@ def render_run(run_path, out_path, frames: int = 6, progress: bool = True,
     if ext == ".png" and (int(frames) != frames or frames < 1):
         raise RenderError(f"{out}: frames must be a positive integer, got {frames!r}")
     scene = _Scene(load_run(run_path))
-    with _atomic_output(out) as tmp:
+    with atomic_path(out) as tmp:
         if ext == ".png":
             _render_filmstrip(scene, tmp, int(frames), ghost=ghost)
         else:
@@ -785,6 +766,6 @@ def plot_run(run_path, out_png, n_joints: int = 4) -> pathlib.Path:
         a.grid(alpha=0.3)
         if i == 0:
             a.legend(fontsize=7)
-    with _atomic_output(out) as tmp:
+    with atomic_path(out) as tmp:
         fig.savefig(tmp, format="png")
     return out

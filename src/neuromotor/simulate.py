@@ -10,9 +10,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.resources
 import json
-import os
 import pathlib
-import tempfile
 
 import jax
 import jax.numpy as jnp
@@ -20,6 +18,7 @@ import numpy as np
 
 from . import contact
 from . import metrics as mx
+from .atomic import atomic_path
 from .bvh import BvhClip, read_bvh
 from .config import ConfigError, SimulationConfig
 from .control import Gains, make_gains
@@ -213,15 +212,8 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
 def save_npz_atomic(path, arrays: dict) -> pathlib.Path:
     """Write an .npz through a temporary file in the same folder, then rename."""
     path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".npz", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
     return path
 
 

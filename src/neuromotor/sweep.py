@@ -57,9 +57,7 @@ import dataclasses
 import functools
 import json
 import math
-import os
 import pathlib
-import tempfile
 from typing import Any, Sequence
 
 import equinox as eqx
@@ -69,6 +67,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from jaxtyping import Array, Float, Int
 
+from .atomic import atomic_path
 from . import metrics as mx
 from .config import ConfigError, SimulationConfig, _Fields, read_toml, simulation_config
 from .control import Gains, pd_tracking_gains
@@ -300,7 +299,6 @@ def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[di
     base_theta_arr = jnp.asarray(np.concatenate(base_theta))
     base_step = np.concatenate(base_bad)
     rows, curves = [], []
-    body_idx = np.asarray(batch.pulses.body)
     starts = np.asarray(batch.pulses.start)
     for lo in range(0, n, c):
         hi = min(lo + c, n)
@@ -620,17 +618,10 @@ def load_sweep_config(path) -> tuple[SimulationConfig, SweepSpec]:
 # ----------------------------------------------------------------------------- outputs
 
 
-def _atomic_write(path: pathlib.Path, write, suffix: str, mode: str = "w"):
+def _atomic_write(path: pathlib.Path, write, mode: str = "w"):
     path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=suffix, dir=path.parent)
-    try:
-        with os.fdopen(fd, mode, **({"newline": ""} if "b" not in mode else {})) as fh:
-            write(fh)
-        os.replace(tmp, path)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, mode, **({"newline": ""} if "b" not in mode else {})) as fh:
+        write(fh)
     return path
 
 
@@ -644,7 +635,7 @@ def write_csv(rows: list[dict], path, columns: Sequence[str] = COLUMNS) -> pathl
         for r in rows:
             w.writerow({k: (repr(float(v)) if isinstance(v, (float, np.floating)) else v) for k, v in r.items()})
 
-    return _atomic_write(path, write, ".csv")
+    return _atomic_write(path, write)
 
 
 def read_csv(path) -> list[dict]:
@@ -672,7 +663,7 @@ def save_figure(fig, path) -> pathlib.Path:
     """Save a matplotlib figure as PNG through a temporary file."""
     import matplotlib.pyplot as plt
 
-    out = _atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=fig.dpi), ".png", "wb")
+    out = _atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=fig.dpi), "wb")
     plt.close(fig)
     return out
 

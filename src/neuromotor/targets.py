@@ -41,6 +41,7 @@ import pathlib
 
 import numpy as np
 
+from .atomic import atomic_path
 from .config import ConfigError
 
 FEATURES = {
@@ -204,8 +205,6 @@ def resample(table: TargetTable, times: np.ndarray, field: str = "window") -> np
 
 def write_target_csv(path, time, names, values, quantity="joint_angles", header_comment=None):
     """Write a trajectory target in the CSV layout (temp file then rename)."""
-    import os
-    import tempfile
 
     path = pathlib.Path(path)
     values = np.asarray(values)
@@ -215,21 +214,13 @@ def write_target_csv(path, time, names, values, quantity="joint_angles", header_
     else:
         cols = [f"{n}.{a}" for n in names for a in AXES]
         flat = values.reshape(values.shape[0], values.shape[1], -1)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".csv", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="", encoding="utf-8") as fh:
-            if header_comment:
-                for line in header_comment.splitlines():
-                    fh.write(f"# {line}\n")
-            w = csv.writer(fh)
-            w.writerow(["case", "time"] + cols)
-            for c in range(flat.shape[0]):
-                for i, t in enumerate(time):
-                    w.writerow([c, repr(float(t))] + [f"{float(v):.10g}" for v in flat[c, i]])
-        os.chmod(tmp, 0o644)  # mkstemp makes it owner-only
-        os.replace(tmp, path)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        if header_comment:
+            for line in header_comment.splitlines():
+                fh.write(f"# {line}\n")
+        w = csv.writer(fh)
+        w.writerow(["case", "time"] + cols)
+        for c in range(flat.shape[0]):
+            for i, t in enumerate(time):
+                w.writerow([c, repr(float(t))] + [f"{float(v):.10g}" for v in flat[c, i]])
     return path
