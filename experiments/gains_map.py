@@ -22,16 +22,9 @@ def main(argv=None) -> int:
     ap.add_argument("--fitted", type=float, nargs=2, metavar=("KS", "KD"))
     ap.add_argument("--fitted-json", help="JSON written by the fitting layer (keys ks and kd, any nesting)")
     ap.add_argument("--chunk", type=int)
-    ap.add_argument("--distributed", action="store_true",
-                    help="jax.distributed.initialize() first: one process per host (experiments/README.md)")
-    ap.add_argument("--coordinator", help="HOST:PORT of process 0 (default: detected from SLURM/MPI/K8s)")
-    ap.add_argument("--num-processes", type=int)
-    ap.add_argument("--process-id", type=int)
+    _common.add_distributed_args(ap)
     args = ap.parse_args(argv)
-    if args.distributed:
-        import jax
-
-        jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    _common.init_distributed(args)
     fitted = tuple(args.fitted) if args.fitted else args.fitted_json
     try:
         result, files = sweep_from_config(args.config, args.output, chunk=args.chunk, fitted=fitted)

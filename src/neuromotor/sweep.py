@@ -274,6 +274,18 @@ class SweepResult:
     time: np.ndarray  # (S+1,) clip time of the samples
 
 
+def _simulate_baselines(sweeper, base_batch, n_base: int, bar):
+    """Unperturbed twin runs (one per gain setting), in chunks: their theta and diverged step."""
+    theta, bad = [], []
+    for lo in range(0, n_base, sweeper.chunk):
+        hi = min(lo + sweeper.chunk, n_base)
+        out = sweeper.simulate_chunk(sweeper.pad(base_batch, lo, hi))
+        theta.append(_gather(out.theta)[: hi - lo])
+        bad.append(_gather(out.diverged_step)[: hi - lo])
+        bar.update(hi - lo)
+    return jnp.asarray(np.concatenate(theta)), np.concatenate(bad)
+
+
 def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[dict], body_index,
               body_names: Sequence[str], *, keep_curves: bool = False, progress: bool = True) -> SweepResult:
     """Simulate every run of ``runs`` (from :meth:`SweepSpec.runs`) and measure its recovery."""
@@ -289,15 +301,7 @@ def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[di
         base_batch, pulses=dataclasses.replace(base_batch.pulses, magnitude=np.zeros_like(base_batch.pulses.magnitude)))
     n_base, c = len(first), sweeper.chunk
     bar = tqdm(total=n_base + n, desc="sweep", unit="run", disable=not progress)
-    base_theta, base_bad = [], []
-    for lo in range(0, n_base, c):
-        hi = min(lo + c, n_base)
-        out = sweeper.simulate_chunk(sweeper.pad(base_batch, lo, hi))
-        base_theta.append(_gather(out.theta)[: hi - lo])
-        base_bad.append(_gather(out.diverged_step)[: hi - lo])
-        bar.update(hi - lo)
-    base_theta_arr = jnp.asarray(np.concatenate(base_theta))
-    base_step = np.concatenate(base_bad)
+    base_theta_arr, base_step = _simulate_baselines(sweeper, base_batch, n_base, bar)
     rows, curves = [], []
     starts = np.asarray(batch.pulses.start)
     for lo in range(0, n, c):
@@ -412,15 +416,7 @@ def run_ball_sweep(sweeper: BallSweeper, setup, speeds: Sequence[float], gain_se
     launch = float(setup.ball.ball.launch)
     n_base, c = len(settings), sweeper.chunk
     bar = tqdm(total=n_base + n, desc="ball sweep", unit="run", disable=not progress)
-    base_theta, base_bad = [], []
-    for lo in range(0, n_base, c):
-        hi = min(lo + c, n_base)
-        out = sweeper.simulate_chunk(sweeper.pad(base_batch, lo, hi))
-        base_theta.append(_gather(out.theta)[: hi - lo])
-        base_bad.append(_gather(out.diverged_step)[: hi - lo])
-        bar.update(hi - lo)
-    base_theta_arr = jnp.asarray(np.concatenate(base_theta))
-    base_step = np.concatenate(base_bad)
+    base_theta_arr, base_step = _simulate_baselines(sweeper, base_batch, n_base, bar)
     direction = np.asarray(batch.ball.direction)
     rows, curves = [], []
     for lo in range(0, n, c):
