@@ -1,4 +1,4 @@
-"""Issue 6: the fast (tree) path solves the same equations as the dense reference path."""
+"""Issue 6: the fast paths (null-space and tree) solve the same equations as the dense reference path."""
 
 import dataclasses
 
@@ -94,10 +94,11 @@ def test_per_joint_jacobians_equal_dense_jacfwd(hit_setup):
     np.testing.assert_array_equal(np.asarray(k).reshape(n, 6)[:, :3], 0.0)  # stiff forces are pure torques
 
 
-def test_tree_rollout_equals_dense_rollout_with_a_hit(hit_setup):
+@pytest.mark.parametrize("solver", ["nullspace", "tree"])
+def test_fast_rollout_equals_dense_rollout_with_a_hit(hit_setup, solver):
     s = hit_setup
     run = jax.jit(rollout, static_argnames="cfg")
-    tree = run(s.model, s.gains, s.pulses, s.ref, dataclasses.replace(s.sim, solver="tree"))
+    tree = run(s.model, s.gains, s.pulses, s.ref, dataclasses.replace(s.sim, solver=solver))
     dense = run(s.model, s.gains, s.pulses, s.ref, dataclasses.replace(s.sim, solver="dense"))
     base = run(s.model, s.gains, dataclasses.replace(s.pulses, magnitude=0 * s.pulses.magnitude), s.ref, s.sim)
     # The hit matters (so agreement is not trivial) ...
@@ -111,8 +112,9 @@ def test_tree_rollout_equals_dense_rollout_with_a_hit(hit_setup):
     assert int(tree.diverged_step) == int(dense.diverged_step) == -1
 
 
+@pytest.mark.parametrize("solver", ["nullspace", "tree"])
 @pytest.mark.parametrize("driven_free", [((2, 5, 9), False), ((), True)], ids=["driven", "free_root"])
-def test_tree_step_equals_dense_step_with_constraint_forces(hit_setup, driven_free):
+def test_fast_step_equals_dense_step_with_constraint_forces(hit_setup, driven_free, solver):
     """One step from perturbed states: new state and every constraint force lambda."""
     s = hit_setup
     driven, free_root = driven_free
@@ -125,7 +127,7 @@ def test_tree_step_equals_dense_step_with_constraint_forces(hit_setup, driven_fr
         c = dataclasses.replace(cfg, solver=solver)
         return jax.jit(jax.vmap(lambda k, st: step(s.model, s.gains, s.pulses, c, s.ref, k, st)))(ks, states)
 
-    (st_t, info_t), (st_d, info_d) = one("tree"), one("dense")
+    (st_t, info_t), (st_d, info_d) = one(solver), one("dense")
     np.testing.assert_allclose(st_t.vel, st_d.vel, atol=1e-10)
     np.testing.assert_allclose(st_t.omega, st_d.omega, atol=1e-9)
     np.testing.assert_allclose(st_t.pos, st_d.pos, atol=1e-12)

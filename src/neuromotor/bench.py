@@ -28,9 +28,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import dynamics as dy
-from . import treesolve
+from . import nullspace, treesolve
 from .config import DEFAULT_HIT, SimulationConfig
 from .inverse import inverse_dynamics
+from .system import joint_levers, root_lever, world_inertia
 from .simulate import load_character, prepare
 
 H = 1.0 / 120.0
@@ -104,15 +105,30 @@ def single(setup, repeats: int) -> dict:
         return _best(lambda: c(states, ref), repeats) / cfg.n_steps
 
     ref_k = lambda k, ref: (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
-    if cfg.solver == "tree":
-        jac = scan_of(lambda k, st, ref: dy.stiff_blocks(m, g, ref_k(k, ref), active, st.rot, st.omega))
+    if cfg.solver in ("tree", "nullspace"):
+        jac = scan_of(lambda k, st, ref: dy.stiff_blocks(m, g, ref_k(k, ref), active, st.rot, st.omega, st.quat))
+        n = m.n_bodies
+        # Stand-ins for the K, D terms (the solve's cost does not depend on their values).
+        g_diag = jnp.broadcast_to(0.01 * jnp.eye(3), (n, 3, 3))
+        g_cpl = jnp.full((n - 1, 3, 3), 1e-3)
+
+    if cfg.solver == "nullspace":
+        st_ = nullspace.structure(m.body_parent, cfg.driven, cfg.free_root)
 
         def solve(k, st, ref):
             rot = st.rot
-            n = m.n_bodies
+            geo = nullspace.geometry(st_, *joint_levers(m, rot), root_lever(m, rot))
+            return nullspace.solve_kkt(st_, geo, m.mass, world_inertia(m, rot), g_diag, g_cpl, g_cpl,
+                                       st.v.reshape(n, 6), jnp.ones(m.n_constraints + 3 * len(cfg.driven)))
+
+        kkt = scan_of(solve)
+        post_fn = dy.post_stabilize_nullspace
+    elif cfg.solver == "tree":
+        def solve(k, st, ref):
+            rot = st.rot
             blocks = dy._mass_blocks(m, rot)
-            a = blocks.at[:, 3:, 3:].add(0.01 * jnp.eye(3))  # a stand-in for the K, D terms
-            cpl = jnp.full((n - 1, 6, 6), 1e-3)
+            a = blocks.at[:, 3:, 3:].add(-g_diag)
+            cpl = jnp.zeros((n - 1, 6, 6)).at[:, 3:, 3:].set(-g_cpl)
             j_root, j_own, j_par, pad = dy._tree_constraints(m, cfg.driven, rot, cfg.free_root)
             sys = treesolve.TreeKKT(a, cpl, cpl, j_root, j_own, j_par, pad)
             return treesolve.solve(sys, m.body_parent, st.v.reshape(n, 6), jnp.ones(j_root.shape[0]),
@@ -235,7 +251,7 @@ def plot_throughput(rows: list[dict], mujoco_sps: float | None, path) -> None:
 
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     sizes = [r["batch"] for r in rows]
-    ax.loglog(sizes, [r["steps_per_s"] for r in rows], "o-", label="neuromotor (vmap, tree solver)")
+    ax.loglog(sizes, [r["steps_per_s"] for r in rows], "o-", label="neuromotor (vmap, null-space solver)")
     if mujoco_sps:
         ax.axhline(mujoco_sps, color="k", ls="--", label="MuJoCo, one thread")
     ax.axhline(100 / H, color="0.6", ls=":", label="100x real time")
@@ -251,7 +267,7 @@ def plot_throughput(rows: list[dict], mujoco_sps: float | None, path) -> None:
     plt.close(fig)
 
 
-def run_all(clip=None, solver: str = "tree", sizes=(1, 8, 64, 256), batch_seconds: float = 0.25,
+def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_seconds: float = 0.25,
             repeats: int = 5, idyn_clips=(), plot=None, log=print, dense_too: bool = True) -> dict:
     """Run every benchmark and print the figures as they come."""
     log(f"machine: {machine()}")
@@ -260,9 +276,11 @@ def run_all(clip=None, solver: str = "tree", sizes=(1, 8, 64, 256), batch_second
     log(f"model: {setup.model.n_bodies} bodies, {setup.model.n_dofs} DOFs, h = {setup.sim.h:.6f} s")
     res["single"] = single(setup, repeats)
     _log_single(res["single"], log)
-    if dense_too and solver != "dense":
-        res["single_dense"] = single(_setup(clip, 1.0, "dense"), max(2, repeats // 2))
-        _log_single(res["single_dense"], log)
+    if dense_too:  # the other solvers, for comparison
+        for other in ("tree", "dense"):
+            if other != solver:
+                res[f"single_{other}"] = single(_setup(clip, 1.0, other), max(2, repeats // 2))
+                _log_single(res[f"single_{other}"], log)
     res["jacfwd"] = gain_jacobian(setup, repeats)
     j = res["jacfwd"]
     log(f"jacfwd over (ks, kd), {j['seconds_simulated']:.2f} s rollout: {j['jacfwd_s'] * 1e3:.1f} ms vs "
@@ -309,13 +327,13 @@ def main(argv=None) -> int:
 
 def add_arguments(ap) -> None:
     ap.add_argument("clip", nargs="?", default=None, help="BVH clip (default: the embedded 19-joint clip)")
-    ap.add_argument("--solver", choices=("tree", "dense"), default="tree")
+    ap.add_argument("--solver", choices=("nullspace", "tree", "dense"), default="nullspace")
     ap.add_argument("--sizes", type=int, nargs="+", default=[1, 8, 64, 256])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--idyn", nargs="*", default=[], help="clips for the inverse-dynamics figure")
     ap.add_argument("--plot", default=None, help="PNG of throughput against batch size")
     ap.add_argument("--json", default=None, help="write all figures as JSON")
-    ap.add_argument("--no-dense", action="store_true", help="skip the dense reference path")
+    ap.add_argument("--no-dense", action="store_true", help="skip the other solvers (tree, dense reference)")
 
 
 def run_from_args(args) -> int:

@@ -291,7 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("bench", help="speed: steps/s, real-time factor, batch throughput, vs MuJoCo")
     sp.add_argument("clip", nargs="?", default=None, help="BVH clip (default: the embedded 19-joint clip)")
-    sp.add_argument("--solver", choices=("tree", "dense"), default="tree")
+    sp.add_argument("--solver", choices=("nullspace", "tree", "dense"), default="nullspace")
     sp.add_argument("--sizes", type=int, nargs="+", default=[1, 8, 64, 256], help="vmap batch sizes")
     sp.add_argument("--repeats", type=int, default=5, help="timed repeats; the best is reported")
     sp.add_argument("--idyn", nargs="*", default=[], help="clips for the inverse-dynamics figure")

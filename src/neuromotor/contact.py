@@ -366,12 +366,12 @@ def _angular_embed(mat, n: int):
 def stiff_terms(model: Model, gains: Gains, ref_k, active, rot, omega, solver: str = "dense"):
     """k_stiff (6B,), K and D (6B, 6B) of the stiff torques, for the dense system of Eq. 2.
 
-    ``solver="tree"`` takes the exact tree-sparse angular blocks of ``dynamics.stiff_blocks``
+    ``solver="tree"`` or ``"nullspace"`` takes the exact tree-sparse angular blocks of ``dynamics.stiff_blocks``
     (per-joint Jacobians: far cheaper than a dense ``jacfwd``) and scatters them into the dense
     matrices; ``"dense"`` differentiates the whole force vector (``dynamics.stiff_jacobians``).
     Both give the same K and D (a test checks it)."""
     n = model.n_bodies
-    if solver == "tree" and hasattr(_dyn, "stiff_blocks"):
+    if solver in ("tree", "nullspace"):
         sb = _dyn.stiff_blocks(model, gains, ref_k, active, rot, omega)
         c = jnp.arange(1, n)
         p = jnp.array(model.body_parent[1:])

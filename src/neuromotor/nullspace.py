@@ -1,0 +1,322 @@
+"""The KKT systems of Eq. 2 and of post-stabilization solved by the null-space method.
+
+Eq. 2 is a saddle-point system in maximal coordinates,
+
+    [ A   -J^T ] [ v   ]   [ r ]
+    [ J    0   ] [ lam ] = [ b ],        A = M - h D - h^2 K,
+
+where J stacks the ball-joint rows (joint point seen from parent minus from child), the driven
+root's 6 rows and the driven joints' 3 rows each. The null-space method (Benzi, Golub & Liesen
+2005, Section 6) writes v = S u with the columns of S spanning the null space of the ball-joint
+rows, so that ``S^T J_ball^T = 0`` and the multipliers drop out:
+
+    (S^T A S) u = S^T r.                                              (Eq. 2 projected)
+
+Here S is explicit and cheap. Its columns are a translation v0 of the whole body and one
+rotation u_k per body k: the root's rotation about its COM, and each other body's relative
+angular velocity at the joint that attaches it (world frame). A body i moves with
+
+    omega_i = sum_{k in anc(i)} u_k,      v_i = v0 + sum_{k in anc(i)} u_k x (c_i - p_k),
+
+where anc(i) is i and its ancestors (a static 0/1 matrix), c_i the COM and p_k the pivot of
+column k. Geometry is taken from the joint levers, the same vectors J is made of, so J_ball S = 0
+holds to round-off whatever the constraint drift. The root's 6 columns (when the root is driven)
+and the columns of driven joints are known from b; the others (3 per free joint) are solved for.
+
+S^T M S is the joint-space inertia matrix, assembled in closed form from subtree sums
+(composite inertias, as in the composite-rigid-body algorithm; see :func:`reduced_inertia`).
+The stiff blocks of A (hD + h^2 K, angular, on the tree) reduce by subtree sums as well. One
+small dense LU then replaces the tree elimination: a handful of wide array operations instead of
+a batched elimination per tree level, which on a CPU is bound by the number of kernels, not by
+flops. The multipliers are recovered exactly from ``J^T lam = A v - r`` by subtree sums of the
+residual force (the ball joints) and by the projected residual (root and driven joints).
+
+Post-stabilization (Cline & Pai 2003) projects positions onto the constraints in the metric of M:
+``min |dx|_M  s.t.  J dx = -C(x)``. A particular solution translates every subtree by its joint's
+gap and turns the root and driven joints by their errors; the null-space part is then
+``w = -(S^T M S)^-1 S^T M dx_p``, the same projection as ``dx = M^-1 J^T (J M^-1 J^T)^-1 (-C)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg  # noqa: F401  (cho_factor, cho_solve)
+import numpy as np
+from jaxtyping import Array, Float
+
+from .rotations import quat_exp, quat_mul, quat_normalize
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Structure:
+    """Static (numpy) index data of a tree with given driven bodies; see :func:`structure`."""
+
+    anc: np.ndarray  # (B, B): anc[i, k] = 1 if k is i or an ancestor of i
+    deep: np.ndarray  # (B, B): the deeper of k, l (0 if unrelated)
+    related: np.ndarray  # (B, B): 1 if one is an ancestor of the other
+    strict_up: np.ndarray  # (B, B): 1 if l is a strict ancestor of k
+    free: np.ndarray  # scalar indices of the unknown entries of u
+    known: np.ndarray  # scalar indices of the known entries of u
+    order: np.ndarray  # u = concat(u_free, u_known)[order]
+    driven: tuple[int, ...]
+    free_root: bool
+
+
+@functools.lru_cache(maxsize=64)
+def _structure(body_parent: tuple[int, ...], driven: tuple[int, ...], free_root: bool) -> Structure:
+    n = len(body_parent)
+    anc = np.zeros((n, n))
+    for i in range(n):
+        k = i
+        while k >= 0:
+            anc[i, k] = 1.0
+            k = body_parent[k]
+    idx = np.arange(n)
+    deep = np.where(anc > 0, idx[:, None], np.where(anc.T > 0, idx[None, :], 0))
+    related = np.maximum(anc, anc.T)
+    strict_up = anc - np.eye(n)
+    # u = [v0 (3), u_0 (3), u_1 (3), ..., u_{B-1} (3)]
+    known_blocks = ([] if free_root else [0, 1]) + [1 + b for b in driven]
+    known = np.array([3 * blk + j for blk in known_blocks for j in range(3)], dtype=np.int64)
+    free = np.setdiff1d(np.arange(3 * (n + 1)), known)
+    order = np.argsort(np.concatenate([free, known]))
+    return Structure(anc, deep, related, strict_up, free, known, order, tuple(driven), free_root)
+
+
+def structure(body_parent: tuple[int, ...], driven: tuple[int, ...] = (), free_root: bool = False) -> Structure:
+    """Static structure of the null-space basis (cached per topology)."""
+    if any(b <= 0 or b >= len(body_parent) for b in driven):
+        raise ValueError(f"driven bodies must be non-root bodies of the tree, got {driven}")
+    # Driven joints keep the given order: it is the row order of their constraints in J.
+    return _structure(tuple(body_parent), tuple(driven), bool(free_root))
+
+
+def _cross(a, b):
+    """Cross product as elementwise arithmetic (fuses on CPU; jnp.cross is fine too)."""
+    return jnp.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                      a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
+
+
+def _skew(a):
+    z = jnp.zeros_like(a[..., 0])
+    return jnp.stack([jnp.stack([z, -a[..., 2], a[..., 1]], -1),
+                      jnp.stack([a[..., 2], z, -a[..., 0]], -1),
+                      jnp.stack([-a[..., 1], a[..., 0], z], -1)], -2)
+
+
+def _tree_sum(mat: np.ndarray, x):
+    """``mat @ x`` over the leading (body) axis with a static 0/1 matrix."""
+    return jnp.tensordot(jnp.asarray(mat, x.dtype), x, axes=1)
+
+
+class Geometry(eqx.Module):
+    """Positions relative to the root COM, from the joint levers (so that J S = 0 exactly)."""
+
+    com: Float[Array, "B 3"]  # c_i - c_0
+    pivot: Float[Array, "B 3"]  # p_k - c_0: 0 for the root, the joint point for the others
+    r0: Float[Array, "3"]  # root COM -> root joint origin (the driven root's lever)
+
+
+def geometry(st: Structure, r_parent: Float[Array, "C 3"], r_child: Float[Array, "C 3"],
+             r0: Float[Array, "3"]) -> Geometry:
+    """COMs and pivots by chaining levers from the root: c_i = c_parent + r_parent - r_child."""
+    zero = jnp.zeros((1, 3), r_parent.dtype)
+    step = jnp.concatenate([zero, r_parent - r_child], 0)
+    com = _tree_sum(st.anc, step)
+    pivot = jnp.concatenate([zero, com[1:] + r_child], 0)
+    return Geometry(com, pivot, r0)
+
+
+def apply_basis(st: Structure, geo: Geometry, u: Float[Array, " N"]) -> Float[Array, "B 6"]:
+    """v = S u: per body ``[v_i, omega_i]``."""
+    n = geo.com.shape[0]
+    v0, uk = u[:3], u[3:].reshape(n, 3)
+    omega = _tree_sum(st.anc, uk)
+    vel = v0 + _cross(omega, geo.com) - _tree_sum(st.anc, _cross(uk, geo.pivot))
+    return jnp.concatenate([vel, omega], -1)
+
+
+def project_forces(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[Array, " N"]:
+    """S^T f: the total force, and per column k the moment about p_k of the forces on the
+    subtree of k."""
+    force, torque = f[:, :3], f[:, 3:]
+    desc = st.anc.T
+    sub_force = _tree_sum(desc, force)
+    sub_moment = _tree_sum(desc, torque + _cross(geo.com, force)) - _cross(geo.pivot, sub_force)
+    return jnp.concatenate([jnp.sum(force, 0), sub_moment.reshape(-1)])
+
+
+def reduced_inertia(st: Structure, geo: Geometry, mass: Float[Array, " B"],
+                    inertia: Float[Array, "B 3 3"]) -> Float[Array, "N N"]:
+    """S^T M S in closed form from subtree sums.
+
+    For columns k, l with d the deeper of the two (zero block if neither is an ancestor of the
+    other), m_d, s_d = sum m_i c_i and J_d = sum (I_i + m_i (|c_i|^2 1 - c_i c_i^T)) over the
+    subtree of d:
+
+        H_kl = J_d + (m_d p_k.p_l - (p_k + p_l).s_d) 1 + s_d p_k^T + p_l s_d^T - m_d p_l p_k^T,
+        H_{v0,k} = -[s_k - m_k p_k]x,     H_{v0,v0} = (sum m_i) 1.
+    """
+    dtype = geo.com.dtype
+    n = geo.com.shape[0]
+    c = geo.com
+    eye = jnp.eye(3, dtype=dtype)
+    cc = jnp.sum(c * c, -1)
+    own = inertia + mass[:, None, None] * (cc[:, None, None] * eye - c[:, :, None] * c[:, None, :])
+    desc = st.anc.T
+    m_sub = _tree_sum(desc, mass)
+    s_sub = _tree_sum(desc, mass[:, None] * c)
+    j_sub = _tree_sum(desc, own)
+    deep = st.deep
+    md, sd, jd = m_sub[deep], s_sub[deep], j_sub[deep]  # (B, B, ...)
+    pk, pl = geo.pivot[:, None, :], geo.pivot[None, :, :]
+    scalar = md * jnp.sum(pk * pl, -1) - jnp.sum((pk + pl) * sd, -1)
+    outer = lambda a, b: a[..., :, None] * b[..., None, :]
+    blocks = jd + scalar[..., None, None] * eye + outer(sd, pk) + outer(pl, sd) - md[..., None, None] * outer(pl, pk)
+    blocks = blocks * jnp.asarray(st.related, dtype)[..., None, None]
+    rot = jnp.swapaxes(blocks, 1, 2).reshape(3 * n, 3 * n)
+    first = s_sub - m_sub[:, None] * geo.pivot
+    cross_row = -_skew(first)  # (B, 3, 3): H_{v0,k}
+    top = jnp.concatenate([jnp.sum(mass) * eye, jnp.swapaxes(cross_row, 0, 1).reshape(3, 3 * n)], 1)
+    left = jnp.swapaxes(cross_row, 1, 2).reshape(3 * n, 3)
+    return jnp.concatenate([top, jnp.concatenate([left, rot], 1)], 0)
+
+
+def reduced_stiffness(st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[Array, "C 3 3"],
+                      g_down: Float[Array, "C 3 3"]) -> Float[Array, "N N"]:
+    """S^T G S for an angular block-tree matrix G (diagonal blocks, body <- parent ``g_up`` and
+    parent <- body ``g_down``), i.e. the sum of G's blocks over subtree(k) x subtree(l)."""
+    dtype = g_diag.dtype
+    n = g_diag.shape[0]
+    zero = jnp.zeros((1, 3, 3), dtype)
+    up = jnp.concatenate([zero, g_up], 0)
+    down = jnp.concatenate([zero, g_down], 0)
+    strict_desc = st.anc.T - np.eye(n)
+    inner = _tree_sum(st.anc.T, g_diag) + _tree_sum(strict_desc, up + down)
+    mask = lambda m: jnp.asarray(m, dtype)[..., None, None]
+    blocks = (inner[st.deep] * mask(st.related) + up[:, None] * mask(st.strict_up)
+              + down[None, :] * mask(st.strict_up.T))
+    rot = jnp.swapaxes(blocks, 1, 2).reshape(3 * n, 3 * n)
+    out = jnp.zeros((3 * (n + 1), 3 * (n + 1)), dtype)
+    return jnp.concatenate([out[:3], jnp.concatenate([out[3:, :3], rot], 1)], 0)
+
+
+def _split(st: Structure, h: Float[Array, "N N"], rhs: Float[Array, " N"], u_known):
+    """Solve the free part: ``H_FF u_F = rhs_F - H_FK u_K``; returns the full u."""
+    f, k = st.free, st.known
+    hff = h[f][:, f]
+    rhs_f = rhs[f] - (h[f][:, k] @ u_known if k.size else 0.0)
+    u_free = jnp.linalg.solve(hff, rhs_f)
+    return jnp.concatenate([u_free, u_known])[st.order]
+
+
+def known_velocities(st: Structure, r0: Float[Array, "3"], b: Float[Array, " nc"]) -> Float[Array, " K"]:
+    """Known entries of u from the driven root's and driven joints' rows of b (``J v = b``)."""
+    parts = []
+    m0 = 0 if st.free_root else 6
+    if not st.free_root:
+        w0 = b[3:6]
+        parts += [b[0:3] - _cross(w0, r0), w0]  # origin velocity v0 + w0 x r0 = b[0:3]
+    n = st.anc.shape[0]
+    if st.driven:
+        parts.append(b[m0 + 3 * (n - 1):])
+    return jnp.concatenate(parts) if parts else jnp.zeros((0,), b.dtype)
+
+
+def multipliers(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[Array, " nc"]:
+    """lam from ``J^T lam = f`` (f = A v - r), in the row order of ``dynamics.full_constraints``.
+
+    Ball joint k: minus the total force on its subtree. Root rows: the total force, and the
+    total moment about the root COM less the lever's share. Driven joint k: the moment about
+    p_k of the forces on its subtree (its column of S^T f)."""
+    n = geo.com.shape[0]
+    proj = project_forces(st, geo, f)
+    ball = -_tree_sum(st.anc.T, f[:, :3])[1:]
+    parts = []
+    if not st.free_root:
+        total = proj[:3]
+        parts += [total, proj[3:6] - _cross(geo.r0, total)]
+    parts.append(ball.reshape(-1))
+    if st.driven:
+        parts.append(proj[3:].reshape(n, 3)[np.array(st.driven)].reshape(-1))
+    return jnp.concatenate(parts)
+
+
+def solve_kkt(st: Structure, geo: Geometry, mass: Float[Array, " B"], inertia_world: Float[Array, "B 3 3"],
+              g_diag, g_up, g_down, r: Float[Array, "B 6"], b: Float[Array, " nc"]) -> Float[Array, "B 6"]:
+    """v+ of Eq. 2 with ``A = M - G`` (G = h D + h^2 K, angular blocks on the tree)."""
+    h = reduced_inertia(st, geo, mass, inertia_world) - reduced_stiffness(st, g_diag, g_up, g_down)
+    u = _split(st, h, project_forces(st, geo, r), known_velocities(st, geo.r0, b))
+    return apply_basis(st, geo, u)
+
+
+def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) -> Float[Array, "B 6"]:
+    """A dx with ``J dx = -C`` (not of least norm): every subtree moves by its joint's gap, the
+    root and the driven joints turn (and the root shifts) by their errors."""
+    n = geo.com.shape[0]
+    m0 = 0 if st.free_root else 6
+    u = jnp.zeros(3 * (n + 1), c.dtype)
+    if not st.free_root:
+        d_theta0 = -c[3:6]
+        u = u.at[3:6].set(d_theta0).at[0:3].set(-c[0:3] - _cross(d_theta0, geo.r0))
+    if st.driven:
+        cols = np.array([3 * (1 + b) + j for b in st.driven for j in range(3)])
+        u = u.at[cols].set(-c[m0 + 3 * (n - 1):])
+    gaps = jnp.concatenate([jnp.zeros((1, 3), c.dtype), c[m0:m0 + 3 * (n - 1)].reshape(n - 1, 3)], 0)
+    shift = _tree_sum(st.anc, gaps)
+    return apply_basis(st, geo, u) + jnp.concatenate([shift, jnp.zeros_like(shift)], -1)
+
+
+def projection_factor(st: Structure, geo: Geometry, mass, inertia_world):
+    """Cholesky factor of the free block of S^T M S (symmetric positive definite)."""
+    h = reduced_inertia(st, geo, mass, inertia_world)
+    return jax.scipy.linalg.cho_factor(h[st.free][:, st.free])
+
+
+def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[Array, " nc"]):
+    """One Newton step of post-stabilization: ``dx`` (B, 6) with ``J dx = -C`` of least M-norm,
+    ``dx = dx_p + S w`` with ``(S^T M S) w = -S^T M dx_p``."""
+    x_p = particular_correction(st, geo, c)
+    factor = projection_factor(st, geo, mass, inertia_world)
+    mx = jnp.concatenate([mass[:, None] * x_p[:, :3], jnp.einsum("bij,bj->bi", inertia_world, x_p[:, 3:])], -1)
+    w = jax.scipy.linalg.cho_solve(factor, -project_forces(st, geo, mx)[st.free])
+    u = jnp.concatenate([w, jnp.zeros(st.known.size, c.dtype)])[st.order]
+    return x_p + apply_basis(st, geo, u)
+
+
+def retract(pos, quat, dx: Float[Array, "B 6"]):
+    """x (+) dx: positions add, orientations turn by exp(dtheta) (world frame)."""
+    return pos + dx[:, :3], quat_normalize(quat_mul(quat_exp(dx[:, 3:]), quat))
+
+
+def kkt_residual(st: Structure, geo: Geometry, r_parent, r_child, f: Float[Array, "B 6"], v: Float[Array, "B 6"],
+                 lam: Float[Array, " nc"], b: Float[Array, " nc"], parent: np.ndarray):
+    """Both block rows of the residual of Eq. 2, ``(A v - r) - J^T lam`` and ``J v - b``, with
+    J applied joint by joint (the same rows as ``dynamics.full_constraints``)."""
+    n = geo.com.shape[0]
+    m0 = 0 if st.free_root else 6
+    child = np.arange(1, n)
+    lam_ball = lam[m0:m0 + 3 * (n - 1)].reshape(n - 1, 3)
+    one_hot = lambda idx: jnp.asarray(np.eye(n)[idx], f.dtype)  # (rows, B): sums without scatter
+    put = lambda idx, x: jnp.tensordot(one_hot(idx), x, axes=([0], [0]))
+    jt = (put(parent, jnp.concatenate([lam_ball, _cross(r_parent, lam_ball)], -1))
+          - put(child, jnp.concatenate([lam_ball, _cross(r_child, lam_ball)], -1)))
+    point = lambda body, lever: v[body, :3] + _cross(v[body, 3:], lever)
+    rows = [(point(parent, r_parent) - point(child, r_child)).reshape(-1)]
+    if not st.free_root:
+        lam_lin, lam_ang = lam[0:3], lam[3:6]
+        jt = jt.at[0].add(jnp.concatenate([lam_lin, _cross(geo.r0, lam_lin) + lam_ang]))
+        rows.insert(0, jnp.concatenate([v[0, :3] + _cross(v[0, 3:], geo.r0), v[0, 3:]]))
+    if st.driven:
+        drv = np.array(st.driven)
+        par = np.array([parent[d - 1] for d in st.driven])
+        mu = lam[m0 + 3 * (n - 1):].reshape(-1, 3)
+        jt = jt + put(drv, jnp.concatenate([jnp.zeros_like(mu), mu], -1)) - put(par, jnp.concatenate([jnp.zeros_like(mu), mu], -1))
+        rows.append((v[drv, 3:] - v[par, 3:]).reshape(-1))
+    return (f - jt).reshape(-1), jnp.concatenate(rows) - b
