@@ -273,19 +273,22 @@ def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) 
     return apply_basis(st, geo, u) + jnp.concatenate([shift, jnp.zeros_like(shift)], -1)
 
 
-def projection_factor(st: Structure, geo: Geometry, mass, inertia_world):
-    """Cholesky factor of the free block of S^T M S (symmetric positive definite)."""
-    h = reduced_inertia(st, geo, mass, inertia_world)
-    return jax.scipy.linalg.cho_factor(h[st.free][:, st.free])
+def spd_solve(a: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
+    """a^-1 b for symmetric positive definite a by Cholesky, with derivatives by implicit
+    differentiation (``lax.custom_linear_solve``): a tangent costs two triangular solves with
+    the same factor, not the derivative of the factorization (as for ``jnp.linalg.solve``)."""
+    factor = jax.scipy.linalg.cho_factor(jax.lax.stop_gradient(a))
+    return jax.lax.custom_linear_solve(lambda x: a @ x, b, lambda _, y: jax.scipy.linalg.cho_solve(factor, y),
+                                       symmetric=True)
 
 
 def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[Array, " nc"]):
     """One Newton step of post-stabilization: ``dx`` (B, 6) with ``J dx = -C`` of least M-norm,
     ``dx = dx_p + S w`` with ``(S^T M S) w = -S^T M dx_p``."""
     x_p = particular_correction(st, geo, c)
-    factor = projection_factor(st, geo, mass, inertia_world)
+    h = reduced_inertia(st, geo, mass, inertia_world)
     mx = jnp.concatenate([mass[:, None] * x_p[:, :3], jnp.einsum("bij,bj->bi", inertia_world, x_p[:, 3:])], -1)
-    w = jax.scipy.linalg.cho_solve(factor, -project_forces(st, geo, mx)[st.free])
+    w = spd_solve(h[st.free][:, st.free], -project_forces(st, geo, mx)[st.free])
     u = jnp.concatenate([w, jnp.zeros(st.known.size, c.dtype)])[st.order]
     return x_p + apply_basis(st, geo, u)
 
