@@ -11,6 +11,8 @@ multipliers tau_i (Eq. 4) and the constraint forces lam.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -18,9 +20,9 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .kinematics import Trajectory, body_kinematics, joint_angles_from_q
-from .rotations import matrix_to_quat
+from .rotations import matrix_to_quat, skew
 from .skeleton import Model
-from .system import constraint_jacobian, dof_axes, external_forces, mass_matrix, muscle_jacobian
+from .system import dof_axes, external_forces, joint_jacobian_blocks, root_lever, world_inertia
 
 
 class InverseDynamics(eqx.Module):
@@ -49,13 +51,56 @@ def sim_columns(model: Model):
     return jnp.array(model.sim_dof_columns, dtype=jnp.int32)
 
 
+@functools.lru_cache(maxsize=64)
+def _eq3_layout(body_parent: tuple[int, ...], dof_body: tuple[int, ...]) -> np.ndarray:
+    """Static placement of the nonzero blocks of ``[J^T H^T]`` (Eq. 3): for every entry of the
+    (6B, nc + n) matrix, its index in the flat vector of block values of :func:`eq3_matrix`,
+    or the index of a trailing zero. One gather then assembles the matrix, instead of scatters
+    and one-hot contractions that each compile to kernels of their own."""
+    n_bodies, n_dofs = len(body_parent), len(dof_body)
+    nc = 6 + 3 * (n_bodies - 1)
+    n_vals = 36 + 36 * (n_bodies - 1) + 6 * n_dofs
+    index = np.full((6 * n_bodies, nc + n_dofs), n_vals, dtype=np.int64)
+    block = lambda start, rows, cols: start + np.arange(rows * cols).reshape(rows, cols)
+    index[0:6, 0:6] = block(0, 6, 6)  # driven root: J_root^T on body 0
+    for c in range(n_bodies - 1):
+        child, parent, col = c + 1, body_parent[c + 1], 6 + 3 * c
+        index[6 * parent:6 * parent + 6, col:col + 3] = block(36 + 36 * c, 6, 3)
+        index[6 * child:6 * child + 6, col:col + 3] = block(36 + 36 * c + 18, 6, 3)
+    start = 36 + 36 * (n_bodies - 1)
+    for i, child in enumerate(dof_body):  # +h_i on the child's torque rows, -h_i on the parent's
+        parent = body_parent[child]
+        index[6 * child + 3:6 * child + 6, nc + i] = start + 6 * i + np.arange(3)
+        index[6 * parent + 3:6 * parent + 6, nc + i] = start + 6 * i + 3 + np.arange(3)
+    return index
+
+
+def eq3_matrix(model: Model, rot: Float[Array, "B 3 3"], axes: Float[Array, "n 3"]) -> Float[Array, "6B N"]:
+    """``[J^T H^T]`` of Eq. 3, entry for entry the transposes of :func:`system.constraint_jacobian`
+    and :func:`system.muscle_jacobian` (same block values, placed by a static gather)."""
+    dtype = rot.dtype
+    eye = jnp.eye(3, dtype=dtype)
+    zero = jnp.zeros((3, 3), dtype)
+    # Root rows of J: joint origin velocity v - [r0]x omega, angular velocity omega.
+    root = jnp.block([[eye, -skew(root_lever(model, rot))], [zero, eye]])
+    blk_parent, blk_child = joint_jacobian_blocks(model, rot)  # (C, 3, 6) rows of J
+    vals = jnp.concatenate([
+        root.T.reshape(-1),
+        jnp.concatenate([jnp.swapaxes(blk_parent, -1, -2), jnp.swapaxes(blk_child, -1, -2)], 1).reshape(-1),
+        jnp.concatenate([axes, -axes], -1).reshape(-1),
+        jnp.zeros((1,), dtype),
+    ])
+    return vals[_eq3_layout(model.body_parent, model.dof_body)]
+
+
 def solve_eq3(model: Model, q, qd, qdd, theta_sim):
     """Solve Eq. 3 at one instant; returns (lam, tau, axes, relative residual)."""
     _, rot, _, omega, acc, alpha = body_kinematics(model, q, qd, qdd)
     axes = dof_axes(model, rot, theta_sim)
-    a = jnp.concatenate([acc, alpha], -1).reshape(-1)
-    rhs = mass_matrix(model, rot) @ a - external_forces(model, rot, omega)
-    lhs = jnp.concatenate([constraint_jacobian(model, rot).T, muscle_jacobian(model, axes).T], 1)
+    # M a with M block diagonal, diag(m I3, R I R^T) per body.
+    m_a = jnp.concatenate([model.mass[:, None] * acc, jnp.einsum("bij,bj->bi", world_inertia(model, rot), alpha)], -1)
+    rhs = m_a.reshape(-1) - external_forces(model, rot, omega)
+    lhs = eq3_matrix(model, rot, axes)
     x = jnp.linalg.solve(lhs, rhs)
     residual = jnp.linalg.norm(lhs @ x - rhs) / jnp.maximum(jnp.linalg.norm(rhs), 1e-300)
     nc = model.n_constraints

@@ -9,13 +9,16 @@ rotations rather than Euler channels matters near gimbal lock: real clips (the k
 MocapBank clip) jump 100-150 degrees in two Euler channels between frames while the rotation
 itself barely moves, and a spline through such jumps invents huge accelerations.
 
-Body velocities and accelerations follow from forward kinematics by ``jax.jvp`` (the exact chain
-rule), not by finite differences of body poses. Joint angles theta (every rotation channel of
+Body velocities and accelerations follow from forward kinematics by the exact chain rule (the
+product rule through every joint composition, with ``jax.jvp`` for the normalized quaternions),
+not by finite differences of body poses. Joint angles theta (every rotation channel of
 every non-root joint, radians) are the BVH Euler decomposition of the splined rotations,
 unwrapped across +-180 degrees by continuity with the file's own (unwrapped) channels.
 """
 
 from __future__ import annotations
+
+import functools
 
 import equinox as eqx
 import jax
@@ -24,6 +27,7 @@ import numpy as np
 from jaxtyping import Array, Float
 from scipy.interpolate import CubicSpline
 
+from . import vec3
 from .bvh import BvhClip
 from .rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, quat_to_matrix, vee
 from .skeleton import Model
@@ -79,16 +83,29 @@ def mocap_angles(model: Model, clip: BvhClip) -> np.ndarray:
 def mocap_coordinates(model: Model, clip: BvhClip) -> np.ndarray:
     """(T, 3 + 4 * n_rot) spline coordinates of every frame (see the module docstring)."""
     root = clip.joints[0]
-    blocks = [np.asarray(clip.motion[:, list(root.translation_columns)], dtype=np.float64)]
-    for k in rotating_joints(model):
-        joint = clip.joints[k]
-        ang = jnp.deg2rad(jnp.asarray(clip.motion[:, list(joint.rotation_columns)]))
-        quat = np.array(matrix_to_quat(euler_to_matrix(ang, joint.rotation_order)))
-        # Sign continuity: q and -q are the same rotation; keep neighbours on one side.
-        signs = np.cumprod(np.where(np.sum(quat[1:] * quat[:-1], -1) < 0, -1.0, 1.0))
-        quat[1:] *= signs[:, None]
-        blocks.append(quat)
-    return np.concatenate(blocks, axis=1)
+    rot = rotating_joints(model)
+    cols = [list(clip.joints[k].rotation_columns) for k in rot]
+    angles = np.asarray(clip.motion, dtype=np.float64)[:, np.array(cols, dtype=np.int64).reshape(-1, 3)]
+    quat = np.array(_euler_to_quats(jnp.asarray(angles), tuple(clip.joints[k].rotation_order for k in rot)))
+    # Sign continuity: q and -q are the same rotation; keep neighbours on one side.
+    signs = np.cumprod(np.where(np.sum(quat[1:] * quat[:-1], -1) < 0, -1.0, 1.0), axis=0)
+    quat[1:] *= signs[..., None]
+    pos = np.asarray(clip.motion[:, list(root.translation_columns)], dtype=np.float64)
+    return np.concatenate([pos, quat.reshape(quat.shape[0], -1)], axis=1)
+
+
+@functools.partial(jax.jit, static_argnames="orders")
+def _euler_to_quats(angles_deg: Float[Array, "T R 3"], orders: tuple[str, ...]) -> Float[Array, "T R 4"]:
+    """Quaternions of the BVH Euler channels (degrees) of R joints, one batched call per
+    rotation order (one small program instead of dozens of eagerly compiled ops)."""
+    ang = jnp.deg2rad(angles_deg)
+    parts, idx = [], []
+    for order in dict.fromkeys(orders):
+        rows = np.array([r for r, o in enumerate(orders) if o == order])
+        parts.append(matrix_to_quat(euler_to_matrix(ang[:, rows], order)))
+        idx.append(rows)
+    out = jnp.concatenate(parts, 1)
+    return out if len(parts) == 1 else out[:, np.argsort(np.concatenate(idx))]
 
 
 class Trajectory(eqx.Module):
@@ -120,32 +137,137 @@ def trajectory_from_clip(model: Model, clip: BvhClip) -> Trajectory:
     return Trajectory(Spline.fit(times, q), ref, jnp.asarray(times[-1]))
 
 
-def local_rotations(model: Model, q: Float[Array, " Q"]) -> list:
+@functools.lru_cache(maxsize=64)
+def _structure(joint_parent: tuple[int, ...], joint_order: tuple[str, ...]) -> dict:
+    """Static index arrays of the joint tree, built once per topology.
+
+    Per-joint work becomes batched ops -- one quaternion-to-matrix call for all joints, one
+    Euler decomposition per rotation order, one loop body for forward kinematics -- instead of
+    a few tiny ops per joint, which (traced again for every derivative) made the setup programs
+    thousands of HLO ops and most of a cold start's compile time.
+    """
+    n = len(joint_parent)
+    rotating = [k for k, order in enumerate(joint_order) if order]
+    # Row of each joint's local rotation in [quaternion rotations; identity].
+    local_row = np.full(n, len(rotating), dtype=np.int64)
+    local_row[rotating] = np.arange(len(rotating))
+    depth = np.zeros(n, dtype=np.int64)
+    for k, parent in enumerate(joint_parent):  # BVH order: a parent precedes its children
+        depth[k] = depth[parent] + 1 if parent >= 0 else 0
+    cols = _dof_columns(joint_parent, joint_order)
+    groups: dict[str, list[int]] = {}
+    for k, order in enumerate(joint_order):
+        if joint_parent[k] >= 0 and order:
+            groups.setdefault(order, []).append(k)
+    euler = tuple((order, np.array(ks), np.array([cols[k] for k in ks], dtype=np.int64))
+                  for order, ks in groups.items())
+    return {
+        "rotating": np.array(rotating, dtype=np.int64),
+        "local_row": local_row,
+        "all_rotate": len(rotating) == n,
+        "depth": depth,
+        "euler": euler,  # (order, joints, their (m, 3) columns in the angles block)
+        "n_all": sum(len(c) for c in cols),
+    }
+
+
+def structure(model: Model) -> dict:
+    """Static index arrays of the model's joint tree (cached by topology)."""
+    return _structure(model.joint_parent, model.joint_order)
+
+
+def local_rotations(model: Model, q: Float[Array, " Q"]) -> Float[Array, "J 3 3"]:
     """Local rotation matrix of every joint (identity where a joint has no rotation channels)."""
-    out = [None] * len(model.joint_names)
-    for slot, k in enumerate(rotating_joints(model)):
-        quat = q[3 + 4 * slot: 7 + 4 * slot]
-        out[k] = quat_to_matrix(quat / jnp.linalg.norm(quat))
-    eye = jnp.eye(3, dtype=q.dtype)
-    return [eye if r is None else r for r in out]
+    return _local_jet(model, (q,))[0]
+
+
+def _local_jet(model: Model, q_jet: tuple) -> list:
+    """Local rotations of every joint and, for a jet ``(q, qd, qdd)``, their first two time
+    derivatives (``jax.jvp`` of the batched quaternion-to-matrix map: elementwise, cheap)."""
+    st = structure(model)
+    n_rot = len(st["rotating"])
+    quats = [x[3:3 + 4 * n_rot].reshape(-1, 4) for x in q_jet]
+
+    def rot(u):
+        return quat_to_matrix(u / jnp.linalg.norm(u, axis=-1, keepdims=True))
+
+    if len(quats) == 1:
+        out = [rot(quats[0])]
+    else:
+        def rate(u, du):
+            return jax.jvp(rot, (u,), (du,))
+
+        (r, r_dot), (_, r_ddot) = jax.jvp(rate, tuple(quats[:2]), tuple(quats[1:]))
+        out = [r, r_dot, r_ddot]
+    if st["all_rotate"]:
+        return out
+    pad = [jnp.eye(3, dtype=out[0].dtype)] + [jnp.zeros((3, 3), out[0].dtype)] * (len(out) - 1)
+    return [jnp.concatenate([x, e[None]], 0)[st["local_row"]] for x, e in zip(out, pad)]
+
+
+def _jet_mm(a: list, b: list) -> list:
+    """Product of two matrix jets by the Leibniz rule: (AB)' = A'B + AB', (AB)'' = A''B + 2A'B' + AB''."""
+    out = [vec3.mm(a[0], b[0])]
+    if len(a) > 1:
+        out.append(vec3.mm(a[1], b[0]) + vec3.mm(a[0], b[1]))
+        out.append(vec3.mm(a[2], b[0]) + 2.0 * vec3.mm(a[1], b[1]) + vec3.mm(a[0], b[2]))
+    return out
+
+
+def _frames_jet(model: Model, q_jet: tuple) -> tuple[list, list]:
+    """Joint origins and orientations (world) of a jet of coordinates: values only for
+    ``(q,)``, values and first two time derivatives for ``(q, qd, qdd)``.
+
+    Forward kinematics as one ``lax.scan`` over the non-root joints in BVH order (parents
+    first): ``o = o_p + R_p d`` and ``R = R_p L``, differentiated by the product rule. The same
+    operations as a joint-by-joint Python recursion, but one small loop body to compile
+    instead of a traced op chain per joint."""
+    n = len(model.joint_parent)
+    local = jnp.stack(_local_jet(model, q_jet))  # (K, J, 3, 3)
+    k_ord = local.shape[0]
+    root = jnp.stack([x[0:3] for x in q_jet])  # (K, 3)
+    parent = np.array(model.joint_parent)
+    roots = np.flatnonzero(parent < 0)
+    origins = jnp.zeros((k_ord, n, 3), local.dtype).at[:, roots].set(root[:, None])
+    rots = jnp.zeros_like(local).at[:, roots].set(local[:, roots])
+    rest = np.flatnonzero(parent >= 0)
+    if not len(rest):
+        return list(origins), list(rots)
+
+    def step(carry, x):
+        origins, rots = carry
+        k, p, offset, loc = x
+        rot_p = jax.lax.dynamic_index_in_dim(rots, p, 1, keepdims=False)  # (K, 3, 3)
+        org_p = jax.lax.dynamic_index_in_dim(origins, p, 1, keepdims=False)
+        org = org_p + vec3.mv(rot_p, offset)
+        rot = jnp.stack(_jet_mm(list(rot_p), list(loc)))
+        origins = jax.lax.dynamic_update_index_in_dim(origins, org, k, 1)
+        rots = jax.lax.dynamic_update_index_in_dim(rots, rot, k, 1)
+        return (origins, rots), None
+
+    xs = (jnp.asarray(rest), jnp.asarray(parent[rest]), model.joint_offset[rest], jnp.moveaxis(local[:, rest], 1, 0))
+    (origins, rots), _ = jax.lax.scan(step, (origins, rots), xs)
+    return list(origins), list(rots)
 
 
 def joint_angles_from_q(model: Model, q: Float[Array, " Q"], reference: Float[Array, " n_all"]):
     """Euler angles of every non-root rotation channel (n_all), nearest ``reference``."""
+    st = structure(model)
+    if not st["euler"]:
+        return jnp.zeros((0,), q.dtype)
     rots = local_rotations(model, q)
-    cols = joint_dof_columns(model)
-    out = []
-    for k, order in enumerate(model.joint_order):
-        if model.joint_parent[k] >= 0 and order:
-            out.append(matrix_to_euler(rots[k], order, reference[jnp.array(cols[k])]))
-    return jnp.concatenate(out) if out else jnp.zeros((0,), q.dtype)
+    out = jnp.zeros((st["n_all"],), q.dtype)
+    for order, joints, cols in st["euler"]:  # usually one rotation order per skeleton
+        part = matrix_to_euler(rots[joints], order, reference[cols]).reshape(-1)
+        # Columns are assigned in joint order, so a single group is already in place.
+        out = part if cols.size == st["n_all"] else out.at[cols.reshape(-1)].set(part)
+    return out
 
 
-def joint_dof_columns(model: Model) -> list[tuple[int, ...]]:
-    """For each joint, the columns of its rotation channels within the ``angles`` block."""
+def _dof_columns(joint_parent: tuple[int, ...], joint_order: tuple[str, ...]) -> list[tuple[int, ...]]:
     out, start = [], 0
-    for k, order in enumerate(model.joint_order):
-        if model.joint_parent[k] < 0:
+    for k, order in enumerate(joint_order):
+        if joint_parent[k] < 0:
             out.append(())
             continue
         out.append(tuple(range(start, start + len(order))))
@@ -153,42 +275,43 @@ def joint_dof_columns(model: Model) -> list[tuple[int, ...]]:
     return out
 
 
+def joint_dof_columns(model: Model) -> list[tuple[int, ...]]:
+    """For each joint, the columns of its rotation channels within the ``angles`` block."""
+    return _dof_columns(model.joint_parent, model.joint_order)
+
+
 def joint_frames(model: Model, q: Float[Array, " Q"]) -> tuple[Float[Array, "J 3"], Float[Array, "J 3 3"]]:
     """World origin and orientation of every joint frame from spline coordinates q."""
-    local = local_rotations(model, q)
-    origins, rots = [], []
-    for k, parent in enumerate(model.joint_parent):
-        if parent < 0:
-            origins.append(q[0:3])
-            rots.append(local[k])
-            continue
-        origins.append(origins[parent] + rots[parent] @ model.joint_offset[k])
-        rots.append(rots[parent] @ local[k])
-    return jnp.stack(origins), jnp.stack(rots)
+    (origins,), (rots,) = _frames_jet(model, (q,))
+    return origins, rots
+
+
+def _body_jet(model: Model, q_jet: tuple) -> tuple[list, list]:
+    """Body COM positions and orientations (and their time derivatives) of a coordinate jet."""
+    origins, rots = _frames_jet(model, q_jet)
+    idx = np.array(model.body_joint)
+    rot = [r[idx] for r in rots]
+    pos = [o[idx] + vec3.mv(r, model.com) for o, r in zip(origins, rot)]
+    return pos, rot
 
 
 def body_poses(model: Model, q: Float[Array, " Q"]) -> tuple[Float[Array, "B 3"], Float[Array, "B 3 3"]]:
     """COM positions and orientations of the bodies for coordinates q."""
-    origins, rots = joint_frames(model, q)
-    idx = jnp.array(model.body_joint)
-    rot = rots[idx]
-    pos = origins[idx] + jnp.einsum("bij,bj->bi", rot, model.com)
+    (pos,), (rot,) = _body_jet(model, (q,))
     return pos, rot
 
 
 def body_kinematics(model: Model, q, qd, qdd):
-    """Body pose, velocity and acceleration (world frame) by forward-mode differentiation.
+    """Body pose, velocity and acceleration (world frame) by the chain rule through forward
+    kinematics (exact: the product rule on each composition, not finite differences).
 
     Returns ``(pos, rot, vel, omega, acc, alpha)``; omega = vee(Rdot R^T) and
-    alpha = d omega / dt, both in the world frame.
+    alpha = d omega / dt = vee(Rddot R^T + Rdot Rdot^T) = vee(Rddot R^T), both in the world
+    frame (Rdot Rdot^T is symmetric, and its computed entries are too, so it drops exactly).
     """
-
-    def vel_fn(q_, qd_):
-        (pos, rot), (vel, rot_dot) = jax.jvp(lambda x: body_poses(model, x), (q_,), (qd_,))
-        omega = vee(rot_dot @ jnp.swapaxes(rot, -1, -2))
-        return (pos, rot), (vel, omega)
-
-    ((pos, rot), (vel, omega)), (_, (acc, alpha)) = jax.jvp(vel_fn, (q, qd), (qd, qdd))
+    (pos, vel, acc), (rot, rot_dot, rot_ddot) = _body_jet(model, (q, qd, qdd))
+    omega = vee(vec3.mmt(rot_dot, rot))
+    alpha = vee(vec3.mmt(rot_ddot, rot))
     return pos, rot, vel, omega, acc, alpha
 
 

@@ -23,7 +23,8 @@ from .bvh import BvhClip, read_bvh
 from .config import ConfigError, SimulationConfig
 from .control import Gains, make_gains
 from .dynamics import Reference, Rollout, SimConfig, check_rollout, make_reference, rollout
-from .kinematics import Trajectory, local_rotations, skeleton_edges, skeleton_points, trajectory_from_clip
+from .kinematics import (Trajectory, local_rotations, skeleton_edges, skeleton_points, structure,
+                         trajectory_from_clip)
 from .perturbation import ForcePulses, pulses
 from .rotations import quat_to_matrix
 from .skeleton import Character, Model, build_character
@@ -90,13 +91,20 @@ def prepare(config: SimulationConfig, character: Character | None = None,
         driven.append(b)
     driven = tuple(sorted(driven))
     ref = make_reference(model, traj, config.start, config.h, n_steps)
-    t0 = jnp.asarray(config.start)
-    gains = make_gains(model, traj.q(t0), ref.theta[0], ref.activation, config.ks, config.kd, config.tau_floor)
+    gains = _initial_gains(model, traj, jnp.asarray(config.start), ref.theta, ref.activation,
+                           config.ks, config.kd, config.tau_floor)
     sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit)
     # An impulse is a one-step square pulse: it needs the step to know its force.
     specs = [dict(p, step=config.h) for p in config.perturbations]
     ball = contact.ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
     return Setup(character, traj, ref, gains, sim, pulses(specs, index), config, ball)
+
+
+@jax.jit
+def _initial_gains(model: Model, traj: Trajectory, t0, theta, activation, ks, kd, tau_floor) -> Gains:
+    """:func:`make_gains` at the clip's start, the spline evaluation included: one program
+    rather than a dozen eagerly compiled scalar ops."""
+    return make_gains(model, traj.q(t0), theta[0], activation, ks, kd, tau_floor)
 
 
 @jax.jit
@@ -132,41 +140,61 @@ def run_metrics(setup: Setup, pert: Rollout, base: Rollout) -> dict:
     starts = [p["start"] for p in setup.config.perturbations]
     if setup.ball is not None:
         starts.append(float(setup.ball.ball.launch))
-    start = min(starts, default=float(setup.ref.time[0]))
-    dev = mx.deviation(pert.theta, base.theta)
+    start = min(starts, default=float(np.asarray(setup.ref.time)[0]))
+    dev, residual, violation = _metric_arrays(pert.theta, base.theta, pert.residual, base.residual,
+                                              pert.violation, base.violation)
     out = mx.recovery_metrics(pert.time, dev, start)
     out["unperturbed_rms_error_deg"] = mx.rms_error_deg(base.theta, setup.ref.theta)
-    out["max_kkt_residual"] = float(jnp.maximum(jnp.max(pert.residual), jnp.max(base.residual)))
-    out["max_constraint_violation"] = float(jnp.maximum(jnp.max(pert.violation), jnp.max(base.violation)))
+    out["max_kkt_residual"] = float(residual)
+    out["max_constraint_violation"] = float(violation)
     out["diverged"] = bool(int(pert.diverged_step) >= 0 or int(base.diverged_step) >= 0)
     return out
 
 
+@jax.jit
+def _metric_arrays(theta, theta_base, residual, residual_base, violation, violation_base):
+    """The array reductions of :func:`run_metrics` as one program (not a dozen eager ops)."""
+    return (mx.deviation(theta, theta_base), jnp.maximum(jnp.max(residual), jnp.max(residual_base)),
+            jnp.maximum(jnp.max(violation), jnp.max(violation_base)))
+
+
 def joint_frames_from_state(model: Model, pos, rot, local_ref):
     """World origin and rotation of every joint: bodies from the state, massless joints from
-    their parent frame and the mocap's local rotations ``local_ref``."""
-    origins, rots = [None] * len(model.joint_names), [None] * len(model.joint_names)
-    for k, parent in enumerate(model.joint_parent):
-        b = model.joint_body[k]
-        if b >= 0:
-            rots[k] = rot[b]
-            origins[k] = pos[b] - rot[b] @ model.com[b]
-        else:
-            origins[k] = origins[parent] + rots[parent] @ model.joint_offset[k]
-            rots[k] = rots[parent] @ local_ref[k]
-    return jnp.stack(origins), jnp.stack(rots)
+    their parent frame and the mocap's local rotations ``local_ref`` (J, 3, 3)."""
+    joint_body = np.array(model.joint_body)
+    carried = np.flatnonzero(joint_body >= 0)
+    b = joint_body[carried]
+    origins = pos[b] - jnp.einsum("bij,bj->bi", rot[b], model.com[b])
+    rots = rot[b]
+    if len(carried) == len(joint_body):  # every joint carries a body
+        return origins, rots
+    n = len(joint_body)
+    origins = jnp.zeros((n, 3), pos.dtype).at[carried].set(origins)
+    rots = jnp.zeros((n, 3, 3), rot.dtype).at[carried].set(rots)
+    # Massless joints (leaves and their chains) one tree level at a time, parents first.
+    parent = np.array(model.joint_parent)
+    depth = structure(model)["depth"]
+    for d in np.unique(depth[joint_body < 0]):
+        k = np.flatnonzero((joint_body < 0) & (depth == d))
+        p = parent[k]
+        origins = origins.at[k].set(origins[p] + jnp.einsum("kij,kj->ki", rots[p], model.joint_offset[k]))
+        rots = rots.at[k].set(rots[p] @ local_ref[k])
+    return origins, rots
 
 
-def rollout_points(setup: Setup, run_: Rollout) -> np.ndarray:
-    """(S+1, P, 3) skeleton points (joints then End Sites) of a rollout, for drawing."""
-    model = setup.model
-    q = jax.vmap(setup.traj.q)(run_.time)
-
+@jax.jit
+def _skeleton_points(model: Model, traj: Trajectory, time, pos, quat):
+    """Skeleton points of states (leading time axis), as one compiled program."""
     def one(pos, quat, qr):
         o, r = joint_frames_from_state(model, pos, quat_to_matrix(quat), local_rotations(model, qr))
         return skeleton_points(model, o, r)
 
-    return np.asarray(jax.vmap(one)(run_.states.pos, run_.states.quat, q))
+    return jax.vmap(one)(pos, quat, jax.vmap(traj.q)(time))
+
+
+def rollout_points(setup: Setup, run_: Rollout) -> np.ndarray:
+    """(S+1, P, 3) skeleton points (joints then End Sites) of a rollout, for drawing."""
+    return np.asarray(_skeleton_points(setup.model, setup.traj, run_.time, run_.states.pos, run_.states.quat))
 
 
 def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
@@ -183,7 +211,7 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
         "dof_names": np.array(model.dof_names),
         "theta": np.asarray(pert.theta),
         "theta_unperturbed": np.asarray(base.theta),
-        "theta_desired": np.asarray(setup.ref.theta[: pert.time.shape[0]]),
+        "theta_desired": np.asarray(setup.ref.theta)[: pert.time.shape[0]],
         "body_names": np.array(model.body_names),
         "body_pos": np.asarray(pert.states.pos),
         "body_quat": np.asarray(pert.states.quat),
