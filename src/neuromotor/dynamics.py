@@ -325,26 +325,29 @@ def stiff_blocks(model: Model, gains: Gains, ref_k, active, rot, omega, quat=Non
     q_rel_d = matrix_to_quat(rel_d[c])
     nj = model.n_bodies - 1
     tq = jnp.zeros((nj, 3), quat.dtype)
-    jac = jnp.zeros((nj, 3, 12), quat.dtype)
+    jac = jnp.zeros((nj, 3, 9), quat.dtype)
     zero = jnp.zeros(6, quat.dtype)
 
-    def one(x, qp, qc, inp):
-        # x = [d_parent, d_child, w_parent, w_child]
+    def one(x, qp, qc, wp, inp):
+        # x = [d_parent, d_child, w_child]: the torque depends on w_child - w_parent only, so
+        # d/dw_parent = -d/dw_child and 9 tangents give all 12 columns.
         return _joint_torque_q(gains, vec3.qmul(vec3.qexp(x[0:3]), qp), vec3.qmul(vec3.qexp(x[3:6]), qc),
-                               x[6:9], x[9:12], inp)
+                               wp, x[6:9], inp)
 
     def val_jac(qp, qc, wp, wc, inp):
-        x = jnp.concatenate([zero, wp, wc])
-        return one(x, qp, qc, inp), jax.jacfwd(one)(x, qp, qc, inp)
+        x = jnp.concatenate([zero, wc])
+        return one(x, qp, qc, wp, inp), jax.jacfwd(one)(x, qp, qc, wp, inp)
 
     for order, bodies, rows in topo["groups"]:
-        inputs = (_local_axes(per(theta_d)[rows], order), q_rel_d[rows], rel_w_d[c[rows]], per(tau)[rows],
-                  per(act)[rows], per(gains.scale)[rows], per(gains.floor)[rows],
-                  per(gains.reference_torque)[rows], per(active)[rows])
-        t_g, j_g = jax.vmap(val_jac)(quat[p[rows]], quat[c[rows]], omega[p[rows]], omega[c[rows]], inputs)
         full = len(rows) == nj
+        take = (lambda x: x) if full else (lambda x: x[rows])  # no gather for a single order
+        inputs = (_local_axes(take(per(theta_d)), order), take(q_rel_d), take(rel_w_d[c]), take(per(tau)),
+                  take(per(act)), take(per(gains.scale)), take(per(gains.floor)),
+                  take(per(gains.reference_torque)), take(per(active)))
+        t_g, j_g = jax.vmap(val_jac)(quat[p[rows]], quat[c[rows]], omega[p[rows]], omega[c[rows]], inputs)
         tq = t_g if full else tq.at[rows].set(t_g)
         jac = j_g if full else jac.at[rows].set(j_g)
+    jac = jnp.concatenate([jac[..., :6], -jac[..., 6:9], jac[..., 6:9]], -1)
 
     def gyro(x, q, ib):
         r = vec3.qmatrix(vec3.qmul(vec3.qexp(x[:3]), q))

@@ -57,8 +57,6 @@ class Structure:
     """Static (numpy) index data of a tree with given driven bodies; see :func:`structure`."""
 
     anc: np.ndarray  # (B, B): anc[i, k] = 1 if k is i or an ancestor of i
-    deep: np.ndarray  # (B, B): the deeper of k, l (0 if unrelated)
-    related: np.ndarray  # (B, B): 1 if one is an ancestor of the other
     strict_up: np.ndarray  # (B, B): 1 if l is a strict ancestor of k
     free: np.ndarray  # scalar indices of the unknown entries of u
     known: np.ndarray  # scalar indices of the known entries of u
@@ -76,16 +74,13 @@ def _structure(body_parent: tuple[int, ...], driven: tuple[int, ...], free_root:
         while k >= 0:
             anc[i, k] = 1.0
             k = body_parent[k]
-    idx = np.arange(n)
-    deep = np.where(anc > 0, idx[:, None], np.where(anc.T > 0, idx[None, :], 0))
-    related = np.maximum(anc, anc.T)
     strict_up = anc - np.eye(n)
     # u = [v0 (3), u_0 (3), u_1 (3), ..., u_{B-1} (3)]
     known_blocks = ([] if free_root else [0, 1]) + [1 + b for b in driven]
     known = np.array([3 * blk + j for blk in known_blocks for j in range(3)], dtype=np.int64)
     free = np.setdiff1d(np.arange(3 * (n + 1)), known)
     order = np.argsort(np.concatenate([free, known]))
-    return Structure(anc, deep, related, strict_up, free, known, order, tuple(driven), free_root)
+    return Structure(anc, strict_up, free, known, order, tuple(driven), free_root)
 
 
 def structure(body_parent: tuple[int, ...], driven: tuple[int, ...] = (), free_root: bool = False) -> Structure:
@@ -152,9 +147,9 @@ def project_forces(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Floa
     return jnp.concatenate([jnp.sum(force, 0), sub_moment.reshape(-1)])
 
 
-def reduced_inertia(st: Structure, geo: Geometry, mass: Float[Array, " B"],
-                    inertia: Float[Array, "B 3 3"]) -> Float[Array, "N N"]:
-    """S^T M S in closed form from subtree sums.
+def inertia_blocks(st: Structure, geo: Geometry, mass: Float[Array, " B"], inertia: Float[Array, "B 3 3"]):
+    """S^T M S in closed form from subtree sums: the (B, 3, B, 3) blocks of the rotation columns
+    and the first moments ``s_k - m_k p_k`` (B, 3) that couple them with the translation.
 
     For columns k, l with d the deeper of the two (zero block if neither is an ancestor of the
     other), m_d, s_d = sum m_i c_i and J_d = sum (I_i + m_i (|c_i|^2 1 - c_i c_i^T)) over the
@@ -164,7 +159,6 @@ def reduced_inertia(st: Structure, geo: Geometry, mass: Float[Array, " B"],
         H_{v0,k} = -[s_k - m_k p_k]x,     H_{v0,v0} = (sum m_i) 1.
     """
     dtype = geo.com.dtype
-    n = geo.com.shape[0]
     c = geo.com
     eye = jnp.eye(3, dtype=dtype)
     cc = jnp.sum(c * c, -1)
@@ -173,24 +167,49 @@ def reduced_inertia(st: Structure, geo: Geometry, mass: Float[Array, " B"],
     m_sub = _tree_sum(desc, mass)
     s_sub = _tree_sum(desc, mass[:, None] * c)
     j_sub = _tree_sum(desc, own)
-    deep = st.deep
-    md, sd, jd = m_sub[deep], s_sub[deep], j_sub[deep]  # (B, B, ...)
-    pk, pl = geo.pivot[:, None, :], geo.pivot[None, :, :]
-    scalar = md * jnp.sum(pk * pl, -1) - jnp.sum((pk + pl) * sd, -1)
-    outer = lambda a, b: a[..., :, None] * b[..., None, :]
-    blocks = jd + scalar[..., None, None] * eye + outer(sd, pk) + outer(pl, sd) - md[..., None, None] * outer(pl, pk)
-    blocks = blocks * jnp.asarray(st.related, dtype)[..., None, None]
-    rot = jnp.swapaxes(blocks, 1, 2).reshape(3 * n, 3 * n)
+    # Blocks are built in the (k, i, l, j) layout of the flattened matrix, and "the deeper of
+    # k and l" is a pair of static masks rather than a gather: no transpose or gather kernels.
+    at_k, at_l = _deep_masks(st, dtype)  # (B, B): d = k, d = l
+    md = at_k * m_sub[:, None] + at_l * m_sub[None, :]  # (k, l)
+    sd_klx = at_k[..., None] * s_sub[:, None, :] + at_l[..., None] * s_sub[None, :, :]
+    sd_kxl = at_k[:, None, :] * s_sub[:, :, None] + at_l[:, None, :] * s_sub.T[None, :, :]
+    jd = at_k[:, None, :, None] * j_sub[:, :, None, :] + at_l[:, None, :, None] * jnp.swapaxes(j_sub, 0, 1)[None]
+    p = geo.pivot
+    pk_dot_pl = p @ p.T
+    scalar = md * pk_dot_pl - jnp.sum((p[:, None, :] + p[None, :, :]) * sd_klx, -1)  # (k, l)
+    blocks = (jd + scalar[:, None, :, None] * eye[None, :, None, :]
+              + sd_kxl[..., None] * p[:, None, None, :]  # s_d p_k^T
+              + p.T[None, :, :, None] * sd_klx[:, None, :, :]  # p_l s_d^T
+              - md[:, None, :, None] * p.T[None, :, :, None] * p[:, None, None, :])  # m_d p_l p_k^T
     first = s_sub - m_sub[:, None] * geo.pivot
+    return blocks, first
+
+
+def _deep_masks(st: Structure, dtype):
+    """(B, B) masks of the pairs whose deeper body is k (l an ancestor of k, or l = k) and of
+    those whose deeper body is l (k a strict ancestor of l); unrelated pairs are in neither."""
+    return jnp.asarray(st.anc, dtype), jnp.asarray(st.strict_up.T, dtype)
+
+
+def _flat(blocks: Float[Array, "K 3 L 3"]) -> Float[Array, "3K 3L"]:
+    return blocks.reshape(3 * blocks.shape[0], 3 * blocks.shape[2])
+
+
+def reduced_inertia(st: Structure, geo: Geometry, mass: Float[Array, " B"],
+                    inertia: Float[Array, "B 3 3"]) -> Float[Array, "N N"]:
+    """S^T M S over all columns ``[v0, u_0, ..., u_{B-1}]`` (see :func:`inertia_blocks`)."""
+    n = geo.com.shape[0]
+    blocks, first = inertia_blocks(st, geo, mass, inertia)
     cross_row = -_skew(first)  # (B, 3, 3): H_{v0,k}
+    eye = jnp.eye(3, dtype=geo.com.dtype)
     top = jnp.concatenate([jnp.sum(mass) * eye, jnp.swapaxes(cross_row, 0, 1).reshape(3, 3 * n)], 1)
     left = jnp.swapaxes(cross_row, 1, 2).reshape(3 * n, 3)
-    return jnp.concatenate([top, jnp.concatenate([left, rot], 1)], 0)
+    return jnp.concatenate([top, jnp.concatenate([left, _flat(blocks)], 1)], 0)
 
 
-def reduced_stiffness(st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[Array, "C 3 3"],
-                      g_down: Float[Array, "C 3 3"]) -> Float[Array, "N N"]:
-    """S^T G S for an angular block-tree matrix G (diagonal blocks, body <- parent ``g_up`` and
+def stiffness_blocks(st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[Array, "C 3 3"],
+                     g_down: Float[Array, "C 3 3"]) -> Float[Array, "B 3 B 3"]:
+    """Rotation blocks of S^T G S for an angular block-tree matrix G (diagonal blocks, body <- parent ``g_up`` and
     parent <- body ``g_down``), i.e. the sum of G's blocks over subtree(k) x subtree(l)."""
     dtype = g_diag.dtype
     n = g_diag.shape[0]
@@ -199,21 +218,52 @@ def reduced_stiffness(st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[
     down = jnp.concatenate([zero, g_down], 0)
     strict_desc = st.anc.T - np.eye(n)
     inner = _tree_sum(st.anc.T, g_diag) + _tree_sum(strict_desc, up + down)
-    mask = lambda m: jnp.asarray(m, dtype)[..., None, None]
-    blocks = (inner[st.deep] * mask(st.related) + up[:, None] * mask(st.strict_up)
-              + down[None, :] * mask(st.strict_up.T))
-    rot = jnp.swapaxes(blocks, 1, 2).reshape(3 * n, 3 * n)
-    out = jnp.zeros((3 * (n + 1), 3 * (n + 1)), dtype)
+    at_k, at_l = _deep_masks(st, dtype)
+    mask = lambda m: m[:, None, :, None]
+    return (mask(at_k) * inner[:, :, None, :] + mask(at_l) * jnp.swapaxes(inner, 0, 1)[None]
+            + mask(jnp.asarray(st.strict_up, dtype)) * up[:, :, None, :]
+            + mask(jnp.asarray(st.strict_up.T, dtype)) * jnp.swapaxes(down, 0, 1)[None])
+
+
+def reduced_stiffness(st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[Array, "C 3 3"],
+                      g_down: Float[Array, "C 3 3"]) -> Float[Array, "N N"]:
+    """S^T G S over all columns (zero in the translation rows and columns)."""
+    n = g_diag.shape[0]
+    out = jnp.zeros((3 * (n + 1), 3 * (n + 1)), g_diag.dtype)
+    rot = _flat(stiffness_blocks(st, g_diag, g_up, g_down))
     return jnp.concatenate([out[:3], jnp.concatenate([out[3:, :3], rot], 1)], 0)
+
+
+def _free_block(st: Structure, h: Float[Array, "N N"]) -> Float[Array, "F F"]:
+    f = st.free
+    if f.size and np.array_equal(f, np.arange(f[0], f[0] + f.size)):  # a slice: no gather kernel
+        return h[f[0]:f[0] + f.size, f[0]:f[0] + f.size]
+    return h[f][:, f]
+
+
+def _take(st: Structure, x: Float[Array, " N"], idx: np.ndarray):
+    if idx.size and np.array_equal(idx, np.arange(idx[0], idx[0] + idx.size)):
+        return x[idx[0]:idx[0] + idx.size]
+    return x[idx]
+
+
+def _assemble(st: Structure, u_free, u_known):
+    """u from its free and known entries (a concatenation when the known ones come first)."""
+    if np.array_equal(st.known, np.arange(st.known.size)):
+        return jnp.concatenate([u_known, u_free])
+    return jnp.concatenate([u_free, u_known])[st.order]
 
 
 def _split(st: Structure, h: Float[Array, "N N"], rhs: Float[Array, " N"], u_known):
     """Solve the free part: ``H_FF u_F = rhs_F - H_FK u_K``; returns the full u."""
     f, k = st.free, st.known
-    hff = h[f][:, f]
-    rhs_f = rhs[f] - (h[f][:, k] @ u_known if k.size else 0.0)
-    u_free = jnp.linalg.solve(hff, rhs_f)
-    return jnp.concatenate([u_free, u_known])[st.order]
+    rhs_f = _take(st, rhs, f)
+    if k.size:
+        rows = _take(st, h, f)
+        rhs_f = rhs_f - (rows[:, k[0]:k[0] + k.size] if np.array_equal(k, np.arange(k[0], k[0] + k.size))
+                         else rows[:, k]) @ u_known
+    u_free = jnp.linalg.solve(_free_block(st, h), rhs_f)
+    return _assemble(st, u_free, u_known)
 
 
 def known_velocities(st: Structure, r0: Float[Array, "3"], b: Float[Array, " nc"]) -> Float[Array, " K"]:
@@ -251,9 +301,18 @@ def multipliers(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[A
 def solve_kkt(st: Structure, geo: Geometry, mass: Float[Array, " B"], inertia_world: Float[Array, "B 3 3"],
               g_diag, g_up, g_down, r: Float[Array, "B 6"], b: Float[Array, " nc"]) -> Float[Array, "B 6"]:
     """v+ of Eq. 2 with ``A = M - G`` (G = h D + h^2 K, angular blocks on the tree)."""
-    h = reduced_inertia(st, geo, mass, inertia_world) - reduced_stiffness(st, g_diag, g_up, g_down)
-    u = _split(st, h, project_forces(st, geo, r), known_velocities(st, geo.r0, b))
-    return apply_basis(st, geo, u)
+    rhs, u_known = project_forces(st, geo, r), known_velocities(st, geo.r0, b)
+    if st.free_root or st.driven:
+        h = reduced_inertia(st, geo, mass, inertia_world) - reduced_stiffness(st, g_diag, g_up, g_down)
+        return apply_basis(st, geo, _split(st, h, rhs, u_known))
+    # Driven root, every joint free (the common case): only the joints' blocks are assembled,
+    # and the known root motion enters through its two block columns.
+    blocks, first = inertia_blocks(st, geo, mass, inertia_world)
+    blocks = blocks - stiffness_blocks(st, g_diag, g_up, g_down)
+    v0, w0 = u_known[:3], u_known[3:6]
+    known = jnp.einsum("kij,j->ki", blocks[1:, :, 0], w0) + _cross(first[1:], v0)  # H_{k,u0} w0 + H_{k,v0} v0
+    u_free = jnp.linalg.solve(_flat(blocks[1:, :, 1:]), rhs[6:] - known.reshape(-1))
+    return apply_basis(st, geo, jnp.concatenate([u_known, u_free]))
 
 
 def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) -> Float[Array, "B 6"]:
@@ -286,10 +345,13 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
     """One Newton step of post-stabilization: ``dx`` (B, 6) with ``J dx = -C`` of least M-norm,
     ``dx = dx_p + S w`` with ``(S^T M S) w = -S^T M dx_p``."""
     x_p = particular_correction(st, geo, c)
-    h = reduced_inertia(st, geo, mass, inertia_world)
+    if st.free_root or st.driven:
+        h_free = _free_block(st, reduced_inertia(st, geo, mass, inertia_world))
+    else:  # driven root, free joints: the joints' blocks only
+        h_free = _flat(inertia_blocks(st, geo, mass, inertia_world)[0][1:, :, 1:])
     mx = jnp.concatenate([mass[:, None] * x_p[:, :3], jnp.einsum("bij,bj->bi", inertia_world, x_p[:, 3:])], -1)
-    w = spd_solve(h[st.free][:, st.free], -project_forces(st, geo, mx)[st.free])
-    u = jnp.concatenate([w, jnp.zeros(st.known.size, c.dtype)])[st.order]
+    w = spd_solve(h_free, -_take(st, project_forces(st, geo, mx), st.free))
+    u = _assemble(st, w, jnp.zeros(st.known.size, c.dtype))
     return x_p + apply_basis(st, geo, u)
 
 
