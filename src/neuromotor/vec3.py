@@ -113,19 +113,3 @@ def qmatrix(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
         jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
         jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
 
-
-def static_matmul(mat, x: Float[Array, "k ..."]) -> Float[Array, "m ..."]:
-    """``mat @ x`` over the leading axis for a small constant (numpy) matrix ``mat``, written as
-    sums of rows of x: tree sums and one-hot scatters then fuse with their neighbours instead of
-    each becoming a tiny ``dot`` kernel (several microseconds apiece on a CPU)."""
-    import numpy as np
-
-    mat = np.asarray(mat)
-    rows = []
-    for i in range(mat.shape[0]):
-        acc = None
-        for j in np.flatnonzero(mat[i]):
-            term = x[j] if mat[i, j] == 1 else (-x[j] if mat[i, j] == -1 else float(mat[i, j]) * x[j])
-            acc = term if acc is None else acc + term
-        rows.append(jnp.zeros(x.shape[1:], x.dtype) if acc is None else acc)
-    return jnp.stack(rows, 0)
