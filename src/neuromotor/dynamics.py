@@ -575,14 +575,22 @@ def _step_tree(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, 
     res = jnp.concatenate([(top - r).reshape(-1), bot_root - s_root, (bot - s_joint).reshape(-1)])
     rhs_norm = jnp.sqrt(jnp.sum(r**2) + jnp.sum(s_root**2) + jnp.sum(s_joint**2))
     residual = jnp.linalg.norm(res) / jnp.maximum(rhs_norm, 1e-300)
+    return _advance(model, cfg, ref, k, state, v_new, post_stabilize_tree,
+                    (residual, per_body, points, _join_rows(cfg.driven, lam_root, lam)))
+
+
+def _advance(model: Model, cfg: SimConfig, ref: Reference, k, state: State, v_new: Float[Array, "B 6"],
+             post_stabilize_fn, diagnostics):
+    """Positions move with v+ (quaternions by the exponential map), then post-stabilization;
+    ``diagnostics = (residual, per-body force, points, lam * h)`` become the step's info."""
+    residual, per_body, points, lam_h = diagnostics
     vel, omega = v_new[:, :3], v_new[:, 3:]
-    pos = state.pos + h * vel
-    quat = quat_normalize(quat_mul(quat_exp(h * omega), state.quat))
+    pos = state.pos + cfg.h * vel
+    quat = quat_normalize(quat_mul(quat_exp(cfg.h * omega), state.quat))
     targets = (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
-    pos, quat, cerr = post_stabilize_tree(model, cfg.driven, pos, quat, targets, cfg.stab_iters, cfg.free_root)
-    violation = jnp.max(jnp.abs(cerr)) if cerr.size else jnp.zeros((), dtype)
-    info = StepInfo(residual, violation, per_body, points, _join_rows(cfg.driven, lam_root, lam) / h)
-    return State(pos, quat, vel, omega), info
+    pos, quat, cerr = post_stabilize_fn(model, cfg.driven, pos, quat, targets, cfg.stab_iters, cfg.free_root)
+    violation = jnp.max(jnp.abs(cerr)) if cerr.size else jnp.zeros((), pos.dtype)
+    return State(pos, quat, vel, omega), StepInfo(residual, violation, per_body, points, lam_h / cfg.h)
 
 
 def post_stabilize_nullspace(model: Model, driven, pos, quat, targets, iters: int, free_root: bool = False):
@@ -650,14 +658,7 @@ def _step_nullspace(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimCon
     res = jnp.concatenate(nullspace.kkt_residual(st, geo, r_par, r_chi, av - r, v_new, lam, b, p))
     rhs_norm = jnp.sqrt(jnp.sum(r**2) + jnp.sum(b**2))
     residual = jnp.linalg.norm(res) / jnp.maximum(rhs_norm, 1e-300)
-    vel, omega = v_new[:, :3], v_new[:, 3:]
-    pos = state.pos + h * vel
-    quat = quat_normalize(quat_mul(quat_exp(h * omega), state.quat))
-    targets = (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
-    pos, quat, cerr = post_stabilize_nullspace(model, cfg.driven, pos, quat, targets, cfg.stab_iters, cfg.free_root)
-    violation = jnp.max(jnp.abs(cerr)) if cerr.size else jnp.zeros((), dtype)
-    info = StepInfo(residual, violation, per_body, points, lam / h)
-    return State(pos, quat, vel, omega), info
+    return _advance(model, cfg, ref, k, state, v_new, post_stabilize_nullspace, (residual, per_body, points, lam))
 
 
 class StepInfo(eqx.Module):
@@ -706,14 +707,8 @@ def step(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, ref: R
     rhs = jnp.concatenate([m @ v + h * (kvec - dmat @ v), b])
     sol = jnp.linalg.solve(lhs, rhs)
     residual = jnp.linalg.norm(lhs @ sol - rhs) / jnp.maximum(jnp.linalg.norm(rhs), 1e-300)
-    v_new = sol[: 6 * n].reshape(n, 6)
-    vel, omega = v_new[:, :3], v_new[:, 3:]
-    pos = state.pos + h * vel
-    quat = quat_normalize(quat_mul(quat_exp(h * omega), state.quat))
-    targets = (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
-    pos, quat, c = post_stabilize(model, cfg.driven, pos, quat, targets, cfg.stab_iters, cfg.free_root)
-    info = StepInfo(residual, jnp.max(jnp.abs(c)) if c.size else jnp.zeros((), rot.dtype), per_body, points, sol[6 * n:] / h)
-    return State(pos, quat, vel, omega), info
+    return _advance(model, cfg, ref, k, state, sol[: 6 * n].reshape(n, 6), post_stabilize,
+                    (residual, per_body, points, sol[6 * n:]))
 
 
 class Rollout(eqx.Module):
