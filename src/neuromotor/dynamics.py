@@ -300,14 +300,16 @@ def _joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inputs):
     ``R_p R_d R_c^T`` -- the same vector as ``R_p log(R_d R_rel^T)`` of :func:`_joint_errors`."""
     local, q_rel_d, rel_w_d, tau, act, scale, floor, ref_torque, active = inputs
     r_p = vec3.qmatrix(q_p)
-    a = vec3.mm(r_p, local)  # columns h_i
+    a = r_p @ local  # columns h_i (a dot: materialized once, used by every later line)
     e_world = vec3.qlog(vec3.qmul(vec3.qmul(q_p, q_rel_d), vec3.qconj(q_c)))
     w_err = vec3.mv(r_p, rel_w_d) - (w_c - w_p)
     gram = vec3.mmt(a, a) + DAMPING**2 * jnp.eye(3, dtype=a.dtype)
     d_theta = vec3.mtv(a, vec3.solve(gram, e_world))
     d_rate = vec3.mtv(a, vec3.solve(gram, w_err))
     g = dataclasses.replace(gains, scale=scale, floor=floor, reference_torque=ref_torque)
-    return vec3.mv(a, feedback_multipliers(g, tau, act, d_theta, d_rate, active))
+    # A dot, not vec3.mv: it materializes a and the multipliers, which XLA would otherwise
+    # recompute inside every entry of the (nested) Jacobian.
+    return jnp.einsum("...ij,...j->...i", a, feedback_multipliers(g, tau, act, d_theta, d_rate, active))
 
 
 def stiff_blocks(model: Model, gains: Gains, ref_k, active, rot, omega, quat=None) -> StiffBlocks:
