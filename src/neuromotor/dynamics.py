@@ -304,8 +304,9 @@ def _joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inputs):
     e_world = vec3.qlog(vec3.qmul(vec3.qmul(q_p, q_rel_d), vec3.qconj(q_c)))
     w_err = vec3.mv(r_p, rel_w_d) - (w_c - w_p)
     gram = vec3.mmt(a, a) + DAMPING**2 * jnp.eye(3, dtype=a.dtype)
-    d_theta = vec3.mtv(a, vec3.solve(gram, e_world))
-    d_rate = vec3.mtv(a, vec3.solve(gram, w_err))
+    # Both right-hand sides at once, by dots (materialized, as above).
+    d = jnp.swapaxes(a, -1, -2) @ (vec3.inv(gram) @ jnp.stack([e_world, w_err], -1))
+    d_theta, d_rate = d[..., 0], d[..., 1]
     g = dataclasses.replace(gains, scale=scale, floor=floor, reference_torque=ref_torque)
     # A dot, not vec3.mv: it materializes a and the multipliers, which XLA would otherwise
     # recompute inside every entry of the (nested) Jacobian.

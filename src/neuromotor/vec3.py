@@ -46,16 +46,11 @@ def mmt(a: Float[Array, "... 3 3"], b: Float[Array, "... 3 3"]) -> Float[Array, 
             + a[..., :, 2, None] * b[..., None, :, 2])
 
 
-def solve(a: Float[Array, "... 3 3"], b: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
-    """a^-1 b by Cramer's rule (rows of the adjugate are cross products of columns)."""
+def inv(a: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
+    """a^-1 as adjugate over determinant (rows of the adjugate are cross products of columns)."""
     c0, c1, c2 = a[..., :, 0], a[..., :, 1], a[..., :, 2]
     r0, r1, r2 = cross(c1, c2), cross(c2, c0), cross(c0, c1)
-    det = dot(c0, r0)
-    return jnp.stack([dot(r0, b), dot(r1, b), dot(r2, b)], -1) / det[..., None]
-
-
-def norm(a: Float[Array, "... 3"]) -> Float[Array, "..."]:
-    return jnp.sqrt(dot(a, a))
+    return jnp.stack([r0, r1, r2], -2) / dot(c0, r0)[..., None, None]
 
 
 # ---------------------------------------------------------------- quaternions (w, x, y, z)
@@ -70,11 +65,6 @@ def qmul(p: Float[Array, "... 4"], q: Float[Array, "... 4"]) -> Float[Array, "..
 
 def qconj(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
     return jnp.concatenate([q[..., :1], -q[..., 1:]], -1)
-
-
-def qnormalize(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
-    n2 = q[..., 0] ** 2 + q[..., 1] ** 2 + q[..., 2] ** 2 + q[..., 3] ** 2
-    return q / jnp.sqrt(n2)[..., None]
 
 
 def qexp(w: Float[Array, "... 3"]) -> Float[Array, "... 4"]:
@@ -96,13 +86,6 @@ def qlog(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
     angle = 2.0 * jnp.arctan2(s, w)
     scale = jnp.where(s2 > 1e-24, angle / s, 2.0 / w)
     return scale[..., None] * v
-
-
-def qrotate(q: Float[Array, "... 4"], x: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
-    """R(q) x for a unit quaternion."""
-    w, v = q[..., 0, None], q[..., 1:]
-    t = 2.0 * cross(v, x)
-    return x + w * t + cross(v, t)
 
 
 def qmatrix(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
