@@ -534,6 +534,17 @@ def post_stabilize_tree(model: Model, driven, pos, quat, targets, iters: int, fr
     return pos, quat, c
 
 
+def _tree_matvec(model: Model, diag: Float[Array, "B 3 3"], up: Float[Array, "C 3 3"],
+                 down: Float[Array, "C 3 3"], w: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
+    """An angular block-tree matrix times w: diagonal, body <- parent and parent <- child blocks
+    (one-hot sums, no scatter under vmap)."""
+    topo = topology(model)
+    c, p = topo["child"], topo["parent"]
+    sel_c, sel_p = np.eye(model.n_bodies)[c], np.eye(model.n_bodies)[p]
+    return (jnp.einsum("bij,bj->bi", diag, w) + jnp.einsum("cb,cij,cj->bi", sel_c, up, w[p])
+            + jnp.einsum("cb,cij,cj->bi", sel_p, down, w[c]))
+
+
 def _step_tree(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, ref: Reference, k, state: State):
     """Eq. 2 with the block structure of the tree (see :mod:`neuromotor.treesolve`)."""
     h = cfg.h
@@ -549,14 +560,7 @@ def _step_tree(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, 
         a_diag = mass - _embed_angular(h * sb.d_diag + h * h * sb.k_diag)
         a_up = -_embed_angular(h * sb.d_up + h * h * sb.k_up)
         a_down = -_embed_angular(h * sb.d_down + h * h * sb.k_down)
-        # D v over the tree: diagonal, body <- parent, and parent <- child couplings.
-        topo = topology(model)
-        c, p = topo["child"], topo["parent"]
-        w = state.omega
-        sel_c, sel_p = np.eye(n)[c], np.eye(n)[p]  # one-hot sums: no scatter under vmap
-        dv = (jnp.einsum("bij,bj->bi", sb.d_diag, w)
-              + jnp.einsum("cb,cij,cj->bi", sel_c, sb.d_up, w[p])
-              + jnp.einsum("cb,cij,cj->bi", sel_p, sb.d_down, w[c]))
+        dv = _tree_matvec(model, sb.d_diag, sb.d_up, sb.d_down, state.omega)
     else:
         k_stiff = muscle_and_gyro(model, gains, ref_k, active, rot, state.omega).reshape(n, 6)
         torque = k_stiff[:, 3:]
@@ -588,8 +592,7 @@ def _advance(model: Model, cfg: SimConfig, ref: Reference, k, state: State, v_ne
     ``diagnostics = (residual, per-body force, points, lam * h)`` become the step's info."""
     residual, per_body, points, lam_h = diagnostics
     vel, omega = v_new[:, :3], v_new[:, 3:]
-    pos = state.pos + cfg.h * vel
-    quat = quat_normalize(quat_mul(quat_exp(cfg.h * omega), state.quat))
+    pos, quat = nullspace.retract(state.pos, state.quat, cfg.h * v_new)
     targets = (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
     pos, quat, cerr = post_stabilize_fn(model, cfg.driven, pos, quat, targets, cfg.stab_iters, cfg.free_root)
     violation = jnp.max(jnp.abs(cerr)) if cerr.size else jnp.zeros((), pos.dtype)
@@ -623,18 +626,12 @@ def _step_nullspace(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimCon
     dtype = rot.dtype
     active = _active_mask(model, cfg.driven, dtype)
     ref_k = (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
-    topo = topology(model)
-    c, p = topo["child"], topo["parent"]
-    sel_c, sel_p = np.eye(n)[c], np.eye(n)[p]  # one-hot sums: no scatter under vmap
     if cfg.implicit:
         sb = stiff_blocks(model, gains, ref_k, active, rot, state.omega, state.quat)
         torque = sb.k
         g_diag, g_up, g_down = (h * sb.d_diag + h * h * sb.k_diag, h * sb.d_up + h * h * sb.k_up,
                                 h * sb.d_down + h * h * sb.k_down)
-        w = state.omega
-        dv = (jnp.einsum("bij,bj->bi", sb.d_diag, w)
-              + jnp.einsum("cb,cij,cj->bi", sel_c, sb.d_up, w[p])
-              + jnp.einsum("cb,cij,cj->bi", sel_p, sb.d_down, w[c]))
+        dv = _tree_matvec(model, sb.d_diag, sb.d_up, sb.d_down, state.omega)
     else:
         torque = muscle_and_gyro(model, gains, ref_k, active, rot, state.omega).reshape(n, 6)[:, 3:]
         g_diag = jnp.zeros((n, 3, 3), dtype)
@@ -653,12 +650,10 @@ def _step_nullspace(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimCon
     geo = nullspace.geometry(st, r_par, r_chi, root_lever(model, rot))
     v_new = nullspace.solve_kkt(st, geo, model.mass, inertia, g_diag, g_up, g_down, r, b)
     # A v+ - r = J^T lam gives the multipliers; the residual of the whole of Eq. 2 checks the solve.
-    w_new = v_new[:, 3:]
-    gv = (jnp.einsum("bij,bj->bi", g_diag, w_new) + jnp.einsum("cb,cij,cj->bi", sel_c, g_up, w_new[p])
-          + jnp.einsum("cb,cij,cj->bi", sel_p, g_down, w_new[c]))
-    av = mass_v(v_new).at[:, 3:].add(-gv)
+    av = mass_v(v_new).at[:, 3:].add(-_tree_matvec(model, g_diag, g_up, g_down, v_new[:, 3:]))
     lam = nullspace.multipliers(st, geo, av - r)
-    res = jnp.concatenate(nullspace.kkt_residual(st, geo, r_par, r_chi, av - r, v_new, lam, b, p))
+    res = jnp.concatenate(nullspace.kkt_residual(st, geo, r_par, r_chi, av - r, v_new, lam, b,
+                                                 topology(model)["parent"]))
     rhs_norm = jnp.sqrt(jnp.sum(r**2) + jnp.sum(b**2))
     residual = jnp.linalg.norm(res) / jnp.maximum(rhs_norm, 1e-300)
     return _advance(model, cfg, ref, k, state, v_new, post_stabilize_nullspace, (residual, per_body, points, lam))
@@ -675,8 +670,8 @@ class StepInfo(eqx.Module):
 def step(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, ref: Reference, k, state: State):
     """One linearly implicit step from t_k to t_k + h (Eq. 2 plus post-stabilization).
 
-    ``cfg.solver`` picks the tree elimination (default) or the dense reference solve; both
-    solve the same equations and agree to round-off.
+    ``cfg.solver`` picks the null-space method (default), the tree elimination or the dense
+    reference solve; all three solve the same equations and agree to round-off.
     """
     if cfg.solver == "nullspace":
         return _step_nullspace(model, gains, pulses, cfg, ref, k, state)

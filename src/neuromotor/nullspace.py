@@ -234,17 +234,15 @@ def reduced_stiffness(st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[
     return jnp.concatenate([out[:3], jnp.concatenate([out[3:, :3], rot], 1)], 0)
 
 
-def _free_block(st: Structure, h: Float[Array, "N N"]) -> Float[Array, "F F"]:
-    f = st.free
-    if f.size and np.array_equal(f, np.arange(f[0], f[0] + f.size)):  # a slice: no gather kernel
-        return h[f[0]:f[0] + f.size, f[0]:f[0] + f.size]
-    return h[f][:, f]
-
-
-def _take(st: Structure, x: Float[Array, " N"], idx: np.ndarray):
+def _take(x, idx: np.ndarray, axis: int = 0):
+    """``x`` at static indices along ``axis``: a slice (no gather kernel) when they are contiguous."""
     if idx.size and np.array_equal(idx, np.arange(idx[0], idx[0] + idx.size)):
-        return x[idx[0]:idx[0] + idx.size]
-    return x[idx]
+        return jax.lax.slice_in_dim(x, int(idx[0]), int(idx[0]) + idx.size, axis=axis)
+    return jnp.take(x, idx, axis=axis)
+
+
+def _free_block(st: Structure, h: Float[Array, "N N"]) -> Float[Array, "F F"]:
+    return _take(_take(h, st.free), st.free, axis=1)
 
 
 def _assemble(st: Structure, u_free, u_known):
@@ -257,11 +255,9 @@ def _assemble(st: Structure, u_free, u_known):
 def _split(st: Structure, h: Float[Array, "N N"], rhs: Float[Array, " N"], u_known):
     """Solve the free part: ``H_FF u_F = rhs_F - H_FK u_K``; returns the full u."""
     f, k = st.free, st.known
-    rhs_f = _take(st, rhs, f)
+    rhs_f = _take(rhs, f)
     if k.size:
-        rows = _take(st, h, f)
-        rhs_f = rhs_f - (rows[:, k[0]:k[0] + k.size] if np.array_equal(k, np.arange(k[0], k[0] + k.size))
-                         else rows[:, k]) @ u_known
+        rhs_f = rhs_f - _take(_take(h, f), k, axis=1) @ u_known
     u_free = jnp.linalg.solve(_free_block(st, h), rhs_f)
     return _assemble(st, u_free, u_known)
 
@@ -350,7 +346,7 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
     else:  # driven root, free joints: the joints' blocks only
         h_free = _flat(inertia_blocks(st, geo, mass, inertia_world)[0][1:, :, 1:])
     mx = jnp.concatenate([mass[:, None] * x_p[:, :3], jnp.einsum("bij,bj->bi", inertia_world, x_p[:, 3:])], -1)
-    w = spd_solve(h_free, -_take(st, project_forces(st, geo, mx), st.free))
+    w = spd_solve(h_free, -_take(project_forces(st, geo, mx), st.free))
     u = _assemble(st, w, jnp.zeros(st.known.size, c.dtype))
     return x_p + apply_basis(st, geo, u)
 
