@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import dynamics as dy
-from . import nullspace, treesolve
+from . import compiler, nullspace, treesolve
 from .config import DEFAULT_HIT, SimulationConfig
 from .inverse import inverse_dynamics
 from .system import joint_levers, root_lever, world_inertia
@@ -49,7 +49,7 @@ def _best(fn, repeats: int) -> float:
 def _compile(fn, *args):
     """(compiled, wall seconds to trace and compile)."""
     t = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
+    compiled = compiler.jit(fn).lower(*args).compile()
     return compiled, time.perf_counter() - t
 
 
@@ -161,6 +161,22 @@ def single(setup, repeats: int) -> dict:
         "split_us": {"jacobians": jac * 1e6, "kkt_solve": kkt * 1e6, "post_stabilization": post * 1e6,
                      "rest": max(per_step - jac - kkt - post, 0.0) * 1e6},
     }
+
+
+def compiler_options_ab(setup, repeats: int) -> dict:
+    """The rollout compiled with :data:`compiler.CPU_COMPILER_OPTIONS` and with XLA's defaults,
+    timed interleaved in one process (the host's speed drifts between processes)."""
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    fn = lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg)
+    tuned = jax.jit(fn).lower(m, g, p, ref).compile(compiler_options=dict(compiler.CPU_COMPILER_OPTIONS))
+    default = jax.jit(fn).lower(m, g, p, ref).compile()
+    diff = float(jnp.max(jnp.abs(tuned(m, g, p, ref).theta - default(m, g, p, ref).theta)))
+    best = {"tuned": np.inf, "default": np.inf}
+    for _ in range(max(repeats, 5)):
+        for name, comp in (("tuned", tuned), ("default", default)):
+            best[name] = min(best[name], _best(lambda: comp(m, g, p, ref), 1))
+    return {"tuned_us": best["tuned"] / cfg.n_steps * 1e6, "default_us": best["default"] / cfg.n_steps * 1e6,
+            "speedup": best["default"] / best["tuned"], "max_theta_diff_rad": diff}
 
 
 def batched(setup, sizes, repeats: int) -> list[dict]:
@@ -281,6 +297,10 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
             if other != solver:
                 res[f"single_{other}"] = single(_setup(clip, 1.0, other), max(2, repeats // 2))
                 _log_single(res[f"single_{other}"], log)
+    res["compiler_options"] = compiler_options_ab(setup, 2 * repeats)
+    ab = res["compiler_options"]
+    log(f"compiler options (interleaved): {ab['tuned_us']:.1f} us/step tuned vs {ab['default_us']:.1f} us/step "
+        f"with XLA defaults -> {ab['speedup']:.2f}x; max |theta difference| {ab['max_theta_diff_rad']:.1e} rad")
     res["jacfwd"] = gain_jacobian(setup, repeats)
     j = res["jacfwd"]
     log(f"jacfwd over (ks, kd), {j['seconds_simulated']:.2f} s rollout: {j['jacfwd_s'] * 1e3:.1f} ms vs "

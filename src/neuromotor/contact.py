@@ -78,6 +78,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from . import compiler
 from . import dynamics as _dyn
 from .control import Gains
 from .dynamics import (
@@ -632,7 +633,7 @@ def check_contact_rollout(model: Model, out: ContactRollout) -> ContactRollout:
     return out
 
 
-contact_rollout_jit = jax.jit(contact_rollout, static_argnames=("cfg", "settings"))
+contact_rollout_jit = compiler.jit(contact_rollout, static_argnames=("cfg", "settings"))
 
 
 def never_launched(ball: Ball) -> Ball:
@@ -826,5 +827,5 @@ def sweep_ball_speed(setup, speeds) -> dict[str, np.ndarray]:
     }
 
 
-_batched_rollout = jax.jit(jax.vmap(contact_rollout, in_axes=(None, None, None, None, None, 0, None, None)),
+_batched_rollout = compiler.jit(jax.vmap(contact_rollout, in_axes=(None, None, None, None, None, 0, None, None)),
                            static_argnums=(4, 7))

@@ -60,6 +60,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .atomic import atomic_path
+from . import compiler
 from . import metrics as mx
 from .control import Gains
 from .dynamics import Reference, Rollout, SimConfig, rollout
@@ -350,7 +351,7 @@ def _compiled_response(jacobian: str):
             rows = jax.lax.map(lambda e: vjp((e, zc, zd))[0], eye, batch_size=REVERSE_BATCH)
             return y, rows, curves, div
 
-        _COMPILED[jacobian] = eqx.filter_jit(fn)
+        _COMPILED[jacobian] = compiler.jit(fn)
     return _COMPILED[jacobian]
 
 

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import contact
+from . import compiler, contact
 from . import metrics as mx
 from .atomic import atomic_path
 from .bvh import BvhClip, read_bvh
@@ -112,7 +112,7 @@ def _zero(p: ForcePulses) -> ForcePulses:
     return dataclasses.replace(p, magnitude=jnp.zeros_like(p.magnitude))
 
 
-simulate_jit = jax.jit(rollout, static_argnames=("cfg",))
+simulate_jit = compiler.jit(rollout, static_argnames=("cfg",))
 
 
 @dataclasses.dataclass

@@ -74,6 +74,7 @@ from .control import Gains, pd_tracking_gains
 from .dynamics import Reference, SimConfig, rollout
 from .perturbation import ForcePulses
 from .skeleton import Model
+from . import compiler
 from . import contact as ct
 
 AXIS = "runs"
@@ -236,7 +237,7 @@ class Sweeper:
         rep = P()
         shared = (eqx.partition(model, eqx.is_array)[0], ref)
         self.shared = jax.tree_util.tree_map(lambda x: _put(x, self.mesh, rep), shared)
-        self._simulate = jax.jit(jax.shard_map(
+        self._simulate = compiler.jit(jax.shard_map(
             self._local, mesh=self.mesh, in_specs=(rep, P(AXIS)), out_specs=P(AXIS), check_vma=False))
 
     def _one(self, shared, run: RunBatch) -> RunOut:

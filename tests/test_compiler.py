@@ -1,0 +1,44 @@
+"""Issue 6: the CPU compiler options change how the rollout is compiled, not what it computes."""
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from conftest import CLIPS
+from neuromotor import compiler
+from neuromotor.config import DEFAULT_HIT, SimulationConfig
+from neuromotor.dynamics import rollout
+from neuromotor.simulate import load_character, prepare, simulate_jit
+
+
+@pytest.fixture(scope="module")
+def short_hit():
+    character, traj = load_character(CLIPS["mocapbank"])
+    hit = dict(DEFAULT_HIT, magnitude=400.0, start=0.05)
+    return prepare(SimulationConfig(duration=0.2, perturbations=[hit]), character, traj)
+
+
+def test_options_are_cpu_debug_options_and_can_be_switched_off(monkeypatch):
+    opts = compiler.compiler_options()
+    assert opts == compiler.CPU_COMPILER_OPTIONS and all(k.startswith("xla_cpu_") for k in opts)
+    monkeypatch.setenv("NEUROMOTOR_XLA_TUNING", "0")
+    assert compiler.compiler_options() == {}
+
+
+def test_tuned_rollout_equals_default_build(short_hit):
+    s = short_hit
+    args = (s.model, s.gains, s.pulses, s.ref)
+    fn = lambda m, g, p, ref: rollout(m, g, p, ref, s.sim)
+    tuned = compiler.jit(fn).lower(*args).compile()
+    default = jax.jit(fn).lower(*args).compile()
+    # The options took effect: no small dot is handed to the YNNPACK library.
+    assert "__ynn_fusion" not in tuned.as_text()
+    a, b = tuned(*args), default(*args)
+    assert int(a.diverged_step) == int(b.diverged_step) == -1
+    # The hit moves the joints by degrees; the two builds agree to round-off.
+    assert float(jnp.max(jnp.abs(a.theta - a.theta[0]))) > 1e-3
+    assert float(jnp.max(jnp.abs(a.theta - b.theta))) < 1e-11
+    assert float(jnp.max(jnp.abs(a.states.pos - b.states.pos))) < 1e-11
+    # The module-level program (what `neuromotor simulate` runs) is the tuned one.
+    c = simulate_jit(*args, s.sim)
+    assert float(jnp.max(jnp.abs(c.theta - a.theta))) < 1e-12
