@@ -129,6 +129,15 @@ class Reference(eqx.Module):
     rel_rot: Float[Array, "S1 B 3 3"]  # each body's desired rotation in its parent's frame
     rel_omega: Float[Array, "S1 B 3"]  # desired relative angular velocity, parent frame
     init: State
+    # Derived from theta and rel_rot in make_reference, once for the whole grid, so that the
+    # step does not rebuild them: they depend on the mocap only, never on the state.
+    local_axes: Float[Array, "S1 C 3 3"]  # Euler axes h_i of each joint at theta_d, parent frame (columns)
+    rel_quat: Float[Array, "S1 C 4"]  # quaternion of each joint's desired rotation (rel_rot of its child)
+
+    def joint_targets(self, k) -> tuple[Float[Array, "C 3 3"], Float[Array, "C 4"]]:
+        """``(local_axes, rel_quat)`` at grid step k: the state-independent inputs of
+        :func:`stiff_blocks`."""
+        return self.local_axes[k], self.rel_quat[k]
 
 
 def make_reference(model: Model, traj: Trajectory, t0: float, h: float, n_steps: int) -> Reference:
@@ -158,8 +167,11 @@ def _make_reference(model: Model, traj: Trajectory, t0, h, n_steps: int) -> Refe
     rel_w = jnp.einsum("tbji,tbj->tbi", rot[:, par], omega - omega[:, par])
     init = State(pos[0], matrix_to_quat(rot[0]), vel[0], omega[0])
     root_origin = pos[:, 0] - jnp.einsum("tij,j->ti", rot[:, 0], model.com[0])
+    child = topology(model)["child"]
+    local_axes = jax.vmap(lambda th: joint_local_axes(model, th))(theta)
+    rel_quat = matrix_to_quat(rel[:, child])
     return Reference(times, sol.tau, activation, theta, theta_dot, root_origin,
-                     rot[:, 0], qd[:, 0:3], omega[:, 0], rel, rel_w, init)
+                     rot[:, 0], qd[:, 0:3], omega[:, 0], rel, rel_w, init, local_axes, rel_quat)
 
 
 def _active_mask(model: Model, driven: tuple[int, ...], dtype) -> Float[Array, " n"]:
@@ -293,6 +305,17 @@ def _local_axes(theta: Float[Array, "C 3"], order: str) -> Float[Array, "C 3 3"]
     return jnp.stack([jnp.broadcast_to(eye[a0], theta.shape), r1[..., :, a1], r2[..., :, a2]], -1)
 
 
+def joint_local_axes(model: Model, theta_d: Float[Array, " n"]) -> Float[Array, "C 3 3"]:
+    """:func:`_local_axes` of every joint, each group of joints with its own rotation order."""
+    per = dofs_to_per_joint(model, theta_d)
+    out = jnp.zeros((model.n_bodies - 1, 3, 3), theta_d.dtype)
+    for order, _, rows in topology(model)["groups"]:
+        if len(rows) == model.n_bodies - 1:
+            return _local_axes(per, order)
+        out = out.at[rows].set(_local_axes(per[rows], order))
+    return out
+
+
 def _joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inputs):
     """:func:`_joint_torque` on quaternions, written with :mod:`vec3` (fusion-friendly).
 
@@ -313,19 +336,21 @@ def _joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inputs):
     return jnp.einsum("...ij,...j->...i", a, feedback_multipliers(g, tau, act, d_theta, d_rate, active))
 
 
-def stiff_blocks(model: Model, gains: Gains, ref_k, active, rot, omega, quat=None) -> StiffBlocks:
+def stiff_blocks(model: Model, gains: Gains, ref_k, active, rot, omega, quat=None, targets=None) -> StiffBlocks:
     """The same K and D as :func:`stiff_jacobians`, by ``jax.jacfwd`` of a per-joint function
     (12 inputs: both bodies' rotation and angular velocity) vmapped over joints, plus the
     gyroscopic term per body. The tree sparsity is exact, not an approximation: joint j's torque
     depends on its two bodies only. Orientations enter as quaternions (``quat``, else from
-    ``rot``); rotations are perturbed as ``exp(d) q`` in the world frame, the tangent of Eq. 2."""
+    ``rot``); rotations are perturbed as ``exp(d) q`` in the world frame, the tangent of Eq. 2.
+    ``targets`` = ``ref.joint_targets(k)`` (the Euler axes and desired rotations, precomputed
+    for the whole grid); without it they are built here from ``ref_k``."""
     topo = topology(model)
     c, p = topo["child"], topo["parent"]
     if quat is None:
         quat = matrix_to_quat(rot)
     tau, act, theta_d, rel_d, rel_w_d = ref_k
     per = lambda x: dofs_to_per_joint(model, x)
-    q_rel_d = matrix_to_quat(rel_d[c])
+    local_all, q_rel_d = targets if targets is not None else (joint_local_axes(model, theta_d), matrix_to_quat(rel_d[c]))
     nj = model.n_bodies - 1
     tq = jnp.zeros((nj, 3), quat.dtype)
     jac = jnp.zeros((nj, 3, 9), quat.dtype)
@@ -344,7 +369,7 @@ def stiff_blocks(model: Model, gains: Gains, ref_k, active, rot, omega, quat=Non
     for order, bodies, rows in topo["groups"]:
         full = len(rows) == nj
         take = (lambda x: x) if full else (lambda x: x[rows])  # no gather for a single order
-        inputs = (_local_axes(take(per(theta_d)), order), take(q_rel_d), take(rel_w_d[c]), take(per(tau)),
+        inputs = (take(local_all), take(q_rel_d), take(rel_w_d[c]), take(per(tau)),
                   take(per(act)), take(per(gains.scale)), take(per(gains.floor)),
                   take(per(gains.reference_torque)), take(per(active)))
         t_g, j_g = jax.vmap(val_jac)(quat[p[rows]], quat[c[rows]], omega[p[rows]], omega[c[rows]], inputs)
@@ -555,7 +580,7 @@ def _step_tree(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, 
     ref_k = (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
     mass = _mass_blocks(model, rot)
     if cfg.implicit:
-        sb = stiff_blocks(model, gains, ref_k, active, rot, state.omega)
+        sb = stiff_blocks(model, gains, ref_k, active, rot, state.omega, targets=ref.joint_targets(k))
         torque = sb.k
         a_diag = mass - _embed_angular(h * sb.d_diag + h * h * sb.k_diag)
         a_up = -_embed_angular(h * sb.d_up + h * h * sb.k_up)
@@ -627,7 +652,7 @@ def _step_nullspace(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimCon
     active = _active_mask(model, cfg.driven, dtype)
     ref_k = (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
     if cfg.implicit:
-        sb = stiff_blocks(model, gains, ref_k, active, rot, state.omega, state.quat)
+        sb = stiff_blocks(model, gains, ref_k, active, rot, state.omega, state.quat, ref.joint_targets(k))
         torque = sb.k
         g_diag, g_up, g_down = (h * sb.d_diag + h * h * sb.k_diag, h * sb.d_up + h * h * sb.k_up,
                                 h * sb.d_down + h * h * sb.k_down)
