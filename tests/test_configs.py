@@ -32,3 +32,11 @@ def test_unknown_table_and_bad_values_name_the_field(tmp_path):
     bad.write_text("[sim\nh = 1\n")
     with pytest.raises(ConfigError, match=r"bad\.toml: invalid TOML"):
         load_simulation_config(bad)
+
+
+def test_stabilization_steps_is_read_and_checked():
+    assert simulation_config({}, "x.toml").stabilization_steps == 2
+    assert simulation_config({"sim": {"stabilization_steps": 1}}, "x.toml").stabilization_steps == 1
+    for bad in (0, 6, 1.5, True, "2"):
+        with pytest.raises(ConfigError, match=r"x\.toml: field 'sim\.stabilization_steps' must be an integer from 1 to 5"):
+            simulation_config({"sim": {"stabilization_steps": bad}}, "x.toml")

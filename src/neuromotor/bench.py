@@ -164,20 +164,43 @@ def single(setup, repeats: int) -> dict:
     }
 
 
+def _interleaved(programs: dict, args, repeats: int) -> dict[str, float]:
+    """Best wall time of each compiled program, timed in alternation (the host's speed drifts
+    too much between processes, or even minutes apart, for separate runs to be compared)."""
+    best = {name: np.inf for name in programs}
+    for _ in range(max(repeats, 5)):
+        for name, comp in programs.items():
+            best[name] = min(best[name], _best(lambda: comp(*args), 1))
+    return best
+
+
 def compiler_options_ab(setup, repeats: int) -> dict:
-    """The rollout compiled with :data:`compiler.CPU_COMPILER_OPTIONS` and with XLA's defaults,
-    timed interleaved in one process (the host's speed drifts between processes)."""
+    """The rollout compiled with :data:`compiler.CPU_COMPILER_OPTIONS` and with XLA's defaults."""
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     fn = lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg)
-    tuned = jax.jit(fn).lower(m, g, p, ref).compile(compiler_options=dict(compiler.CPU_COMPILER_OPTIONS))
-    default = jax.jit(fn).lower(m, g, p, ref).compile()
-    diff = float(jnp.max(jnp.abs(tuned(m, g, p, ref).theta - default(m, g, p, ref).theta)))
-    best = {"tuned": np.inf, "default": np.inf}
-    for _ in range(max(repeats, 5)):
-        for name, comp in (("tuned", tuned), ("default", default)):
-            best[name] = min(best[name], _best(lambda: comp(m, g, p, ref), 1))
+    progs = {"tuned": jax.jit(fn).lower(m, g, p, ref).compile(compiler_options=dict(compiler.CPU_COMPILER_OPTIONS)),
+             "default": jax.jit(fn).lower(m, g, p, ref).compile()}
+    diff = float(jnp.max(jnp.abs(progs["tuned"](m, g, p, ref).theta - progs["default"](m, g, p, ref).theta)))
+    best = _interleaved(progs, (m, g, p, ref), repeats)
     return {"tuned_us": best["tuned"] / cfg.n_steps * 1e6, "default_us": best["default"] / cfg.n_steps * 1e6,
             "speedup": best["default"] / best["tuned"], "max_theta_diff_rad": diff}
+
+
+def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
+    """The rollout with each number of post-stabilization Newton steps: time per step (timed
+    in alternation), the largest constraint violation left, and the largest difference in
+    joint angles from the last entry of ``steps``."""
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    progs = {}
+    for n in steps:
+        c = dataclasses.replace(cfg, stab_iters=n)
+        progs[n] = compiler.jit(lambda m, g, p, ref, c=c: dy.rollout(m, g, p, ref, c)).lower(m, g, p, ref).compile()
+    runs = {n: progs[n](m, g, p, ref) for n in steps}
+    best = _interleaved(progs, (m, g, p, ref), repeats)
+    last = runs[steps[-1]]
+    return [{"stab_iters": n, "step_us": best[n] / cfg.n_steps * 1e6,
+             "max_violation": float(runs[n].violation.max()),
+             "max_theta_diff_rad": float(jnp.max(jnp.abs(runs[n].theta - last.theta)))} for n in steps]
 
 
 def batched(setup, sizes, repeats: int) -> list[dict]:
@@ -316,6 +339,10 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
     ab = res["compiler_options"]
     log(f"compiler options (interleaved): {ab['tuned_us']:.1f} us/step tuned vs {ab['default_us']:.1f} us/step "
         f"with XLA defaults -> {ab['speedup']:.2f}x; max |theta difference| {ab['max_theta_diff_rad']:.1e} rad")
+    res["stabilization"] = stabilization_ab(setup, 2 * repeats)
+    for r in res["stabilization"]:
+        log(f"post-stabilization, {r['stab_iters']} Newton step(s): {r['step_us']:.1f} us/step, max violation "
+            f"{r['max_violation']:.1e} m, max |theta - theta(2 steps)| {r['max_theta_diff_rad']:.1e} rad")
     res["jacfwd"] = gain_jacobian(setup, repeats)
     j = res["jacfwd"]
     log(f"jacfwd over (ks, kd), {j['seconds_simulated']:.2f} s rollout: {j['jacfwd_s'] * 1e3:.1f} ms vs "

@@ -93,7 +93,8 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     ref = make_reference(model, traj, config.start, config.h, n_steps)
     gains = _initial_gains(model, traj, jnp.asarray(config.start), ref.theta, ref.activation,
                            config.ks, config.kd, config.tau_floor)
-    sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit)
+    sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit,
+                    stab_iters=config.stabilization_steps)
     # An impulse is a one-step square pulse: it needs the step to know its force.
     specs = [dict(p, step=config.h) for p in config.perturbations]
     ball = contact.ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
