@@ -10,17 +10,18 @@ time at this size:
 * ``xla_cpu_use_fusion_emitters``: the newer fusion emitters generate slower code for these
   tiny fusions (and take longer to compile).
 
-Switching the three off made the rollout 18 to 21 % faster in interleaved timings of the same
+Switching the three off made the rollout 1.19x to 1.30x faster in interleaved timings of the same
 program in one process (``docs/benchmarks.md``); results agree with the default build to
 3e-14 rad. The options are passed to ``jax.jit(..., compiler_options=...)`` of the rollout
-programs only, so other JAX code in the user's process is untouched. They are CPU options:
-other backends ignore them. They are read when a program is wrapped (at import for the
-module-level ones): set ``NEUROMOTOR_XLA_TUNING=0`` before importing neuromotor to compile
-with XLA's defaults.
+programs only, so other JAX code in the user's process is untouched. They are given only when
+the default backend is the CPU, decided at a program's first use (wrapping a program at import
+touches no backend, so a device count forced later still takes effect). Set
+``NEUROMOTOR_XLA_TUNING=0`` to compile with XLA's defaults.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 
 import jax
@@ -40,6 +41,27 @@ def compiler_options() -> dict[str, object]:
     return dict(CPU_COMPILER_OPTIONS)
 
 
+class _TunedJit:
+    """``jax.jit(fun, **kwargs)`` built at first use, with the options if the backend is the CPU."""
+
+    def __init__(self, fun, kwargs):
+        self._fun, self._kwargs, self._jitted = fun, kwargs, None
+        functools.update_wrapper(self, fun)
+
+    def _get(self):
+        if self._jitted is None:
+            opts = compiler_options() if jax.default_backend() == "cpu" else {}
+            self._jitted = jax.jit(self._fun, compiler_options=opts or None, **self._kwargs)
+        return self._jitted
+
+    def __call__(self, *args, **kwargs):
+        return self._get()(*args, **kwargs)
+
+    def lower(self, *args, **kwargs):
+        return self._get().lower(*args, **kwargs)
+
+
 def jit(fun, **kwargs):
-    """``jax.jit`` with :func:`compiler_options` (a drop-in for the rollout programs)."""
-    return jax.jit(fun, compiler_options=compiler_options() or None, **kwargs)
+    """``jax.jit`` with :func:`compiler_options` on the CPU (a drop-in for the rollout programs:
+    call it, or ``.lower(...).compile()`` it)."""
+    return _TunedJit(fun, kwargs)
