@@ -80,8 +80,9 @@ def _setup(clip, seconds: float, solver: str):
     return setup
 
 
-def single(setup, repeats: int) -> dict:
-    """One trajectory: speed, compile time and the split of a step."""
+def single(setup, repeats: int) -> tuple[dict, object]:
+    """One trajectory: speed, compile time and the split of a step; and the compiled rollout
+    (a zero-argument callable, for the interleaved comparison with MuJoCo)."""
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     run_fn = lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg)
     comp, compile_s = _compile(run_fn, m, g, p, ref)
@@ -151,7 +152,6 @@ def single(setup, repeats: int) -> dict:
     targets = lambda k, ref: (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
     post = scan_of(lambda k, st, ref: post_fn(m, cfg.driven, st.pos, st.quat, targets(k, ref),
                                               cfg.stab_iters, cfg.free_root))
-    setup.compiled_rollout = lambda: comp(m, g, p, ref)
     return {
         "solver": cfg.solver,
         "steps": cfg.n_steps,
@@ -161,16 +161,16 @@ def single(setup, repeats: int) -> dict:
         "real_time_factor": cfg.h / per_step,
         "split_us": {"jacobians": jac * 1e6, "kkt_solve": kkt * 1e6, "post_stabilization": post * 1e6,
                      "rest": max(per_step - jac - kkt - post, 0.0) * 1e6},
-    }
+    }, lambda: comp(m, g, p, ref)
 
 
-def _interleaved(programs: dict, args, repeats: int) -> dict[str, float]:
-    """Best wall time of each compiled program, timed in alternation (the host's speed drifts
-    too much between processes, or even minutes apart, for separate runs to be compared)."""
-    best = {name: np.inf for name in programs}
+def _interleaved(runs: dict, repeats: int) -> dict[str, float]:
+    """Best wall time of each zero-argument callable, timed in alternation (the host's speed
+    drifts too much between processes, or even minutes apart, for separate runs to be compared)."""
+    best = {name: np.inf for name in runs}
     for _ in range(max(repeats, 5)):
-        for name, comp in programs.items():
-            best[name] = min(best[name], _best(lambda: comp(*args), 1))
+        for name, fn in runs.items():
+            best[name] = min(best[name], _best(fn, 1))
     return best
 
 
@@ -181,7 +181,7 @@ def compiler_options_ab(setup, repeats: int) -> dict:
     progs = {"tuned": jax.jit(fn).lower(m, g, p, ref).compile(compiler_options=dict(compiler.CPU_COMPILER_OPTIONS)),
              "default": jax.jit(fn).lower(m, g, p, ref).compile()}
     diff = float(jnp.max(jnp.abs(progs["tuned"](m, g, p, ref).theta - progs["default"](m, g, p, ref).theta)))
-    best = _interleaved(progs, (m, g, p, ref), repeats)
+    best = _interleaved({k: (lambda c=c: c(m, g, p, ref)) for k, c in progs.items()}, repeats)
     return {"tuned_us": best["tuned"] / cfg.n_steps * 1e6, "default_us": best["default"] / cfg.n_steps * 1e6,
             "speedup": best["default"] / best["tuned"], "max_theta_diff_rad": diff}
 
@@ -196,7 +196,7 @@ def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
         c = dataclasses.replace(cfg, stab_iters=n)
         progs[n] = compiler.jit(lambda m, g, p, ref, c=c: dy.rollout(m, g, p, ref, c)).lower(m, g, p, ref).compile()
     runs = {n: progs[n](m, g, p, ref) for n in steps}
-    best = _interleaved(progs, (m, g, p, ref), repeats)
+    best = _interleaved({k: (lambda c=c: c(m, g, p, ref)) for k, c in progs.items()}, repeats)
     last = runs[steps[-1]]
     return [{"stab_iters": n, "step_us": best[n] / cfg.n_steps * 1e6,
              "max_violation": float(runs[n].violation.max()),
@@ -288,12 +288,9 @@ def mujoco_reference(setup, steps: int, repeats: int, ours=None) -> dict | None:
            "step_us": t / steps * 1e6, "steps_per_s": steps / t, "real_time_factor": steps * setup.sim.h / t}
     if ours is not None:
         n = setup.sim.n_steps
-        best_ours, best_mj = np.inf, np.inf
-        for _ in range(max(3 * repeats, 10)):
-            best_ours = min(best_ours, _best(ours, 1))
-            best_mj = min(best_mj, _best(lambda: run(n), 1))
-        out["interleaved"] = {"steps": n, "ours_us": best_ours / n * 1e6, "mujoco_us": best_mj / n * 1e6,
-                              "ratio": best_ours / best_mj}
+        best = _interleaved({"ours": ours, "mujoco": lambda: run(n)}, max(3 * repeats, 10))
+        out["interleaved"] = {"steps": n, "ours_us": best["ours"] / n * 1e6, "mujoco_us": best["mujoco"] / n * 1e6,
+                              "ratio": best["ours"] / best["mujoco"]}
     return out
 
 
@@ -328,12 +325,12 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
     res: dict = {"machine": machine()}
     setup = _setup(clip, 1.0, solver)
     log(f"model: {setup.model.n_bodies} bodies, {setup.model.n_dofs} DOFs, h = {setup.sim.h:.6f} s")
-    res["single"] = single(setup, repeats)
+    res["single"], ours = single(setup, repeats)
     _log_single(res["single"], log)
     if dense_too:  # the other solvers, for comparison
         for other in ("tree", "dense"):
             if other != solver:
-                res[f"single_{other}"] = single(_setup(clip, 1.0, other), max(2, repeats // 2))
+                res[f"single_{other}"] = single(_setup(clip, 1.0, other), max(2, repeats // 2))[0]
                 _log_single(res[f"single_{other}"], log)
     res["compiler_options"] = compiler_options_ab(setup, 2 * repeats)
     ab = res["compiler_options"]
@@ -347,7 +344,7 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
     j = res["jacfwd"]
     log(f"jacfwd over (ks, kd), {j['seconds_simulated']:.2f} s rollout: {j['jacfwd_s'] * 1e3:.1f} ms vs "
         f"{j['rollout_s'] * 1e3:.1f} ms -> {j['ratio']:.2f}x (compile {j['compile_jacfwd_s']:.1f} s)")
-    res["mujoco"] = mujoco_reference(setup, 2000, repeats, ours=getattr(setup, "compiled_rollout", None))
+    res["mujoco"] = mujoco_reference(setup, 2000, repeats, ours=ours)
     if res["mujoco"] is None:
         log("MuJoCo: not installed (pip install mujoco); skipped")
     else:

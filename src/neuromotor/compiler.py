@@ -10,7 +10,7 @@ time at this size:
 * ``xla_cpu_use_fusion_emitters``: the newer fusion emitters generate slower code for these
   tiny fusions (and take longer to compile).
 
-Switching the three off made the rollout 1.19x to 1.30x faster in interleaved timings of the same
+Switching the three off made the rollout 1.13x to 1.30x faster in interleaved timings of the same
 program in one process (``docs/benchmarks.md``); results agree with the default build to
 3e-14 rad. The options are passed to ``jax.jit(..., compiler_options=...)`` of the rollout
 programs only, so other JAX code in the user's process is untouched. They are given only when
