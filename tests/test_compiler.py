@@ -35,7 +35,7 @@ def test_tuned_rollout_equals_default_build(short_hit):
     assert "__ynn_fusion" not in tuned.as_text()
     a, b = tuned(*args), default(*args)
     assert int(a.diverged_step) == int(b.diverged_step) == -1
-    # The hit moves the joints by degrees; the two builds agree to round-off.
+    # The joints move (mocap and hit) by more than a milliradian; the two builds agree to round-off.
     assert float(jnp.max(jnp.abs(a.theta - a.theta[0]))) > 1e-3
     assert float(jnp.max(jnp.abs(a.theta - b.theta))) < 1e-11
     assert float(jnp.max(jnp.abs(a.states.pos - b.states.pos))) < 1e-11

@@ -259,7 +259,7 @@ def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> Simu
     cfg.duration = sim.number("duration", None, positive=True)
     cfg.implicit = sim.boolean("implicit", True)
     cfg.driven_joints = sim.string_list("driven_joints", [])
-    steps = sim.get("stabilization_steps", 2)
+    steps = sim.get("stabilization_steps", cfg.stabilization_steps)
     if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 5:
         sim.fail("stabilization_steps", f"must be an integer from 1 to 5, got {steps!r}")
     cfg.stabilization_steps = steps

@@ -364,16 +364,17 @@ def _angular_embed(mat, n: int):
     return out.at[:, :, 3:].set(mat.reshape(mat.shape[0], n, 3)).reshape(mat.shape[0], 6 * n)
 
 
-def stiff_terms(model: Model, gains: Gains, ref_k, active, rot, omega, solver: str = "dense"):
+def stiff_terms(model: Model, gains: Gains, ref_k, active, rot, omega, solver: str = "dense", targets=None):
     """k_stiff (6B,), K and D (6B, 6B) of the stiff torques, for the dense system of Eq. 2.
 
     ``solver="tree"`` or ``"nullspace"`` takes the exact tree-sparse angular blocks of ``dynamics.stiff_blocks``
     (per-joint Jacobians: far cheaper than a dense ``jacfwd``) and scatters them into the dense
     matrices; ``"dense"`` differentiates the whole force vector (``dynamics.stiff_jacobians``).
-    Both give the same K and D (a test checks it)."""
+    Both give the same K and D (a test checks it). ``targets`` (``ref.joint_targets(k)``) spares
+    the tree-sparse path rebuilding the joints' Euler axes and desired rotations."""
     n = model.n_bodies
     if solver in ("tree", "nullspace"):
-        sb = _dyn.stiff_blocks(model, gains, ref_k, active, rot, omega)
+        sb = _dyn.stiff_blocks(model, gains, ref_k, active, rot, omega, targets=targets)
         c = jnp.arange(1, n)
         p = jnp.array(model.body_parent[1:])
         b = jnp.arange(n)
@@ -407,7 +408,7 @@ def contact_step(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig
     ref_k = (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
     if cfg.implicit:
         k_stiff, kmat, dmat = stiff_terms(model, gains, ref_k, active_dofs, rot, state.omega,
-                                          getattr(cfg, "solver", "dense"))
+                                          getattr(cfg, "solver", "dense"), ref.joint_targets(k))
     else:
         k_stiff = muscle_and_gyro(model, gains, ref_k, active_dofs, rot, state.omega)
         kmat = dmat = jnp.zeros((6 * n, 6 * n), dtype)
