@@ -367,7 +367,7 @@ def test_tree_stiff_blocks_equal_dense_jacobians(tiny):
     """The contact step's K, D from the per-joint blocks equal the dense jacfwd (same Eq. 2)."""
     setup, _ = tiny
     model, ref, k = setup.model, setup.ref, 10
-    ref_k = (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
+    ref_k = ref.controller_inputs(k)
     rng = np.random.default_rng(0)
     from neuromotor.rotations import quat_exp, quat_mul
 

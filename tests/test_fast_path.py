@@ -73,7 +73,7 @@ def test_per_joint_jacobians_equal_dense_jacfwd(hit_setup):
     s = hit_setup
     m, ref = s.model, s.ref
     rot, omega = ref.init.rot, ref.init.omega + 0.5  # spinning bodies: gyroscopic K and D too
-    ref_k = (ref.tau[3], ref.activation[3], ref.theta[3], ref.rel_rot[3], ref.rel_omega[3])
+    ref_k = ref.controller_inputs(3)
     active = _active_mask(m, (), rot.dtype)
     k, kmat, dmat = jax.jit(lambda: stiff_jacobians(m, s.gains, ref_k, active, rot, omega))()
     sb = jax.jit(lambda: stiff_blocks(m, s.gains, ref_k, active, rot, omega))()

@@ -128,15 +128,16 @@ def test_gains_gradient_matches_central_differences(bank):
         dev = mx.deviation(r.theta, setup.ref.theta)
         return mx.soft_peak(dev)
 
+    # Reverse mode through the whole scan (forward mode through the rollout is checked against
+    # central differences in test_fitting.py, on the fitted features).
     x = jnp.log(jnp.array([400.0, 20.0]))
-    jac = jax.jit(jax.jacfwd(loss))(x)
+    value, grad = jax.jit(jax.value_and_grad(loss))(x)
     f = jax.jit(loss)
+    assert float(f(x)) == pytest.approx(float(value), rel=1e-12)
     eps = 1e-5
     fd = jnp.array([(f(x.at[i].add(eps)) - f(x.at[i].add(-eps))) / (2 * eps) for i in range(2)])
-    np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-9 * float(jnp.abs(fd).max()))
-    grad = jax.jit(jax.grad(loss))(x)  # reverse mode through the scan
-    assert bool(jnp.all(jnp.isfinite(grad)))
-    np.testing.assert_allclose(grad, jac, rtol=1e-8)
+    assert bool(jnp.all(jnp.abs(fd) > 0))
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-9 * float(jnp.abs(fd).max()))
 
 
 def test_driven_joints_keep_mocap_while_free_arm_reacts(bank):

@@ -5,6 +5,7 @@ Prints, after compilation, for the 19-joint default clip at h = 1/120 s:
 * one trajectory: steps per second, real-time factor, compile time, and the split of a step
   between the Jacobians K, D (Eq. 2), the KKT solve, post-stabilization and the rest;
 * a ``vmap`` batch at sizes 1, 8, 64, 256 (short rollouts): total simulated steps per second;
+  and at the largest size, the same split of a step per trajectory (:func:`batch_split`);
 * ``jax.jacfwd`` over (ks, kd) through a 1 s rollout, relative to the rollout itself;
 * inverse dynamics of whole clips (Eq. 3) after compile and its compile time;
 * MuJoCo (optional) on the exported MJCF (:func:`neuromotor.mjcf.model_to_mjcf`): one thread,
@@ -80,38 +81,20 @@ def _setup(clip, seconds: float, solver: str):
     return setup
 
 
-def single(setup, repeats: int) -> tuple[dict, object]:
-    """One trajectory: speed, compile time and the split of a step; and the compiled rollout
-    (a zero-argument callable, for the interleaved comparison with MuJoCo)."""
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
-    run_fn = lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg)
-    comp, compile_s = _compile(run_fn, m, g, p, ref)
-    run = comp(m, g, p, ref)
-    total = _best(lambda: comp(m, g, p, ref), repeats)
-    per_step = total / cfg.n_steps
-    states = jax.tree_util.tree_map(lambda x: x[:-1], run.states)
+def _stages(setup) -> dict:
+    """The parts of a step as functions ``body(k, state, ref)``: the Jacobians K, D (Eq. 2),
+    the KKT solve and post-stabilization, for the solver of ``setup.sim``."""
+    m, g, cfg = setup.model, setup.gains, setup.sim
     active = dy._active_mask(m, cfg.driven, jnp.float64)
-    ks = jnp.arange(cfg.n_steps)
-
-    def scan_of(body):
-        def f(states, ref):
-            def step(acc, xs):
-                k, st = xs
-                out = body(k, st, ref)
-                return acc + sum(jnp.sum(x) for x in jax.tree_util.tree_leaves(out)), None
-
-            return jax.lax.scan(step, jnp.zeros(()), (ks, states))[0]
-
-        c, _ = _compile(f, states, ref)
-        return _best(lambda: c(states, ref), repeats) / cfg.n_steps
-
-    ref_k = lambda k, ref: (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
+    n = m.n_bodies
     if cfg.solver in ("tree", "nullspace"):
-        jac = scan_of(lambda k, st, ref: dy.stiff_blocks(m, g, ref_k(k, ref), active, st.rot, st.omega, st.quat))
-        n = m.n_bodies
+        jac = lambda k, st, ref: dy.stiff_blocks(m, g, ref.controller_inputs(k), active, st.rot, st.omega,
+                                                 st.quat, ref.joint_targets(k))
         # Stand-ins for the K, D terms (the solve's cost does not depend on their values).
         g_diag = jnp.broadcast_to(0.01 * jnp.eye(3), (n, 3, 3))
         g_cpl = jnp.full((n - 1, 3, 3), 1e-3)
+    else:
+        jac = lambda k, st, ref: dy.stiff_jacobians(m, g, ref.controller_inputs(k), active, st.rot, st.omega)
 
     if cfg.solver == "nullspace":
         st_ = nullspace.structure(m.body_parent, cfg.driven, cfg.free_root)
@@ -122,7 +105,6 @@ def single(setup, repeats: int) -> tuple[dict, object]:
             return nullspace.solve_kkt(st_, geo, m.mass, world_inertia(m, rot), g_diag, g_cpl, g_cpl,
                                        st.v.reshape(n, 6), jnp.ones(m.n_constraints + 3 * len(cfg.driven)))
 
-        kkt = scan_of(solve)
         post_fn = dy.post_stabilize_nullspace
     elif cfg.solver == "tree":
         def solve(k, st, ref):
@@ -135,11 +117,8 @@ def single(setup, repeats: int) -> tuple[dict, object]:
             return treesolve.solve(sys, m.body_parent, st.v.reshape(n, 6), jnp.ones(j_root.shape[0]),
                                    jnp.zeros(j_own.shape[:2]))
 
-        kkt = scan_of(solve)
         post_fn = dy.post_stabilize_tree
     else:
-        jac = scan_of(lambda k, st, ref: dy.stiff_jacobians(m, g, ref_k(k, ref), active, st.rot, st.omega))
-
         def solve(k, st, ref):
             n6 = 6 * m.n_bodies
             jm = dy.full_constraints(m, cfg.driven, st.rot, cfg.free_root)
@@ -147,11 +126,38 @@ def single(setup, repeats: int) -> tuple[dict, object]:
             lhs = jnp.block([[dy.mass_matrix(m, st.rot) + 1e-3, -jm.T], [jm, jnp.zeros((nc, nc))]])
             return jnp.linalg.solve(lhs, jnp.ones(n6 + nc))
 
-        kkt = scan_of(solve)
         post_fn = dy.post_stabilize
     targets = lambda k, ref: (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
-    post = scan_of(lambda k, st, ref: post_fn(m, cfg.driven, st.pos, st.quat, targets(k, ref),
-                                              cfg.stab_iters, cfg.free_root))
+    post = lambda k, st, ref: post_fn(m, cfg.driven, st.pos, st.quat, targets(k, ref), cfg.stab_iters, cfg.free_root)
+    return {"jacobians": jac, "kkt_solve": solve, "post_stabilization": post}
+
+
+def _reduce(out):
+    return sum(jnp.sum(x) for x in jax.tree_util.tree_leaves(out))
+
+
+def single(setup, repeats: int) -> tuple[dict, object]:
+    """One trajectory: speed, compile time and the split of a step; and the compiled rollout
+    (a zero-argument callable, for the interleaved comparison with MuJoCo)."""
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    run_fn = lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg)
+    comp, compile_s = _compile(run_fn, m, g, p, ref)
+    run = comp(m, g, p, ref)
+    total = _best(lambda: comp(m, g, p, ref), repeats)
+    per_step = total / cfg.n_steps
+    states = jax.tree_util.tree_map(lambda x: x[:-1], run.states)
+    ks = jnp.arange(cfg.n_steps)
+
+    def scan_of(body):
+        def f(states, ref):
+            step = lambda acc, xs: (acc + _reduce(body(xs[0], xs[1], ref)), None)
+            return jax.lax.scan(step, jnp.zeros(()), (ks, states))[0]
+
+        c, _ = _compile(f, states, ref)
+        return _best(lambda: c(states, ref), repeats) / cfg.n_steps
+
+    split = {name: scan_of(body) for name, body in _stages(setup).items()}
+    split["rest"] = max(per_step - sum(split.values()), 0.0)
     return {
         "solver": cfg.solver,
         "steps": cfg.n_steps,
@@ -159,9 +165,26 @@ def single(setup, repeats: int) -> tuple[dict, object]:
         "step_us": per_step * 1e6,
         "steps_per_s": 1.0 / per_step,
         "real_time_factor": cfg.h / per_step,
-        "split_us": {"jacobians": jac * 1e6, "kkt_solve": kkt * 1e6, "post_stabilization": post * 1e6,
-                     "rest": max(per_step - jac - kkt - post, 0.0) * 1e6},
+        "split_us": {name: t * 1e6 for name, t in split.items()},
     }, lambda: comp(m, g, p, ref)
+
+
+def batch_split(setup, size: int, repeats: int) -> dict:
+    """The parts of a step (as in :func:`single`) and the whole step under ``vmap`` over
+    ``size`` states of a rollout: wall microseconds per trajectory-step. In a batch the
+    kernel count no longer dominates; this shows where the arithmetic and copies go."""
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    run = compiler.jit(lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg))(m, g, p, ref)
+    idx = np.arange(size) % cfg.n_steps
+    states = jax.tree_util.tree_map(lambda x: x[idx], run.states)
+    ks = jnp.asarray(idx)
+    bodies = dict(_stages(setup), step=lambda k, st, ref: dy.step(m, g, p, cfg, ref, k, st))
+    out = {"batch": size}
+    for name, body in bodies.items():
+        c, _ = _compile(lambda ks, states, ref: _reduce(jax.vmap(body, in_axes=(0, 0, None))(ks, states, ref)),
+                        ks, states, ref)
+        out[name] = _best(lambda: c(ks, states, ref), repeats) / size * 1e6
+    return out
 
 
 def _interleaved(runs: dict, repeats: int) -> dict[str, float]:
@@ -362,6 +385,11 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
     for r in res["batch"]:
         ratio = "" if res["mujoco"] is None else f" ({r['steps_per_s'] / res['mujoco']['steps_per_s']:.2f}x MuJoCo)"
         log(f"batch {r['batch']:4d}: {r['steps_per_s']:10.0f} steps/s{ratio}, compile {r['compile_s']:.1f} s")
+    res["batch_split"] = batch_split(setup, max(sizes), max(2, repeats // 2))
+    bs = res["batch_split"]
+    mj_us = "" if res["mujoco"] is None else f"; one MuJoCo step {res['mujoco']['step_us']:.1f} us"
+    log(f"batch {bs['batch']} split (us per trajectory-step): Jacobians {bs['jacobians']:.1f}, KKT solve "
+        f"{bs['kkt_solve']:.1f}, post-stabilization {bs['post_stabilization']:.1f}, whole step {bs['step']:.1f}{mj_us}")
     if idyn_clips:
         res["inverse_dynamics"] = inverse(idyn_clips, repeats)
         for r in res["inverse_dynamics"]:

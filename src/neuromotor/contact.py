@@ -94,7 +94,7 @@ from .dynamics import (
     stiff_jacobians,
 )
 from .perturbation import ForcePulses, generalized_forces, no_pulses
-from .rotations import quat_exp, quat_mul, quat_normalize, quat_to_matrix
+from .rotations import quat_to_matrix, quat_turn
 from .skeleton import Character, Model
 from .system import State, gravity_forces, mass_matrix
 
@@ -390,10 +390,6 @@ def stiff_terms(model: Model, gains: Gains, ref_k, active, rot, omega, solver: s
     return k_stiff, _angular_embed(kmat, n), _angular_embed(dmat, n)
 
 
-def _rotate_quat(quat, delta):
-    return quat_normalize(quat_mul(quat_exp(delta), quat))
-
-
 def contact_step(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, ref: Reference,
                  ball: Ball, caps: Capsules, settings: ContactSettings, k, state: State,
                  bstate: BallState, warm: Float[Array, "C 3"]):
@@ -405,7 +401,7 @@ def contact_step(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig
     t = ref.time[k]
     # -- the character's linearly implicit system, as in dynamics.step
     active_dofs = _active_mask(model, cfg.driven, dtype)
-    ref_k = (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
+    ref_k = ref.controller_inputs(k)
     if cfg.implicit:
         k_stiff, kmat, dmat = stiff_terms(model, gains, ref_k, active_dofs, rot, state.omega,
                                           getattr(cfg, "solver", "dense"), ref.joint_targets(k))
@@ -504,18 +500,18 @@ def contact_step(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig
     v_new = v_new.reshape(n, 6)
     d6 = disp.reshape(n, 6)
     pos = state.pos + d6[:, :3]
-    quat = _rotate_quat(state.quat, d6[:, 3:])
+    quat = quat_turn(state.quat, d6[:, 3:])
     targets = (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
     pos, quat, c = post_stabilize(model, cfg.driven, pos, quat, targets, cfg.stab_iters, cfg.free_root)
     new = State(pos, quat, v_new[:, :3], v_new[:, 3:])
-    new_ball = BallState(bstate.pos + disp_b[:3], _rotate_quat(bstate.quat, disp_b[3:]),
+    new_ball = BallState(bstate.pos + disp_b[:3], quat_turn(bstate.quat, disp_b[3:]),
                          jnp.where(flying, vb6_new[:3], vb), jnp.where(flying, vb6_new[3:], wb))
 
     # -- the gap at the impact instant, from the configuration moved by s h v_free
     vf6 = v_free.reshape(n, 6)
     sh = toi * h
     pb = state.pos[bidx] + sh[:, None] * vf6[bidx, :3]
-    qb = quat_normalize(quat_mul(quat_exp(sh[:, None] * vf6[bidx, 3:]), state.quat[bidx]))
+    qb = quat_turn(state.quat[bidx], sh[:, None] * vf6[bidx, 3:])
     cb = bstate.pos + sh[:, None] * jnp.where(flying, vb_free, 0.0)
     gap_imp = jax.vmap(lambda i, p_, q_, c_: _single_gap(model, caps, settings, ball.radius, i, p_, q_, c_))(
         sel, pb, qb, cb)

@@ -159,6 +159,19 @@ def feedback_multipliers(
     :func:`joint_torque_projection`).
     """
     ks, kd = gains.per_dof()
-    magnitude = jnp.maximum(gains.signal_dependence * activation, gains.floor)
+    magnitude = _feedback_magnitude(gains, activation)
     out = gains.feedforward * tau + magnitude * (ks * angle_error + kd * rate_error)
     return out if active is None else out * active
+
+
+def rate_feedback_gains(gains: Gains, activation: Float[Array, " n"],
+                        active: Float[Array, " n"] | None = None) -> Float[Array, " n"]:
+    """d(multiplier_i) / d(rate error_i): the multipliers of :func:`feedback_multipliers` are
+    linear in the rate error, with this slope per DOF. The damping block D of Eq. 2 is built
+    from it in closed form instead of by a tangent through the controller."""
+    out = _feedback_magnitude(gains, activation) * gains.per_dof()[1]
+    return out if active is None else out * active
+
+
+def _feedback_magnitude(gains: Gains, activation):
+    return jnp.maximum(gains.signal_dependence * activation, gains.floor)

@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .control import Gains, feedback_multipliers, joint_torque_magnitude
+from .control import Gains, feedback_multipliers, joint_torque_magnitude, rate_feedback_gains
 from .inverse import inverse_dynamics, sim_columns
 from .kinematics import Trajectory, body_kinematics, joint_angles_from_q
 from .perturbation import ForcePulses, generalized_forces, no_pulses
@@ -60,9 +60,8 @@ from .rotations import (
     matrix_to_quat,
     quat_log,
     quat_exp,
-    quat_mul,
-    quat_normalize,
     quat_to_matrix,
+    quat_turn,
     rotation_error,
     skew,
 )
@@ -134,6 +133,11 @@ class Reference(eqx.Module):
     # step does not rebuild them: they depend on the mocap only, never on the state.
     local_axes: Float[Array, "S1 C 3 3"]  # Euler axes h_i of each joint at theta_d, parent frame (columns)
     rel_quat: Float[Array, "S1 C 4"]  # quaternion of each joint's desired rotation (rel_rot of its child)
+
+    def controller_inputs(self, k):
+        """``(tau, activation, theta_d, rel_rot, rel_omega)`` at grid step k: what the muscle
+        torques of :func:`muscle_and_gyro` and :func:`stiff_blocks` read from the mocap."""
+        return self.tau[k], self.activation[k], self.theta[k], self.rel_rot[k], self.rel_omega[k]
 
     def joint_targets(self, k) -> tuple[Float[Array, "C 3 3"], Float[Array, "C 4"]]:
         """``(local_axes, rel_quat)`` at grid step k: the state-independent inputs of
@@ -319,22 +323,30 @@ def joint_local_axes(model: Model, theta_d: Float[Array, " n"]) -> Float[Array, 
 
 def _joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inputs):
     """:func:`_joint_torque` on quaternions, written with :mod:`vec3` (fusion-friendly).
+    Returns the torque and ``d torque / d w_c`` (= -d torque / d w_p), the joint's damping block.
 
     The joint's rotation error is ``log(q_p q_d q_c^-1)``, the world-frame rotation vector of
-    ``R_p R_d R_c^T`` -- the same vector as ``R_p log(R_d R_rel^T)`` of :func:`_joint_errors`."""
+    ``R_p R_d R_c^T`` -- the same vector as ``R_p log(R_d R_rel^T)`` of :func:`_joint_errors`.
+    The rate error ``w_err = R_p w_d - (w_c - w_p)`` enters the torque ``a m`` linearly, through
+    ``d_rate = P w_err`` with ``P = a^T (a a^T + mu^2 1)^-1`` and the slope ``c`` of
+    :func:`rate_feedback_gains`, so the damping block is ``-a diag(c) P`` in closed form."""
     local, q_rel_d, rel_w_d, tau, act, scale, floor, ref_torque, active = inputs
     r_p = vec3.qmatrix(q_p)
     a = r_p @ local  # columns h_i (a dot: materialized once, used by every later line)
-    e_world = vec3.qlog(vec3.qmul(vec3.qmul(q_p, q_rel_d), vec3.qconj(q_c)))
+    # The barrier materializes the error quaternion and its tangents: fused into its consumers,
+    # XLA recomputed the whole product chain for every entry of the Jacobian (1.4x in batch).
+    q_err = jax.lax.optimization_barrier(vec3.qmul(vec3.qmul(q_p, q_rel_d), vec3.qconj(q_c)))
+    e_world = vec3.qlog(q_err)
     w_err = vec3.mv(r_p, rel_w_d) - (w_c - w_p)
     gram = vec3.mmt(a, a) + DAMPING**2 * jnp.eye(3, dtype=a.dtype)
-    # Both right-hand sides at once, by dots (materialized, as above).
-    d = jnp.swapaxes(a, -1, -2) @ (vec3.inv(gram) @ jnp.stack([e_world, w_err], -1))
+    proj = jnp.swapaxes(a, -1, -2) @ vec3.inv(gram)  # P (a dot, materialized as above)
+    d = proj @ jnp.stack([e_world, w_err], -1)  # both right-hand sides at once
     d_theta, d_rate = d[..., 0], d[..., 1]
     g = dataclasses.replace(gains, scale=scale, floor=floor, reference_torque=ref_torque)
+    damping = -(a * rate_feedback_gains(g, act, active)[..., None, :]) @ proj
     # A dot, not vec3.mv: it materializes a and the multipliers, which XLA would otherwise
     # recompute inside every entry of the (nested) Jacobian.
-    return jnp.einsum("...ij,...j->...i", a, feedback_multipliers(g, tau, act, d_theta, d_rate, active))
+    return jnp.einsum("...ij,...j->...i", a, feedback_multipliers(g, tau, act, d_theta, d_rate, active)), damping
 
 
 def stiff_blocks(model: Model, gains: Gains, ref_k, active, rot, omega, quat=None, targets=None) -> StiffBlocks:
@@ -357,15 +369,16 @@ def stiff_blocks(model: Model, gains: Gains, ref_k, active, rot, omega, quat=Non
     jac = jnp.zeros((nj, 3, 9), quat.dtype)
     zero = jnp.zeros(6, quat.dtype)
 
-    def one(x, qp, qc, wp, inp):
-        # x = [d_parent, d_child, w_child]: the torque depends on w_child - w_parent only, so
-        # d/dw_parent = -d/dw_child and 9 tangents give all 12 columns.
-        return _joint_torque_q(gains, vec3.qmul(vec3.qexp(x[0:3]), qp), vec3.qmul(vec3.qexp(x[3:6]), qc),
-                               wp, x[6:9], inp)
+    def one(x, qp, qc, wp, wc, inp):
+        # x = [d_parent, d_child]: 6 tangents. The torque depends on w_child - w_parent, and
+        # linearly (given the rotations), so its damping block comes in closed form as aux.
+        torque, damping = _joint_torque_q(gains, vec3.qmul(vec3.qexp(x[0:3]), qp),
+                                          vec3.qmul(vec3.qexp(x[3:6]), qc), wp, wc, inp)
+        return torque, (torque, damping)
 
     def val_jac(qp, qc, wp, wc, inp):
-        x = jnp.concatenate([zero, wc])
-        return one(x, qp, qc, wp, inp), jax.jacfwd(one)(x, qp, qc, wp, inp)
+        k, (torque, damping) = jax.jacfwd(one, has_aux=True)(zero, qp, qc, wp, wc, inp)
+        return torque, jnp.concatenate([k, damping], -1)
 
     for order, bodies, rows in topo["groups"]:
         full = len(rows) == nj
@@ -468,7 +481,7 @@ def post_stabilize(model: Model, driven, pos, quat, targets, iters: int, free_ro
         mu = jnp.linalg.solve(jac @ minv_jt, -c)
         delta = (minv_jt @ mu).reshape(model.n_bodies, 6)
         pos = pos + delta[:, :3]
-        quat = quat_normalize(quat_mul(quat_exp(delta[:, 3:]), quat))
+        quat = quat_turn(quat, delta[:, 3:])
         return (pos, quat), None
 
     (pos, quat), _ = jax.lax.scan(body, (pos, quat), None, length=iters)
@@ -551,7 +564,7 @@ def post_stabilize_tree(model: Model, driven, pos, quat, targets, iters: int, fr
         delta, _, _ = treesolve.solve(sys, model.body_parent, jnp.zeros((model.n_bodies, 6), rot.dtype),
                                       -c_root, -c_joint)
         pos = pos + delta[:, :3]
-        quat = quat_normalize(quat_mul(quat_exp(delta[:, 3:]), quat))
+        quat = quat_turn(quat, delta[:, 3:])
         return (pos, quat), None
 
     (pos, quat), _ = jax.lax.scan(body, (pos, quat), None, length=iters)
@@ -578,7 +591,7 @@ def _step_tree(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, 
     rot = state.rot
     dtype = rot.dtype
     active = _active_mask(model, cfg.driven, dtype)
-    ref_k = (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
+    ref_k = ref.controller_inputs(k)
     mass = _mass_blocks(model, rot)
     if cfg.implicit:
         sb = stiff_blocks(model, gains, ref_k, active, rot, state.omega, targets=ref.joint_targets(k))
@@ -651,7 +664,7 @@ def _step_nullspace(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimCon
     rot = state.rot
     dtype = rot.dtype
     active = _active_mask(model, cfg.driven, dtype)
-    ref_k = (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
+    ref_k = ref.controller_inputs(k)
     if cfg.implicit:
         sb = stiff_blocks(model, gains, ref_k, active, rot, state.omega, state.quat, ref.joint_targets(k))
         torque = sb.k
@@ -709,7 +722,7 @@ def step(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, ref: R
     n = model.n_bodies
     rot = state.rot
     active = _active_mask(model, cfg.driven, rot.dtype)
-    ref_k = (ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k], ref.rel_omega[k])
+    ref_k = ref.controller_inputs(k)
     t = ref.time[k]
     if cfg.implicit:
         k_stiff, kmat, dmat = stiff_jacobians(model, gains, ref_k, active, rot, state.omega)

@@ -49,7 +49,7 @@ import jax.scipy.linalg  # noqa: F401  (cho_factor, cho_solve)
 import numpy as np
 from jaxtyping import Array, Float
 
-from .rotations import quat_exp, quat_mul, quat_normalize
+from .rotations import quat_turn
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -353,7 +353,7 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
 
 def retract(pos, quat, dx: Float[Array, "B 6"]):
     """x (+) dx: positions add, orientations turn by exp(dtheta) (world frame)."""
-    return pos + dx[:, :3], quat_normalize(quat_mul(quat_exp(dx[:, 3:]), quat))
+    return pos + dx[:, :3], quat_turn(quat, dx[:, 3:])
 
 
 def kkt_residual(st: Structure, geo: Geometry, r_parent, r_child, f: Float[Array, "B 6"], v: Float[Array, "B 6"],

@@ -181,6 +181,12 @@ def quat_exp(w: Float[Array, "... 3"]) -> Float[Array, "... 4"]:
     return jnp.concatenate([cos_half, half_sinc * w], -1)
 
 
+def quat_turn(q: Float[Array, "... 4"], w: Float[Array, "... 3"]) -> Float[Array, "... 4"]:
+    """q turned by the world-frame rotation vector w: ``normalize(exp(w) q)`` (the retraction
+    every position update and post-stabilization step uses)."""
+    return quat_normalize(quat_mul(quat_exp(w), q))
+
+
 def quat_log(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
     """Rotation vector of a unit quaternion (shortest rotation: q and -q give the same)."""
     q = q * jnp.where(q[..., :1] < 0, -1.0, 1.0)
