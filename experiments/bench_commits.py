@@ -1,0 +1,87 @@
+"""Speed of the working tree against an earlier commit, timed in alternation in one process.
+
+    .venv/bin/python experiments/bench_commits.py REV [--batch 1] [--repeats 15]
+
+The host's speed drifts by 2x between runs minutes apart, so two separate benchmark runs cannot
+resolve a 10 % change. This script extracts ``src/neuromotor`` of commit REV (``git archive``)
+into a temporary folder as the package ``neuromotor_at_rev``, compiles the default 1 s rollout of
+both versions on the embedded clip (one trajectory, or ``--batch N`` pulse magnitudes under
+``vmap``), checks that they compute the same joint angles, and times the two alternately; the
+best of each is printed, in microseconds per trajectory-step, and their ratio.
+"""
+
+import argparse
+import importlib
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _extract(rev: str, dest: Path) -> str:
+    """``src/neuromotor`` at ``rev`` as the importable package ``neuromotor_at_rev`` under dest."""
+    archive = subprocess.run(["git", "-C", str(REPO), "archive", rev, "src/neuromotor"], check=True,
+                             capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    (dest / "src" / "neuromotor").rename(dest / "neuromotor_at_rev")
+    return "neuromotor_at_rev"
+
+
+def _program(pkg: str, batch: int):
+    """(zero-argument compiled call, its joint angles, trajectory-steps per call)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    bench = importlib.import_module(f"{pkg}.bench")
+    dy = importlib.import_module(f"{pkg}.dynamics")
+    compiler = importlib.import_module(f"{pkg}.compiler")
+    setup = bench._setup(None, 1.0, "nullspace")
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    scales = jnp.linspace(0.5, 1.5, batch)
+
+    def many(scales, g, ref):
+        one = lambda s: dy.rollout(m, g, eqx.tree_at(lambda q: q.magnitude, p, p.magnitude * s), ref, cfg).theta
+        return jax.vmap(one)(scales) if batch > 1 else one(scales[0])[None]
+
+    fn = compiler.jit(many)
+    theta = jax.block_until_ready(fn(scales, g, ref))
+    return (lambda: fn(scales, g, ref)), theta, batch * cfg.n_steps
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("rev", help="the commit to compare with (e.g. HEAD~1)")
+    ap.add_argument("--batch", type=int, default=1, help="trajectories per call (vmap over pulse magnitude)")
+    ap.add_argument("--repeats", type=int, default=15, help="timed calls of each version")
+    args = ap.parse_args(argv)
+    import jax
+    import jax.numpy as jnp
+
+    jax.config.update("jax_enable_x64", True)
+    with tempfile.TemporaryDirectory() as tmp:
+        sys.path.insert(0, tmp)
+        old_pkg = _extract(args.rev, Path(tmp))
+        runs = {}
+        for name, pkg in (("working tree", "neuromotor"), (args.rev, old_pkg)):
+            runs[name] = _program(pkg, args.batch)
+        (new, th_new, steps), (old, th_old, _) = runs.values()
+        print(f"max |theta(working tree) - theta({args.rev})|: {float(jnp.max(jnp.abs(th_new - th_old))):.2e} rad")
+        best = {name: float("inf") for name in runs}
+        for _ in range(args.repeats):
+            for name, (call, _, _) in runs.items():
+                t = time.perf_counter()
+                jax.block_until_ready(call())
+                best[name] = min(best[name], time.perf_counter() - t)
+        for name, t in best.items():
+            print(f"{name:>14}: {t / steps * 1e6:8.1f} us per trajectory-step (batch {args.batch})")
+        names = list(best)
+        print(f"speedup of the working tree: {best[names[1]] / best[names[0]]:.3f}x")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
