@@ -127,8 +127,8 @@ def _stages(setup) -> dict:
             return jnp.linalg.solve(lhs, jnp.ones(n6 + nc))
 
         post_fn = dy.post_stabilize
-    targets = lambda k, ref: (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
-    post = lambda k, st, ref: post_fn(m, cfg.driven, st.pos, st.quat, targets(k, ref), cfg.stab_iters, cfg.free_root)
+    post = lambda k, st, ref: post_fn(m, cfg.driven, st.pos, st.quat, ref.stabilization_targets(k), cfg.stab_iters,
+                                      cfg.free_root)
     return {"jacobians": jac, "kkt_solve": solve, "post_stabilization": post}
 
 

@@ -501,8 +501,8 @@ def contact_step(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig
     d6 = disp.reshape(n, 6)
     pos = state.pos + d6[:, :3]
     quat = quat_turn(state.quat, d6[:, 3:])
-    targets = (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
-    pos, quat, c = post_stabilize(model, cfg.driven, pos, quat, targets, cfg.stab_iters, cfg.free_root)
+    pos, quat, c = post_stabilize(model, cfg.driven, pos, quat, ref.stabilization_targets(k), cfg.stab_iters,
+                                  cfg.free_root)
     new = State(pos, quat, v_new[:, :3], v_new[:, 3:])
     new_ball = BallState(bstate.pos + disp_b[:3], quat_turn(bstate.quat, disp_b[3:]),
                          jnp.where(flying, vb6_new[:3], vb), jnp.where(flying, vb6_new[3:], wb))

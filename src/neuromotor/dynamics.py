@@ -139,6 +139,11 @@ class Reference(eqx.Module):
         torques of :func:`muscle_and_gyro` and :func:`stiff_blocks` read from the mocap."""
         return self.tau[k], self.activation[k], self.theta[k], self.rel_rot[k], self.rel_omega[k]
 
+    def stabilization_targets(self, k):
+        """``(root_origin, root_rot, rel_rot)`` at grid step k + 1: what post-stabilization
+        projects the positions of step k onto (the driven root and the driven joints)."""
+        return self.root_origin[k + 1], self.root_rot[k + 1], self.rel_rot[k + 1]
+
     def joint_targets(self, k) -> tuple[Float[Array, "C 3 3"], Float[Array, "C 4"]]:
         """``(local_axes, rel_quat)`` at grid step k: the state-independent inputs of
         :func:`stiff_blocks`."""
@@ -350,9 +355,9 @@ def _joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inputs):
 
 
 def stiff_blocks(model: Model, gains: Gains, ref_k, active, rot, omega, quat=None, targets=None) -> StiffBlocks:
-    """The same K and D as :func:`stiff_jacobians`, by ``jax.jacfwd`` of a per-joint function
-    (12 inputs: both bodies' rotation and angular velocity) vmapped over joints, plus the
-    gyroscopic term per body. The tree sparsity is exact, not an approximation: joint j's torque
+    """The same K and D as :func:`stiff_jacobians`: K by ``jax.jacfwd`` of a per-joint function
+    along its 6 rotation tangents (both bodies), vmapped over joints, D in closed form (see
+    :func:`_joint_torque_q`), plus the gyroscopic term per body. The tree sparsity is exact, not an approximation: joint j's torque
     depends on its two bodies only. Orientations enter as quaternions (``quat``, else from
     ``rot``); rotations are perturbed as ``exp(d) q`` in the world frame, the tangent of Eq. 2.
     ``targets`` = ``ref.joint_targets(k)`` (the Euler axes and desired rotations, precomputed
@@ -632,8 +637,8 @@ def _advance(model: Model, cfg: SimConfig, ref: Reference, k, state: State, v_ne
     residual, per_body, points, lam_h = diagnostics
     vel, omega = v_new[:, :3], v_new[:, 3:]
     pos, quat = nullspace.retract(state.pos, state.quat, cfg.h * v_new)
-    targets = (ref.root_origin[k + 1], ref.root_rot[k + 1], ref.rel_rot[k + 1])
-    pos, quat, cerr = post_stabilize_fn(model, cfg.driven, pos, quat, targets, cfg.stab_iters, cfg.free_root)
+    pos, quat, cerr = post_stabilize_fn(model, cfg.driven, pos, quat, ref.stabilization_targets(k), cfg.stab_iters,
+                                        cfg.free_root)
     violation = jnp.max(jnp.abs(cerr)) if cerr.size else jnp.zeros((), pos.dtype)
     return State(pos, quat, vel, omega), StepInfo(residual, violation, per_body, points, lam_h / cfg.h)
 
