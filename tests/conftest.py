@@ -18,6 +18,9 @@ CLIPS = {
     "mocapbank": SHARED_MOCAP / "mocapbank_19joint.bvh",
     "walk": SHARED_MOCAP / "walk_22joint_zyx.bvh",
 }
+# Every shipped clip (CMU jumps, Bandai-Namco kick with a ground-marker root, ...).
+ALL_CLIPS = {p.stem: p for p in sorted(SHARED_MOCAP.glob("*.bvh"))}
+SHARED = SHARED_MOCAP if SHARED_MOCAP.exists() else None
 
 
 @pytest.fixture(scope="session", params=sorted(CLIPS))

@@ -388,7 +388,7 @@ def test_generated_round_trip(skel, style, unit):
 DAMAGES = [
     "truncate_lines", "truncate_mid_line", "drop_value", "add_value", "non_numeric", "non_finite",
     "bogus_channel", "duplicate_axis", "channel_count", "frames_zero", "frames_invalid", "frame_time_bad",
-    "second_root", "extra_frame", "offset_count", "offset_text", "duplicate_name", "missing_brace",
+    "second_root", "offset_count", "offset_text", "duplicate_name", "missing_brace",
     "no_motion",
 ]
 
@@ -464,9 +464,6 @@ def damage(data, skel: Skel, lines: list[str], lay: Layout, kind: str) -> tuple[
         extra = ["ROOT Extra", "{", "OFFSET 0 0 0", "CHANNELS 3 Zrotation Xrotation Yrotation", "}"]
         lines[lay.motion - 1:lay.motion - 1] = extra
         return lines, lay.motion, "several ROOTs"
-    if kind == "extra_frame":
-        lines.insert(lay.frame[-1], lines[lay.frame[-1] - 1])
-        return lines, lay.frame[-1] + 1, "more frame lines"
     if kind in ("offset_count", "offset_text"):
         where = [lay.offset[k] for k in range(len(skel.names))] + list(lay.end_offset.values())
         line = draw(st.sampled_from(where))
@@ -554,6 +551,21 @@ Frame Time: 0.0083333
 1 90 2 10 20 30 1 2 3 4 5 6 7 8 9
 1 91 2 11 21 31 1 2 3 4 5 6 7 8 9
 """
+
+
+def test_extra_frame_lines_load_with_a_warning():
+    # More frame lines than declared is common in exported files: all load, with a warning naming the line.
+    lines = SMALL.rstrip("\n").split("\n")
+    text = "\n".join(lines + [lines[-1], lines[-2]]) + "\n"
+    clip = parse_bvh(text, path="extra.bvh")
+    assert clip.n_frames == 4
+    first_extra = len(lines) + 1
+    assert clip.warnings == (f"extra.bvh:{first_extra}: 2 more frame lines than 'Frames: 2' declares; "
+                             f"loaded all 4",)
+    np.testing.assert_array_equal(clip.motion[2], clip.motion[1])
+    assert parse_bvh(SMALL).warnings == ()
+    with pytest.raises(BvhError, match="has 3 values"):  # a short extra line stays an error
+        parse_bvh(text + "1 2 3\n", path="extra.bvh")
 
 
 def test_small_file_conventions():

@@ -11,8 +11,9 @@ trailing whitespace are ignored. A joint has 0 or 3 rotation channels and 0 or 3
 (each axis once, any order, any joint); a joint without a CHANNELS line has no channels. Anything
 else raises :class:`BvhError`, whose text is ``PATH:LINE: message``. A joint's name is the rest
 of its ROOT/JOINT line, inner whitespace collapsed to single spaces. Frame lines must each hold
-exactly one frame; blank lines among them are skipped, and fewer or more frame lines than ``Frames``
-declares is an error.
+exactly one frame; blank lines among them are skipped. Fewer frame lines than ``Frames`` declares is
+an error; more (common in exported files) are all loaded, and :attr:`BvhClip.warnings` records it as
+``PATH:LINE: N more frame lines than 'Frames: M' declares; loaded all K`` (LINE: the first extra line).
 
 Units
 -----
@@ -181,8 +182,10 @@ class BvhClip:
     frame_time: float  # seconds
     motion: np.ndarray  # (T, C)
     length_scale: float = 1.0  # metres per file length unit
+    warnings: tuple[str, ...] = dataclasses.field(default=(), compare=False)  # one line each, from parsing
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "warnings", tuple(str(w) for w in self.warnings))
         joints = tuple(self.joints)
         object.__setattr__(self, "joints", joints)
         object.__setattr__(self, "path", str(self.path))
@@ -490,8 +493,10 @@ def _last_text_line(lines: list[str]) -> int:
 
 
 def _parse_motion(lines: list[str], motion_index: int, n_channels: int,
-                  fail: Callable[[int | None, str], NoReturn]) -> tuple[float, np.ndarray]:
-    """Parse Frames, Frame Time and the frame lines after the MOTION line; values in file units."""
+                  fail: Callable[[int | None, str], NoReturn], path: str = "<string>",
+                  ) -> tuple[float, np.ndarray, tuple[str, ...]]:
+    """Parse Frames, Frame Time and the frame lines after the MOTION line; values in file units.
+    Returns (frame time, motion, warnings)."""
     data_lines = [i for i in range(motion_index + 1, len(lines)) if lines[i].strip()]
     last = data_lines[-1] + 1 if data_lines else motion_index + 1
 
@@ -526,12 +531,9 @@ def _parse_motion(lines: list[str], motion_index: int, n_channels: int,
 
     frame_indices = data_lines[2:]
     # Size by the lines present, not by the declared count (a bogus huge Frames must not allocate).
-    motion = np.empty((min(n_frames, len(frame_indices)), n_channels), dtype=np.float64)
+    motion = np.empty((len(frame_indices), n_channels), dtype=np.float64)
     for row, index in enumerate(frame_indices):
         lineno = index + 1
-        if row == n_frames:
-            fail(lineno, f"more frame lines than 'Frames: {n_frames}' declares "
-                         f"(line {frames_index + 1}); frame {n_frames + 1} starts here")
         toks = lines[index].split()
         try:
             values = [float(t) for t in toks]
@@ -554,7 +556,12 @@ def _parse_motion(lines: list[str], motion_index: int, n_channels: int,
     if len(frame_indices) < n_frames:
         fail(last, f"truncated motion block: 'Frames: {n_frames}' (line {frames_index + 1}) declares "
                    f"{n_frames} frames but the data ends at this line after {len(frame_indices)}")
-    return frame_time, motion
+    warnings: tuple[str, ...] = ()
+    if len(frame_indices) > n_frames:
+        extra = len(frame_indices) - n_frames
+        warnings = (f"{path}:{frame_indices[n_frames] + 1}: {extra} more frame line{'s' if extra != 1 else ''} "
+                    f"than 'Frames: {n_frames}' declares; loaded all {len(frame_indices)}",)
+    return frame_time, motion, warnings
 
 
 def _resolve_units_arg(units: str | float) -> float | None:
@@ -607,7 +614,7 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
     lines = _split_lines(text)
     nodes, motion_index = _parse_hierarchy(lines, fail)
     n_channels = sum(len(n.channels) for n in nodes)
-    frame_time, motion = _parse_motion(lines, motion_index, n_channels, fail)
+    frame_time, motion, warnings = _parse_motion(lines, motion_index, n_channels, fail, path)
 
     offsets = np.array([n.offset for n in nodes], dtype=np.float64)
     parents = [n.parent for n in nodes]
@@ -631,7 +638,8 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
             line=node.line,
         ))
         column += len(node.channels)
-    return BvhClip(path=path, joints=tuple(joints), frame_time=frame_time, motion=motion, length_scale=scale)
+    return BvhClip(path=path, joints=tuple(joints), frame_time=frame_time, motion=motion, length_scale=scale,
+                   warnings=warnings)
 
 
 def read_bvh(path: str | os.PathLike, units: str | float = "auto") -> BvhClip:

@@ -34,11 +34,11 @@ def _table(rows: list[list[str]], header: list[str]) -> str:
 
 def model_json(character) -> dict:
     """The ``inspect --json`` contract."""
-    model, clip = character.model, character.clip
+    model, clip, anat = character.model, character.clip, character.anatomy
     joints = []
     cols = {}
     for i, name in enumerate(model.dof_names):
-        cols.setdefault(name.split(".")[0], []).append(name)
+        cols.setdefault(name.rsplit(".", 1)[0], []).append(name)
     for k, joint in enumerate(clip.joints):
         b = model.joint_body[k]
         body = None
@@ -54,10 +54,17 @@ def model_json(character) -> dict:
             "offset": [float(x) for x in model.joint_offset[k]],
             "channels": list(joint.channels),
             "dofs": cols.get(joint.name, []) if joint.parent >= 0 else [],
+            "segment": anat.segment[k],
+            "side": anat.side[k] or None,
             "body": body,
         })
     return {
         "source": str(clip.path),
+        "units": anat.units,
+        "length_scale": clip.length_scale,
+        "stature": anat.stature,
+        "up": [float(x) for x in anat.up],
+        "warnings": list(character.warnings),
         "gravity": [float(x) for x in model.gravity],
         "frame_time": clip.frame_time,
         "frames": clip.n_frames,
@@ -66,36 +73,56 @@ def model_json(character) -> dict:
     }
 
 
-def cmd_inspect(args) -> int:
+def _load(args):
+    """The character of a command's clip with its --units, --up-axis and body options."""
     from .simulate import load_character
+    from .skeleton import MassModelOptions
 
-    character, _ = load_character(args.clip, args.units, args.up_axis)
+    options = MassModelOptions(body_mass=args.body_mass, sex=args.sex,
+                               simulate_extremities=args.simulate_extremities)
+    return load_character(args.clip, args.units, args.up_axis, args.stature, options)
+
+
+def _segment_label(character, k: int) -> str:
+    anat = character.anatomy
+    side = anat.side[k]
+    return anat.segment[k] + (f" ({side[0].upper()})" if side else "")
+
+
+def cmd_inspect(args) -> int:
+    character, _ = _load(args)
     if args.json:
         print(json.dumps(model_json(character), indent=2))
         return 0
-    model, clip = character.model, character.clip
+    model, clip, anat = character.model, character.clip, character.anatomy
     rows = []
     for k, joint in enumerate(clip.joints):
         b = model.joint_body[k]
         n_dof = sum(1 for d in model.dof_body if b >= 0 and d == b)
         rows.append([joint.name, clip.joints[joint.parent].name if joint.parent >= 0 else "-",
+                     _segment_label(character, k),
                      f"{float(model.mass[b]):.3f}" if b >= 0 else "(none)",
                      "root (6, driven)" if joint.parent < 0 else str(n_dof),
                      " ".join(joint.channels)])
+    up = "+-"[int(anat.up.sum() < 0)] + "XYZ"[anat.up_axis]
     print(f"clip      {clip.path}")
     print(f"frames    {clip.n_frames} at {1.0 / clip.frame_time:.2f} Hz, {clip.duration:.3f} s")
-    print(f"units     {clip.length_scale:g} m per file unit")
+    print(f"units     {anat.units} ({clip.length_scale:g} m per file unit)")
+    print(f"stature   {anat.stature:.3f} m, up axis {up}")
     print(f"bodies    {model.n_bodies}, simulated DOFs {model.n_dofs}, constraint rows {model.n_constraints}")
-    print(f"mass      {float(np.sum(model.mass)):.2f} kg total\n")
-    print(_table(rows, ["joint", "parent", "mass kg", "DOFs", "channels"]))
+    print(f"mass      {float(np.sum(model.mass)):.2f} kg total ({character.options.sex} de Leva segments)")
+    for w in character.warnings:
+        print(f"warning   {w}")
+    print()
+    print(_table(rows, ["joint", "parent", "segment", "mass kg", "DOFs", "channels"]))
     return 0
 
 
 def cmd_idyn(args) -> int:
     from .inverse import idyn_arrays
-    from .simulate import load_character, save_npz_atomic
+    from .simulate import save_npz_atomic
 
-    character, traj = load_character(args.clip, args.units, args.up_axis)
+    character, traj = _load(args)
     clip = character.clip
     times = np.arange(clip.n_frames) * clip.frame_time
     arrays = idyn_arrays(character.model, traj, times)
@@ -117,6 +144,14 @@ def _sim_config(args):
         cfg.ks = args.ks
     if args.kd is not None:
         cfg.kd = args.kd
+    if getattr(args, "clip", None) is not None:
+        cfg.clip = args.clip
+    for key in ("units", "up_axis", "stature", "body_mass", "sex"):
+        value = getattr(args, key, None)
+        if value is not None:
+            setattr(cfg, key, value)
+    if getattr(args, "simulate_extremities", None):
+        cfg.simulate_extremities = True
     return cfg
 
 
@@ -216,22 +251,56 @@ def cmd_bench(args) -> int:
 
 def cmd_export_mjcf(args) -> int:
     from .mjcf import export_mjcf
-    from .simulate import load_character
 
-    character, _ = load_character(args.clip, args.units, args.up_axis)
+    character, _ = _load(args)
     export_mjcf(character, args.output, timestep=args.timestep)
     print(f"wrote {args.output}")
     return 0
+
+
+def _units_arg(text: str):
+    from .anatomy import UNIT_CHOICES
+
+    if text == "auto" or text in UNIT_CHOICES:
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be auto, {', '.join(UNIT_CHOICES)} or a positive number, got {text!r}")
+    return value
+
+
+def _up_arg(text: str):
+    if text == "auto":
+        return None
+    if text in ("0", "1", "2"):
+        return int(text)
+    raise argparse.ArgumentTypeError(f"must be auto, 0, 1 or 2, got {text!r}")
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="neuromotor", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
 
+    def body_args(sp, defaults=True):
+        d = (lambda v: v) if defaults else (lambda v: None)
+        sp.add_argument("--units", default=d("auto"), type=_units_arg,
+                        help="length unit of the file: auto (from the stature the long bones give), m, cm, mm, "
+                             "in, cmu (CMU's 1/0.45 inch), ft, dm, or metres per file unit")
+        sp.add_argument("--up-axis", default=d("auto"), type=_up_arg,
+                        help="world up axis: auto (from the motion), 0 (X), 1 (Y) or 2 (Z); gravity along -up")
+        sp.add_argument("--stature", type=float, default=None, help="stature in metres (default: estimated)")
+        sp.add_argument("--body-mass", type=float, default=None, help="body mass in kg (default: BMI 22)")
+        sp.add_argument("--sex", choices=("average", "male", "female"), default=d("average"),
+                        help="column of de Leva's segment table")
+        sp.add_argument("--simulate-extremities", action="store_true", default=d(False),
+                        help="simulate fingers, toes and face joints as bodies")
+
     def clip_args(sp):
         sp.add_argument("clip", nargs="?", default=None, help="BVH file (default: embedded clip)")
-        sp.add_argument("--units", default="auto", help="auto, m, cm, mm, in, or metres per unit")
-        sp.add_argument("--up-axis", type=int, default=1, choices=(0, 1, 2))
+        body_args(sp)
 
     sp = sub.add_parser("inspect", help="bodies, masses, DOFs of a clip")
     clip_args(sp)
@@ -248,6 +317,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True)
     sp.add_argument("--ks", type=float)
     sp.add_argument("--kd", type=float)
+    sp.add_argument("--clip", default=None, help="BVH file (overrides the config's clip)")
+    body_args(sp, defaults=False)
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(func=cmd_simulate)
 

@@ -3,8 +3,12 @@
 Simulation config (every table and key optional)::
 
     clip = "path/to/clip.bvh"      # default: the embedded clip; relative to the config file
-    units = "auto"                 # auto | m | cm | mm | in | metres per unit
-    up_axis = 1                    # gravity along -up
+    units = "auto"                 # auto | m | cm | mm | in | cmu | ft | metres per unit
+    up_axis = "auto"               # auto (from the motion) | 0 | 1 | 2: gravity along -up
+    stature = 1.75                 # m; default: estimated from the long bones
+    body_mass = 70.0               # kg; default: BMI 22 at the stature
+    sex = "average"                # de Leva's segment table: male | female | average
+    simulate_extremities = false   # fingers, toes, face joints as simulated bodies
 
     [sim]
     h = 0.008333333333333333       # time step (s)
@@ -23,8 +27,8 @@ Simulation config (every table and key optional)::
 
     [[perturbation]]               # any number of these
     kind = "force"                 # force | impulse
-    body = "Chest2"
-    point = [0.0, 0.1, 0.0]        # body frame, m, from the joint origin
+    body = "Chest2"                # a body (joint) name, or chest | pelvis | head | left_hand ...
+    point = [0.0, 0.1, 0.0]        # body frame, m, from the joint origin (default: its COM)
     direction = [1.0, 0.0, 0.0]    # world
     magnitude = 150.0              # N (force) or N s (impulse)
     start = 1.0                    # s, clip time
@@ -56,6 +60,7 @@ import pathlib
 import tomllib
 from typing import Any
 
+from .anatomy import UNIT_CHOICES
 from .control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
 
 
@@ -67,7 +72,11 @@ class ConfigError(ValueError):
 class SimulationConfig:
     clip: str | None = None
     units: str | float = "auto"
-    up_axis: int = 1
+    up_axis: int | None = None  # None: from the motion
+    stature: float | None = None
+    body_mass: float | None = None
+    sex: str = "average"
+    simulate_extremities: bool = False
     h: float = 1.0 / 120.0
     start: float = 0.0
     duration: float | None = None
@@ -80,6 +89,12 @@ class SimulationConfig:
     perturbations: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     ball: dict[str, Any] | None = None
     source: str = "<defaults>"
+
+    def mass_options(self):
+        from .skeleton import MassModelOptions
+
+        return MassModelOptions(body_mass=self.body_mass, sex=self.sex,
+                                simulate_extremities=self.simulate_extremities)
 
 
 DEFAULT_HIT = {
@@ -176,7 +191,7 @@ def parse_perturbation(table: dict, where: str, source: str) -> dict[str, Any]:
     out = {
         "kind": kind,
         "body": body,
-        "point": f.vector("point", [0.0, 0.0, 0.0]),
+        "point": f.vector("point", None) if "point" in table else None,
         "direction": f.vector("direction", [1.0, 0.0, 0.0]),
         "magnitude": f.number("magnitude", None, nonneg=True),
         "start": f.number("start", 1.0, nonneg=True),
@@ -248,11 +263,20 @@ def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> Simu
             p = pathlib.Path(base_dir) / p
         cfg.clip = str(p)
     units = top.get("units", "auto")
-    if not (units in ("auto", "m", "cm", "mm", "in")
-            or (isinstance(units, (int, float)) and not isinstance(units, bool) and units > 0)):
-        top.fail("units", f"must be auto, m, cm, mm, in or a positive number, got {units!r}")
+    if not (units == "auto" or units in UNIT_CHOICES
+            or (isinstance(units, (int, float)) and not isinstance(units, bool) and math.isfinite(units)
+                and units > 0)):
+        top.fail("units", f"must be auto, {', '.join(UNIT_CHOICES)} or a positive number of metres per "
+                          f"file unit, got {units!r}")
     cfg.units = units
-    cfg.up_axis = int(top.choice("up_axis", 1, (0, 1, 2)))
+    up = top.choice("up_axis", "auto", ("auto", 0, 1, 2))
+    cfg.up_axis = None if up == "auto" else int(up)
+    cfg.stature = top.number("stature", None, positive=True)
+    if cfg.stature is not None and not 0.3 <= cfg.stature <= 3.0:
+        top.fail("stature", f"must be a stature in metres between 0.3 and 3, got {cfg.stature!r}")
+    cfg.body_mass = top.number("body_mass", None, positive=True)
+    cfg.sex = top.choice("sex", "average", ("average", "male", "female"))
+    cfg.simulate_extremities = top.boolean("simulate_extremities", False)
     sim = _Fields(top.get("sim", {}), "sim", source)
     cfg.h = sim.number("h", cfg.h, positive=True)
     cfg.start = sim.number("start", 0.0, nonneg=True)

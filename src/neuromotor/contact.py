@@ -200,38 +200,25 @@ class ContactRollout(eqx.Module):
 
 
 def fit_capsules(character: Character) -> Capsules:
-    """One capsule per counted bone of every body, fitted to the body's polyhedron."""
-    model, opts = character.model, character.options
-    offsets = np.asarray(model.joint_offset)
-    ends = {k: np.asarray(model.end_site_offset[i]) for i, k in enumerate(model.end_site_joint)}
-    body, aa, bb, rr, names = [], [], [], [], []
-    for b, k in enumerate(model.body_joint):
-        bones = [offsets[c] for c, p in enumerate(model.joint_parent) if p == k]
-        if k in ends:
-            bones.append(ends[k])
-        bones = [e for e in bones if np.linalg.norm(e) >= opts.min_bone_length]
-        verts = character.shapes[b].vertices
-        if not bones:  # padded cube: a sphere around it
-            centre = verts.mean(0)
-            body.append(b), aa.append(centre), bb.append(centre)
-            rr.append(float(np.max(np.linalg.norm(verts - centre, axis=1))))
-            names.append(model.body_names[b])
-            continue
-        dist = np.stack([_segment_distance_np(verts, np.zeros(3), e) for e in bones], 1)
-        nearest = np.argmin(dist, 1)
-        for i, e in enumerate(bones):
-            mine = dist[nearest == i, i]
-            r = float(mine.max()) if mine.size else float(dist[:, i].min())
-            body.append(b), aa.append(np.zeros(3)), bb.append(np.asarray(e, np.float64)), rr.append(r)
-            names.append(f"{model.body_names[b]}[{i}]" if len(bones) > 1 else model.body_names[b])
+    """One capsule per body, fitted to the body's polyhedron: its axis is the shape's principal
+    direction through the vertex centroid, its radius the largest vertex distance from that
+    axis, and its end points stop one radius short of the shape's extremes along the axis."""
+    model = character.model
+    body, aa, bb, rr = [], [], [], []
+    for b in range(model.n_bodies):
+        verts = np.asarray(character.shapes[b].vertices, np.float64)
+        centre = verts.mean(0)
+        _, _, vt = np.linalg.svd(verts - centre, full_matrices=False)
+        axis = vt[0]
+        t = (verts - centre) @ axis
+        radial = np.linalg.norm((verts - centre) - np.outer(t, axis), axis=1)
+        r = float(radial.max())
+        lo, hi = float(t.min()) + r, float(t.max()) - r
+        if hi < lo:  # shorter than it is wide: a sphere
+            lo = hi = 0.5 * (lo + hi)
+        body.append(b), aa.append(centre + lo * axis), bb.append(centre + hi * axis), rr.append(r)
     return Capsules(jnp.asarray(body, jnp.int32), jnp.asarray(np.stack(aa)), jnp.asarray(np.stack(bb)),
-                    jnp.asarray(rr), tuple(names))
-
-
-def _segment_distance_np(points, a, b):
-    seg = b - a
-    t = np.clip((points - a) @ seg / max(seg @ seg, _TINY), 0.0, 1.0)
-    return np.linalg.norm(points - (a + t[:, None] * seg), axis=1)
+                    jnp.asarray(rr), tuple(model.body_names))
 
 
 def candidate_bodies(caps: Capsules, settings: ContactSettings) -> Int[Array, " C"]:

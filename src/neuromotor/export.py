@@ -36,9 +36,13 @@ def _load_run(path) -> dict:
 def export_bvh(run_path, out_path) -> pathlib.Path:
     run = _load_run(run_path)
     units = str(run["source_units"])
-    units = float(units) if units.replace(".", "", 1).isdigit() else units
+    try:
+        units = float(units)
+    except ValueError:
+        pass
     character, traj = load_character(str(run["source_clip"]), units, int(run["up_axis"]))
-    clip, model = character.clip, character.model
+    # Written in the file's own skeleton: a virtual root removed for the model is put back.
+    clip, model = character.source, character.model
     if tuple(str(n) for n in run["dof_names"]) != model.dof_names:
         raise ValueError(f"{run_path}: its DOFs do not match the clip {clip.path}")
     times = np.asarray(run["time"])
@@ -52,18 +56,15 @@ def export_bvh(run_path, out_path) -> pathlib.Path:
         if is_rot:
             col = np.rad2deg(np.unwrap(np.deg2rad(col)))
         motion[:, c] = np.interp(times, frame_times, col)
-    # ...the root exactly on the splined path it was driven along...
+    # ...the root exactly on the splined path it was driven along (a virtual root and the
+    # joint below it keep the file's channels: together they are that path)...
     root = clip.joints[0]
-    q = np.asarray(jax.vmap(traj.q)(jnp.asarray(times)))
-    motion[:, list(root.translation_columns)] = q[:, 0:3]
-    quat = q[:, 3:7] / np.linalg.norm(q[:, 3:7], axis=1, keepdims=True)
-    ref = jnp.deg2rad(jnp.asarray(motion[:, list(root.rotation_columns)]))
-    ang = matrix_to_euler(quat_to_matrix(jnp.asarray(quat)), root.rotation_order, ref)
-    motion[:, list(root.rotation_columns)] = np.rad2deg(np.asarray(ang))
+    if root.name == model.joint_names[0]:
+        _write_root(motion, root, np.asarray(jax.vmap(traj.q)(jnp.asarray(times))))
     # ...and the simulated DOFs from the run.
     theta = np.rad2deg(np.asarray(run["theta"]))
     for i, name in enumerate(model.dof_names):
-        joint_name, channel = name.split(".")
+        joint_name, channel = name.rsplit(".", 1)
         joint = clip.joints[clip.joint_index(joint_name)]
         slot = joint.rotation_order.index(channel[0])
         motion[:, joint.rotation_columns[slot]] = theta[:, i]
@@ -73,12 +74,21 @@ def export_bvh(run_path, out_path) -> pathlib.Path:
     return pathlib.Path(out_path)
 
 
+def _write_root(motion, root, q):
+    """Root channels (in place) from spline coordinates q (T, 7+): position and rotation."""
+    motion[:, list(root.translation_columns)] = q[:, 0:3]
+    quat = q[:, 3:7] / np.linalg.norm(q[:, 3:7], axis=1, keepdims=True)
+    ref = jnp.deg2rad(jnp.asarray(motion[:, list(root.rotation_columns)]))
+    ang = matrix_to_euler(quat_to_matrix(jnp.asarray(quat)), root.rotation_order, ref)
+    motion[:, list(root.rotation_columns)] = np.rad2deg(np.asarray(ang))
+
+
 def reread_angles(bvh_path, units, dof_names) -> np.ndarray:
     """Simulated-DOF channels of a BVH file, radians (used to check a round trip)."""
     clip = read_bvh(bvh_path, units=units)
     cols = []
     for name in dof_names:
-        joint_name, channel = str(name).split(".")
+        joint_name, channel = str(name).rsplit(".", 1)
         joint = clip.joints[clip.joint_index(joint_name)]
         cols.append(joint.rotation_columns[joint.rotation_order.index(channel[0])])
     return np.deg2rad(np.asarray(clip.motion)[:, cols])

@@ -45,7 +45,7 @@ import dataclasses
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-__all__ = ["Polyhedron", "convex_hull", "mass_properties", "prism", "segment_hull", "box"]
+__all__ = ["Polyhedron", "convex_hull", "mass_properties", "prism", "segment_hull", "box", "ellipse_ring"]
 
 # Relative tolerance of the closedness identity (round-off is ~1e-16 of the scale used).
 _CLOSED_RTOL = 1e-8
@@ -236,3 +236,12 @@ def box(half_extents) -> Polyhedron:
         dtype=np.int64,
     )
     return Polyhedron(signs * h, faces)
+
+
+def ellipse_ring(center, u, v, a: float, b: float, sides: int = 10) -> np.ndarray:
+    """Vertices (sides, 3) of a polygon inscribed in the ellipse ``center + a cos(t) u + b sin(t) v``
+    (``u``, ``v`` orthonormal). Convex hulls of such rings make the tapered and flattened body
+    shapes of :mod:`neuromotor.massmodel`."""
+    angle = 2.0 * np.pi * np.arange(int(sides)) / int(sides)
+    return (np.asarray(center, np.float64) + a * np.cos(angle)[:, None] * np.asarray(u, np.float64)
+            + b * np.sin(angle)[:, None] * np.asarray(v, np.float64))

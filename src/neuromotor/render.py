@@ -7,7 +7,10 @@
 Everything reads the RUN.npz contract written by :func:`neuromotor.simulate.run_arrays`
 (``skeleton_points``, ``skeleton_points_unperturbed``, ``skeleton_edges``, ``skeleton_radii``,
 ``force_origin``, ``force_vector``, ``time``, ``up_axis``; ``theta*`` and ``dof_names`` for the
-plots; optionally ``ball_pos`` (T,3) and ``ball_radius``, drawn as a sphere).
+plots; optionally ``ball_pos`` (T,3) and ``ball_radius``, drawn as a sphere; optionally the body
+shapes ``shape_vertices`` (V,3, body frame less the body's COM), ``shape_faces`` (F,3),
+``shape_body`` (V,) with the poses ``body_pos``/``body_quat`` (w x y z) and their
+``_unperturbed`` twins; ``skeleton_edge_body`` (E,) and ``facing`` (3,)).
 
 3-D pictures use pyvista/VTK off screen through EGL and Mesa, so no display and no GPU are needed
 (Debian packages ``libegl1 libegl-mesa0 libgl1-mesa-dri``; see ``.ci/install_system_deps.sh``).
@@ -16,14 +19,21 @@ the variable is already set.
 
 Drawing conventions (also in docs/rendering.md):
 
-* Bones are capsules whose radius is ``skeleton_radii``; joints are spheres slightly wider than
-  the thickest bone meeting there.
-* The external force is an arrow whose tip touches the point of application and which points
-  along the force; its length is ``|F| / FORCE_SCALE_N_PER_M`` metres (1 m per 500 N). It is
-  drawn only while ``|F|`` exceeds 1% of its peak.
-* The camera looks horizontally-ish (elevated by ``CAMERA_ELEVATION_DEG``) perpendicular to the
-  horizontal direction of the hit, so the push reads left to right; parallel projection keeps
-  the scale identical in every panel.
+* Each body is drawn as the mass model's own convex polyhedron, moved by its pose: a vertex v of
+  body b is at ``body_pos[t, b] + R(body_quat[t, b]) @ v``. All bodies of a figure are one mesh
+  whose points are recomputed per frame. Bones that carry no body (``skeleton_edge_body`` -1:
+  fingers, toes, face) are thin capsules (radius at most ``DETAIL_RADIUS_M``). A run without
+  shapes (an older RUN.npz) is drawn as before: capsules of radius ``skeleton_radii`` for every
+  bone, joints as spheres slightly wider than the thickest bone meeting there.
+* The external force is an arrow whose tip stops 1 cm outside the body surface at the point of
+  application and which points along the force; its length is ``|F| / FORCE_SCALE_N_PER_M``
+  metres (1 m per 500 N). It is drawn only while ``|F|`` exceeds 1% of its peak.
+* The camera looks at the character's front: its horizontal direction is the facing direction
+  (``facing``, else :func:`facing_from_skeleton`) turned by ``CAMERA_AZIMUTH_DEG`` (40 degrees)
+  about the up axis, to the side that sees the hit most side-on (on a tie, the side the hit comes
+  from), and it is raised by ``CAMERA_ELEVATION_DEG`` (12 degrees); see :func:`camera_view`. The
+  picture is therefore the same whatever the up axis and heading. Parallel projection keeps the
+  scale identical in every panel.
 
 Outputs are written to a temporary file beside the target and renamed, so a failed render never
 leaves a partial file. Bad input raises :class:`RenderError` (a ``ValueError``) naming the file
@@ -43,7 +53,9 @@ import numpy as np
 from .atomic import atomic_path
 FORCE_SCALE_N_PER_M = 500.0   # arrow length: 1 m per 500 N
 FORCE_VISIBLE_FRACTION = 0.01  # draw the arrow while |F| > 1% of its peak
-CAMERA_ELEVATION_DEG = 12.0
+CAMERA_ELEVATION_DEG = 12.0  # camera raised above the horizontal
+CAMERA_AZIMUTH_DEG = 40.0    # camera turned this far from the character's facing direction
+DETAIL_RADIUS_M = 0.015      # thickest capsule drawn for a bone that carries no body
 VIDEO_SIZE = (640, 360)        # pixels per video frame (width, height)
 PANEL_SIZE = (300, 420)        # pixels per filmstrip panel (width, height)
 VIDEO_FPS = {".mp4": 30.0, ".gif": 25.0}  # GIF delays are whole centiseconds: 40 ms is exact
@@ -77,9 +89,18 @@ _SKELETON_FIELDS = ("time", "skeleton_points", "skeleton_points_unperturbed", "s
 _PLOT_FIELDS = ("time", "dof_names", "theta", "theta_unperturbed", "theta_desired", "force_vector")
 
 
+_OPTIONAL_FIELDS = ("up_axis", "ball_pos", "ball_radius", "metrics_json", "facing", "skeleton_edge_body")
+# Body shapes: all of them, or (an older RUN.npz) none and capsules are drawn instead.
+_SHAPE_FIELDS = ("shape_vertices", "shape_faces", "shape_body", "body_pos", "body_quat",
+                 "body_pos_unperturbed", "body_quat_unperturbed")
+
+
 def load_run(run_path, fields=_SKELETON_FIELDS) -> dict[str, np.ndarray]:
     """Read and check the arrays of a RUN.npz needed for drawing (``fields``) plus the optional
-    ``up_axis``, ``ball_pos``, ``ball_radius`` and ``metrics_json``."""
+    ``up_axis``, ``ball_pos``, ``ball_radius``, ``metrics_json``, ``facing``,
+    ``skeleton_edge_body`` and (when drawing, all or none) the body shapes and poses
+    ``shape_vertices``, ``shape_faces``, ``shape_body``, ``body_pos``, ``body_quat`` and their
+    ``_unperturbed`` twins."""
     path = pathlib.Path(run_path)
     if not path.is_file():
         raise RenderError(f"{path}: no such run file")
@@ -90,7 +111,13 @@ def load_run(run_path, fields=_SKELETON_FIELDS) -> dict[str, np.ndarray]:
             if missing:
                 raise RenderError(f"{path}: missing array(s) {', '.join(missing)} "
                                   f"(not a RUN.npz from `neuromotor simulate`?)")
-            wanted = set(fields) | ({"up_axis", "ball_pos", "ball_radius", "metrics_json"} & names)
+            wanted = set(fields) | (set(_OPTIONAL_FIELDS) & names)
+            if "skeleton_points" in fields and "shape_vertices" in names:
+                missing = [f for f in _SHAPE_FIELDS if f not in names]
+                if missing:
+                    raise RenderError(f"{path}: has shape_vertices but lacks array(s) "
+                                      f"{', '.join(missing)} needed to draw the body shapes")
+                wanted |= set(_SHAPE_FIELDS)
             data = {k: np.asarray(npz[k]) for k in wanted}
     except RenderError:
         raise
@@ -145,6 +172,36 @@ def _check(path, d):
     if d["force_vector"].shape != (T, 3):
         fail("force_vector", f"must have shape (T={T}, 3), got {d['force_vector'].shape}")
     finite("force_vector")
+    if "shape_vertices" in d:
+        v, f, sb = d["shape_vertices"], d["shape_faces"], d["shape_body"]
+        if v.ndim != 2 or v.shape[1] != 3 or v.dtype.kind not in "fi":
+            fail("shape_vertices", f"must be a numeric array of shape (V, 3), got {v.dtype} {v.shape}")
+        finite("shape_vertices")
+        if f.ndim != 2 or f.shape[1] != 3 or (f.size and f.dtype.kind not in "iu"):
+            fail("shape_faces", f"must be an integer array of shape (F, 3), got {f.dtype} {f.shape}")
+        if f.size and (f.min() < 0 or f.max() >= len(v)):
+            fail("shape_faces", f"indices must lie in [0, {len(v)}), got [{f.min()}, {f.max()}]")
+        pos = d["body_pos"]
+        if pos.ndim != 3 or pos.shape[0] != T or pos.shape[2] != 3:
+            fail("body_pos", f"must have shape (T={T}, B, 3), got {pos.shape}")
+        B = pos.shape[1]
+        for name, shape in (("body_quat", (T, B, 4)), ("body_pos_unperturbed", (T, B, 3)),
+                            ("body_quat_unperturbed", (T, B, 4))):
+            if d[name].shape != shape:
+                fail(name, f"must have shape {shape}, got {d[name].shape}")
+        for name in ("body_pos", "body_quat", "body_pos_unperturbed", "body_quat_unperturbed"):
+            finite(name)
+        if sb.shape != (len(v),) or (sb.size and sb.dtype.kind not in "iu"):
+            fail("shape_body", f"must be an integer array of shape (V={len(v)},), got {sb.dtype} {sb.shape}")
+        if sb.size and (sb.min() < 0 or sb.max() >= B):
+            fail("shape_body", f"body indices must lie in [0, {B}), got [{sb.min()}, {sb.max()}]")
+    if "skeleton_edge_body" in d and "skeleton_edges" in d:
+        if d["skeleton_edge_body"].shape != (d["skeleton_edges"].shape[0],):
+            fail("skeleton_edge_body", f"must have shape (E={d['skeleton_edges'].shape[0]},), "
+                                       f"got {d['skeleton_edge_body'].shape}")
+    if "facing" in d:
+        if d["facing"].shape != (3,) or not np.all(np.isfinite(d["facing"])):
+            fail("facing", f"must be a finite vector of shape (3,), got {d['facing']!r}")
     if "up_axis" in d:
         if d["up_axis"].shape != () or int(d["up_axis"]) not in (0, 1, 2):
             fail("up_axis", f"must be a scalar 0, 1 or 2, got {d['up_axis']!r}")
@@ -308,6 +365,190 @@ class _ArrowGeometry:
         self.mesh.points = pts
 
 
+def quat_matrices(q):
+    """Rotation matrices (..., 3, 3) of quaternions (..., 4) in w x y z order (normalised)."""
+    q = np.asarray(q, float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+class _BodyGeometry:
+    """Every body's polyhedron of one figure as a single mesh of fixed topology, moved rigidly by
+    :meth:`update` (body poses) without rebuilding any actor.
+
+    ``vertices`` are in the body frames relative to the COM, so a vertex of body b lands at
+    ``pos[b] + rot[b] @ v``. Vertex normals are computed once, in the body frames, with vertices
+    split along edges sharper than ``feature_angle`` degrees (round limbs shade smoothly, the
+    edges of flat hands and feet stay crisp), and are rotated with their bodies.
+    """
+
+    def __init__(self, vertices, faces, owner, feature_angle=50.0):
+        import pyvista as pv
+
+        vertices = np.asarray(vertices, float)
+        base = _poly(vertices, np.asarray(faces, int), 3)
+        split = base.compute_normals(cell_normals=False, split_vertices=True, consistent_normals=False,
+                                     auto_orient_normals=False, feature_angle=feature_angle)
+        ids = np.asarray(split.point_data["pyvistaOriginalPointIds"], int)
+        self.local = vertices[ids]
+        self.local_normals = np.asarray(split.point_data["Normals"], float)
+        self.owner = np.asarray(owner, int)[ids]
+        self.mesh = pv.PolyData(self.local.copy(), np.asarray(split.faces))
+        self.n_faces = len(faces)
+
+    def update(self, pos, rot):
+        R = np.asarray(rot, float)[self.owner]
+        self.mesh.points = np.asarray(pos, float)[self.owner] + np.einsum("vij,vj->vi", R, self.local)
+        self.mesh.point_data["Normals"] = np.einsum("vij,vj->vi", R, self.local_normals)
+        self.mesh.point_data.active_normals_name = "Normals"
+
+
+class _FigureGeometry:
+    """One figure as drawn: the bodies' polyhedra (when the run has them) plus thin capsules for
+    the bones that carry no body (fingers, toes, face), or, for a run without shapes, capsules
+    for every bone."""
+
+    def __init__(self, scene):
+        self.scene = scene
+        self.bodies = None
+        if scene.has_shapes:
+            d = scene.d
+            self.bodies = _BodyGeometry(d["shape_vertices"], d["shape_faces"], d["shape_body"])
+        self.capsules = None
+        if len(scene.capsule_edges):
+            self.capsules = _SkeletonGeometry(scene.capsule_edges, scene.capsule_radii, scene.P.shape[1])
+
+    def update(self, k, which, offset=np.zeros(3)):
+        s = self.scene
+        if self.bodies is not None:
+            pos, rot = s.body_pose(k, which)
+            self.bodies.update(pos + offset, rot)
+        if self.capsules is not None:
+            self.capsules.update(s.points(which)[k] + offset)
+        return self
+
+    def meshes(self):
+        out = [self.bodies.mesh] if self.bodies is not None else []
+        if self.capsules is not None:
+            out += [self.capsules.bones, self.capsules.joints]
+        return out
+
+    def add(self, pl, color, joint_color, specular=0.25):
+        if self.bodies is not None:
+            actor = pl.add_mesh(self.bodies.mesh, color=color, smooth_shading=False, specular=specular,
+                                specular_power=20)
+            actor.prop.interpolation = "phong"
+        if self.capsules is not None:
+            # Detail bones beside bodies are drawn in the darker joint colour.
+            _add_skeleton(pl, self.capsules, joint_color if self.bodies is not None else color,
+                          joint_color, specular=specular)
+
+
+def _horizontal(v, up):
+    v = np.asarray(v, float)
+    return v - (v @ up)[..., None] * up
+
+
+def _turn(v, up, angle):
+    """Rotate the horizontal vector ``v`` about ``up`` by ``angle`` radians (right-handed)."""
+    return np.cos(angle) * v + np.sin(angle) * np.cross(up, v)
+
+
+def facing_from_skeleton(points, edges, up_axis: int = 1) -> np.ndarray:
+    """The character's horizontal facing direction (a world unit vector perpendicular to the up
+    axis), estimated from skeleton points alone, for runs that do not store ``facing``.
+
+    ``points`` (T,P,3) or (P,3), ``edges`` (E,2) parent -> child pairs. The feet are the two
+    lowest leaves of the tree (on average over time); the legs are their chains up to the joint
+    they share (the pelvis). The left-right axis runs between the two legs' top points (between
+    the legs' mean points if the tops coincide), and the facing is horizontal and perpendicular
+    to it, on the side the feet point to (leaf minus its parent point: toes, or the foot bone),
+    or, when the feet do not tell, the side the root travels to. Averaged over all samples, so a
+    walking gait's scissoring cancels. Without two feet it falls back to the travel direction.
+    """
+    P = np.asarray(points, float)
+    if P.ndim == 2:
+        P = P[None]
+    up = np.eye(3)[int(up_axis)]
+    other = np.eye(3)[(int(up_axis) + 2) % 3]
+    edges = np.asarray(edges, int).reshape(-1, 2)
+    n = P.shape[1]
+    parent = np.full(n, -1)
+    parent[edges[:, 1]] = edges[:, 0]
+    degree = np.bincount(edges.ravel(), minlength=n)
+    root = int(np.flatnonzero(parent < 0)[0]) if np.any(parent < 0) else 0
+    travel = _horizontal(P[-1, root] - P[0, root], up)
+    leaves = [i for i in range(n) if degree[i] == 1 and parent[i] >= 0]
+    if len(leaves) < 2:
+        return _unit(travel, other) if np.linalg.norm(travel) > 0.05 else other
+
+    def chain(i):
+        out = []
+        while i >= 0:
+            out.append(i)
+            i = parent[i]
+        return out[::-1]   # root first
+
+    height = (P @ up).mean(axis=0)
+    feet = sorted(leaves, key=lambda i: height[i])[:2]
+    a, b = chain(feet[0]), chain(feet[1])
+    shared = 0
+    while shared < min(len(a), len(b)) and a[shared] == b[shared]:
+        shared += 1
+    la, lb = a[shared:], b[shared:]
+    lateral = _horizontal(P[:, la[0]] - P[:, lb[0]], up).mean(axis=0)
+    if np.linalg.norm(lateral) < 0.05:
+        lateral = _horizontal(P[:, la].mean(axis=1) - P[:, lb].mean(axis=1), up).mean(axis=0)
+    if np.linalg.norm(lateral) < 1e-6:
+        return _unit(travel, other) if np.linalg.norm(travel) > 0.05 else other
+    forward = _unit(np.cross(lateral, up), other)
+    toes = sum(_horizontal(P[:, f] - P[:, parent[f]], up).mean(axis=0) for f in feet)
+    if abs(toes @ forward) > 0.2 * max(np.linalg.norm(toes), 1e-9) and np.linalg.norm(toes) > 0.02:
+        return forward if toes @ forward > 0 else -forward
+    if abs(travel @ forward) > 0.05:
+        return forward if travel @ forward > 0 else -forward
+    return forward
+
+
+def facing_direction(points, edges, up_axis: int = 1, forward=None) -> np.ndarray:
+    """``forward`` (a world direction, e.g. from the character's anatomy) made horizontal and
+    unit, or :func:`facing_from_skeleton` when it is missing or (nearly) vertical."""
+    up = np.eye(3)[int(up_axis)]
+    if forward is not None:
+        f = _horizontal(np.asarray(forward, float).reshape(3), up)
+        if np.all(np.isfinite(f)) and np.linalg.norm(f) > 1e-3:
+            return f / np.linalg.norm(f)
+    return facing_from_skeleton(points, edges, up_axis)
+
+
+def camera_view(facing, up, hit=None, azimuth_deg=CAMERA_AZIMUTH_DEG, elevation_deg=CAMERA_ELEVATION_DEG):
+    """Unit vector from the scene towards the camera: the horizontal ``facing`` turned by
+    ``azimuth_deg`` about ``up`` (a three-quarter front view), then raised by ``elevation_deg``.
+
+    Of the two turns (counter-clockwise or clockwise about ``up``) it takes the one that sees
+    the horizontal ``hit`` direction most side-on, so that the force arrow is long on screen. On
+    a tie in that (a push from the side) it takes the one where the force points away from the
+    camera, so the arrow starts on the camera's side of the body; on a push from straight in
+    front or behind, or without a hit, the counter-clockwise turn.
+    """
+    up = np.asarray(up, float)
+    f = _unit(_horizontal(facing, up), np.roll(up, 1))
+    az = np.radians(azimuth_deg)
+    candidates = [_turn(f, up, az), _turn(f, up, -az)]
+    best = candidates[0]
+    if hit is not None and np.linalg.norm(_horizontal(hit, up)) > 1e-9:
+        h = _unit(_horizontal(hit, up), f)
+        score = [abs(h @ c) + 0.25 * (h @ c) for c in candidates]
+        if score[1] < score[0] - 1e-9:
+            best = candidates[1]
+    el = np.radians(elevation_deg)
+    return np.cos(el) * best + np.sin(el) * up
+
+
 # ----------------------------------------------------------------------------------------------
 # Scene analysis: hit window, camera directions, ground
 # ----------------------------------------------------------------------------------------------
@@ -325,46 +566,109 @@ class _Scene:
         fmag = np.linalg.norm(self.F, axis=1)
         self.fmag = fmag
         self.force_on = fmag > FORCE_VISIBLE_FRACTION * fmag.max() if fmag.max() > 0 else np.zeros(len(fmag), bool)
-        # Horizontal direction of the hit (at its peak), else of the travel, else an axis.
-        horiz = lambda v: v - np.dot(v, self.up) * self.up
-        other = np.eye(3)[(self.up_axis + 2) % 3]
-        if fmag.max() > 0:
-            hit = _unit(horiz(self.F[int(np.argmax(fmag))]), other)
+        edges, radii = d["skeleton_edges"].astype(int), d["skeleton_radii"].astype(float)
+        # Body shapes (world = body_pos + R(body_quat) @ v), or none: capsules for every bone.
+        self.has_shapes = "shape_vertices" in d and len(d["shape_vertices"]) > 0 and len(d["shape_faces"]) > 0
+        if self.has_shapes:
+            self.shape_v = d["shape_vertices"].astype(float)
+            self.shape_b = d["shape_body"].astype(int)
+            self.body_pos = {"perturbed": d["body_pos"].astype(float),
+                             "original": d["body_pos_unperturbed"].astype(float)}
+            self.body_rot = {"perturbed": quat_matrices(d["body_quat"]),
+                             "original": quat_matrices(d["body_quat_unperturbed"])}
+            # Face planes per vertex-owner for the convex-body queries (arrow tip, detail bones).
+            f = d["shape_faces"].astype(int)
+            self.face_body = self.shape_b[f[:, 0]]
+            self.faces = f
+            if "skeleton_edge_body" in d:
+                detail = d["skeleton_edge_body"].astype(int) < 0
+            else:  # an edge is detail if its midpoint lies in no body (at the first sample)
+                mid = 0.5 * (self.U[0][edges[:, 0]] + self.U[0][edges[:, 1]])
+                detail = np.array([self._inside_bodies(0, "original", m).size == 0 for m in mid], bool)
+            self.capsule_edges = edges[detail]
+            self.capsule_radii = np.minimum(radii[detail], DETAIL_RADIUS_M)
         else:
-            hit = _unit(horiz(self.U[-1, 0] - self.U[0, 0]), other)
-        self.hit_dir = hit
-        # Camera: looks along -view; screen right is the hit direction.
-        side = np.cross(hit, self.up)
-        el = np.radians(CAMERA_ELEVATION_DEG)
-        self.view = np.cos(el) * side + np.sin(el) * self.up   # from the scene towards the camera
-        self.right = hit
+            self.capsule_edges, self.capsule_radii = edges, radii
+        self.pad = 1.25 * float(self.capsule_radii.max()) if len(self.capsule_radii) else 0.0
+        # Horizontal direction of the hit (at its peak), if any.
+        self.hit_dir = _horizontal(self.F[int(np.argmax(fmag))], self.up) if fmag.max() > 0 else None
+        # The character's facing direction, and the camera: a three-quarter front view.
+        self.facing = facing_direction(self.U, edges, self.up_axis, d.get("facing"))
+        self.view = camera_view(self.facing, self.up, self.hit_dir)   # from the scene to the camera
+        self.right = _unit(np.cross(self.up, self.view), np.roll(self.up, 2))
         self.screen_up = np.cross(self.view, self.right)
         self.screen_up /= np.linalg.norm(self.screen_up)
-        # Ground: touching the lowest capsule surface of either figure over the whole run.
-        e, r = d["skeleton_edges"], d["skeleton_radii"]
+        # Ground: touching the lowest surface of either figure over the whole run.
         low = np.inf
-        for pts in (self.P, self.U):
-            h = pts @ self.up                                              # (T, P)
-            low = min(low, float((np.minimum(h[:, e[:, 0]], h[:, e[:, 1]]) - r).min()))
+        for which in ("perturbed", "original"):
+            if self.has_shapes:
+                pos, rot = self.body_pos[which], self.body_rot[which]
+                h = (pos[:, self.shape_b] @ self.up
+                     + np.einsum("tvj,vj->tv", rot[:, self.shape_b, self.up_axis, :], self.shape_v))
+                low = min(low, float(h.min()))
+            if len(self.capsule_edges):
+                e, r = self.capsule_edges, self.capsule_radii
+                h = self.points(which) @ self.up                           # (T, P)
+                low = min(low, float((np.minimum(h[:, e[:, 0]], h[:, e[:, 1]]) - r).min()))
         self.ground = low
         if "ball_pos" in d:
             hb = d["ball_pos"] @ self.up - float(d["ball_radius"])
             self.ground = min(self.ground, float(hb.min()))
         self.has_ball = "ball_pos" in d
 
+    def points(self, which):
+        return self.P if which == "perturbed" else self.U
+
+    def body_pose(self, k, which):
+        """(B,3) COM positions and (B,3,3) rotations of the bodies at sample k."""
+        return self.body_pos[which][k], self.body_rot[which][k]
+
+    def shape_points(self, k, which):
+        """(V,3) world positions of all body-shape vertices at sample k."""
+        pos, rot = self.body_pose(k, which)
+        return pos[self.shape_b] + np.einsum("vij,vj->vi", rot[self.shape_b], self.shape_v)
+
+    def _planes(self, k, which):
+        """Outward unit normals and offsets (n . x = c) of every shape face at sample k."""
+        w = self.shape_points(k, which)
+        a, b, c = w[self.faces[:, 0]], w[self.faces[:, 1]], w[self.faces[:, 2]]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n, axis=1)
+        ok = norm > 1e-14
+        n = n[ok] / norm[ok, None]
+        return n, np.einsum("ij,ij->i", n, a[ok]), self.face_body[ok]
+
+    def _inside_bodies(self, k, which, x, tol=1e-9):
+        """Bodies whose (convex) shape contains the point x at sample k."""
+        n, c, owner = self._planes(k, which)
+        outside = (n @ x - c) > tol
+        bodies = np.unique(owner)
+        return np.array([b for b in bodies if not outside[owner == b].any()], int)
+
     def arrow(self, k):
         """(tail, tip) of the force arrow at sample k. It points along the force, is
-        ``|F| / FORCE_SCALE_N_PER_M`` long, and its tip stops at the surface of the bone nearest
-        to the point of application (which usually lies inside the body)."""
+        ``|F| / FORCE_SCALE_N_PER_M`` long, and its tip stops at the surface of the body at the
+        point of application (which usually lies inside the body)."""
         o, f = self.Fo[k], self.F[k]
         u = _unit(f, [1.0, 0.0, 0.0])
         tip = o - u * self.surface_depth(k)
         return tip - f / FORCE_SCALE_N_PER_M, tip
 
     def surface_depth(self, k):
-        """How far back from the application point along the force the body's surface lies,
-        approximated by the nearest capsule's radius less the point's distance from its axis."""
+        """How far back from the application point along the force the body's surface lies, plus
+        1 cm: where the ray backwards leaves the (convex) body shapes containing the point, or,
+        without shapes, the nearest capsule's radius less the point's distance from its axis."""
         o = self.Fo[k]
+        u = _unit(self.F[k], [1.0, 0.0, 0.0])
+        if self.has_shapes:
+            n, c, owner = self._planes(k, "perturbed")
+            depth = 0.0
+            for b in self._inside_bodies(k, "perturbed", o):
+                nb, cb = n[owner == b], c[owner == b]
+                leaving = nb @ -u > 1e-12
+                if leaving.any():
+                    depth = max(depth, float(np.min((cb[leaving] - nb[leaving] @ o) / (nb[leaving] @ -u))))
+            return depth + 0.01
         edges, radii = self.d["skeleton_edges"], self.d["skeleton_radii"]
         a, b = self.P[k][edges[:, 0]], self.P[k][edges[:, 1]]
         ab = b - a
@@ -409,12 +713,22 @@ class _Scene:
         return np.where(np.abs(t[lo] - times) <= np.abs(t[hi] - times), lo, hi)
 
     def extent_points(self, k, which, offset=np.zeros(3)):
-        """Points whose screen footprint must fit: the skeleton and the force arrow. (A ball is
-        drawn but does not steer the framing: it may fly in from far away.)"""
-        pts = [(self.P if which == "perturbed" else self.U)[k] + offset]
+        """Points whose screen footprint must fit (up to ``pad``): the skeleton, the body shapes
+        and the force arrow. (A ball is drawn but does not steer the framing: it may fly in from
+        far away.)"""
+        pts = [self.points(which)[k] + offset]
+        if self.has_shapes:
+            pts.append(self.shape_points(k, which) + offset)
         if which == "perturbed" and self.force_on[k]:
             pts.append(np.stack(self.arrow(k)))
         return np.concatenate(pts)
+
+    def box_centre(self, pts):
+        """Centre of the bounding box of ``pts`` in the camera's axes (screen right, depth, up),
+        so that the framing turns with the character rather than with the world axes."""
+        axes = np.stack([self.right, np.cross(self.right, self.up), self.up])
+        proj = np.asarray(pts, float) @ axes.T
+        return 0.5 * (proj.min(axis=0) + proj.max(axis=0)) @ axes
 
     def ground_mesh(self, center, half_size):
         """A checkered ground plane (world-anchored tiles) around ``center``."""
@@ -426,9 +740,13 @@ class _Scene:
         c = center - np.dot(center, self.up) * self.up + self.ground * self.up
         # Snap to the world tile grid so tiles do not slide with the camera.
         ca, cb = np.round(np.dot(c, a_ax) / GROUND_TILE_M), np.round(np.dot(c, b_ax) / GROUND_TILE_M)
-        ia, ib = np.meshgrid(np.arange(-n, n + 1) + ca, np.arange(-n, n + 1) + cb, indexing="ij")
-        grid_pts = (ia[..., None] * a_ax + ib[..., None] * b_ax) * GROUND_TILE_M + self.ground * self.up
-        m = 2 * n + 1
+        ia, ib = np.meshgrid(np.arange(-n - 1, n + 2) + ca, np.arange(-n - 1, n + 2) + cb, indexing="ij")
+        # Clip the tiles to the square of half_size about the centre, so that the far edge (the
+        # horizon) sits at the same height in every panel whatever the tile grid's phase.
+        ga = np.clip(ia * GROUND_TILE_M, np.dot(c, a_ax) - half_size, np.dot(c, a_ax) + half_size)
+        gb = np.clip(ib * GROUND_TILE_M, np.dot(c, b_ax) - half_size, np.dot(c, b_ax) + half_size)
+        grid_pts = ga[..., None] * a_ax + gb[..., None] * b_ax + self.ground * self.up
+        m = 2 * n + 3
         vid = np.arange(m * m).reshape(m, m)
         quads = np.stack([vid[:-1, :-1], vid[1:, :-1], vid[1:, 1:], vid[:-1, 1:]], -1).reshape(-1, 4)
         mesh = pv.PolyData(grid_pts.reshape(-1, 3), np.hstack([np.full((len(quads), 1), 4), quads]).ravel())
@@ -483,43 +801,39 @@ def _render_filmstrip(scene: _Scene, out_tmp, frames: int, ghost: bool = True):
     pw, ph = PANEL_SIZE
     aspect = pw / ph
     # Per column focal point: centre of both characters (horizontal), fixed height for all.
-    heights = np.concatenate([scene.P[ks], scene.U[ks]], axis=1) @ scene.up
+    heights = np.concatenate([np.concatenate([scene.extent_points(k, "perturbed"),
+                                              scene.extent_points(k, "original")]) for k in ks]) @ scene.up
     z_mid = 0.5 * (scene.ground + heights.max())
     focals = []
     half_w = half_h = 0.0
     for k in ks:
         both = np.concatenate([scene.extent_points(k, "perturbed"), scene.extent_points(k, "original")])
-        lo, hi = both.min(axis=0), both.max(axis=0)
-        c = 0.5 * (lo + hi)
+        c = scene.box_centre(both)
         c = c - np.dot(c, scene.up) * scene.up + z_mid * scene.up
         focals.append(c)
         w, h = _fit(scene, both, c)
         foot = c - np.dot(c, scene.up) * scene.up + scene.ground * scene.up
         _, hg = _fit(scene, foot[None], c)
         half_w, half_h = max(half_w, w), max(half_h, h, hg)
-    rmax = float(scene.d["skeleton_radii"].max()) * 1.25
+    rmax = scene.pad
     scale = 1.12 * max(half_h + rmax, (half_w + rmax) / aspect)
 
     pl = pv.Plotter(shape=(2, frames), off_screen=True, window_size=(pw * frames, ph * 2), border=False)
     try:
         pl.set_background("white")
-        edges, radii = scene.d["skeleton_edges"], scene.d["skeleton_radii"]
         for col, (k, t, c) in enumerate(zip(ks, times, focals)):
             for row, which in enumerate(("original", "perturbed")):
                 pl.subplot(row, col)
                 pl.set_background("white")
                 _add_ground(pl, scene.ground_mesh(c, 3.0 * scale * aspect + 1.0))
-                geom = _SkeletonGeometry(edges, radii, scene.P.shape[1])
+                geom = _FigureGeometry(scene).update(k, which)
                 if which == "original":
-                    geom.update(scene.U[k])
-                    _add_skeleton(pl, geom, COLOR_ORIGINAL, COLOR_ORIGINAL_JOINT)
+                    geom.add(pl, COLOR_ORIGINAL, COLOR_ORIGINAL_JOINT)
                 else:
-                    geom.update(scene.P[k])
-                    _add_skeleton(pl, geom, COLOR_PERTURBED, COLOR_PERTURBED_JOINT)
+                    geom.add(pl, COLOR_PERTURBED, COLOR_PERTURBED_JOINT)
                     if ghost:
-                        gg = _SkeletonGeometry(edges, radii, scene.P.shape[1])
-                        gg.update(scene.U[k] + _ghost_offset(scene))
-                        _add_skeleton(pl, gg, COLOR_GHOST, COLOR_GHOST_JOINT, specular=0.0)
+                        gg = _FigureGeometry(scene).update(k, "original", _ghost_offset(scene))
+                        gg.add(pl, COLOR_GHOST, COLOR_GHOST_JOINT, specular=0.0)
                     if scene.force_on[k]:
                         arrow = _ArrowGeometry()
                         arrow.update(*scene.arrow(k))
@@ -565,38 +879,38 @@ def _render_video(scene: _Scene, out_tmp, ext, progress=True, ghost=True):
     ks = scene.index_at(times)
     W, H = VIDEO_SIZE
     aspect = W / H
-    # Original beside the perturbed one, on the side away from the arrow's tail: shift along
-    # -right by the smallest amount that keeps the two apart in every frame.
-    rmax = float(scene.d["skeleton_radii"].max()) * 1.25
+    # Original beside the perturbed one, on the screen's left: shift along -right by the smallest
+    # amount that keeps the two (and the arrow) apart in every frame.
+    rmax = scene.pad
     gap = 0.35
     shifts = []
     for k in ks:
         a_min = (scene.extent_points(k, "perturbed") @ scene.right).min()
-        b_max = (scene.U[k] @ scene.right).max()
+        b_max = (scene.extent_points(k, "original") @ scene.right).max()
         shifts.append(b_max - a_min)
     shift = (max(shifts) + 2 * rmax + gap) * scene.right
     # Camera: follows the (smoothed) centre of the pair; one scale for the whole video.
     centres = []
     for k in ks:
-        pts = np.concatenate([scene.extent_points(k, "perturbed"), scene.U[k] - shift])
-        centres.append(0.5 * (pts.min(axis=0) + pts.max(axis=0)))
+        pts = np.concatenate([scene.extent_points(k, "perturbed"), scene.extent_points(k, "original") - shift])
+        centres.append(scene.box_centre(pts))
     centres = np.asarray(centres)
     win = max(1, int(round(fps)))   # ~1 s box filter
     pad = np.pad(centres, ((win // 2, win // 2), (0, 0)), mode="edge")
     kernel = np.ones(win) / win
     smooth = np.stack([np.convolve(pad[:, i], kernel, mode="valid")[: len(ks)] for i in range(3)], 1)
-    heights = np.concatenate([scene.P, scene.U], axis=1) @ scene.up
-    z_mid = 0.5 * (scene.ground + heights.max())
+    z_mid = 0.5 * (scene.ground + max(float((np.concatenate([scene.extent_points(k, "perturbed"),
+                                                          scene.extent_points(k, "original")]) @ scene.up).max())
+                                       for k in np.unique(ks)))
     focals = smooth - (smooth @ scene.up)[:, None] * scene.up + z_mid * scene.up
     half_w = half_h = 0.0
     for k, f in zip(ks, focals):
-        pts = np.concatenate([scene.extent_points(k, "perturbed"), scene.U[k] - shift,
+        pts = np.concatenate([scene.extent_points(k, "perturbed"), scene.extent_points(k, "original") - shift,
                               (f - np.dot(f, scene.up) * scene.up + scene.ground * scene.up)[None]])
         w, h = _fit(scene, pts, f)
         half_w, half_h = max(half_w, w), max(half_h, h)
     scale = 1.1 * max(half_h + rmax, (half_w + rmax) / aspect)
 
-    edges, radii = scene.d["skeleton_edges"], scene.d["skeleton_radii"]
     pl = pv.Plotter(off_screen=True, window_size=(W, H))
     frames = []
     writer = None
@@ -605,14 +919,14 @@ def _render_video(scene: _Scene, out_tmp, ext, progress=True, ghost=True):
         travel = np.ptp(focals @ scene.right) + np.ptp(focals @ np.cross(scene.up, scene.right))
         ground = scene.ground_mesh(focals.mean(axis=0), 3.0 * scale * aspect + travel + 1.0)
         _add_ground(pl, ground)
-        g_pert = _SkeletonGeometry(edges, radii, scene.P.shape[1])
-        g_orig = _SkeletonGeometry(edges, radii, scene.P.shape[1])
-        _add_skeleton(pl, g_orig, COLOR_ORIGINAL_VIDEO, COLOR_ORIGINAL)
+        g_pert = _FigureGeometry(scene)
+        g_orig = _FigureGeometry(scene)
+        g_orig.add(pl, COLOR_ORIGINAL_VIDEO, COLOR_ORIGINAL)
         g_ghost = None
         if ghost:
-            g_ghost = _SkeletonGeometry(edges, radii, scene.P.shape[1])
-            _add_skeleton(pl, g_ghost, COLOR_GHOST, COLOR_GHOST_JOINT, specular=0.0)
-        _add_skeleton(pl, g_pert, COLOR_PERTURBED, COLOR_PERTURBED_JOINT)
+            g_ghost = _FigureGeometry(scene)
+            g_ghost.add(pl, COLOR_GHOST, COLOR_GHOST_JOINT, specular=0.0)
+        g_pert.add(pl, COLOR_PERTURBED, COLOR_PERTURBED_JOINT)
         arrow = _ArrowGeometry()
         arrow_actor = pl.add_mesh(arrow.mesh, color=COLOR_FORCE, smooth_shading=False)
         ball = None
@@ -630,10 +944,10 @@ def _render_video(scene: _Scene, out_tmp, ext, progress=True, ghost=True):
             writer = iio2.get_writer(out_tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264",
                                      quality=7, macro_block_size=8, ffmpeg_log_level="error")
         for i, k in enumerate(tqdm(ks, desc=f"rendering {ext[1:]}", unit="frame", disable=not progress)):
-            g_pert.update(scene.P[k])
-            g_orig.update(scene.U[k] - shift)
+            g_pert.update(k, "perturbed")
+            g_orig.update(k, "original", -shift)
             if g_ghost is not None:
-                g_ghost.update(scene.U[k] + _ghost_offset(scene))
+                g_ghost.update(k, "original", _ghost_offset(scene))
             on = bool(scene.force_on[k])
             arrow_actor.SetVisibility(on)
             if on:

@@ -27,7 +27,8 @@ from .kinematics import (Trajectory, local_rotations, skeleton_edges, skeleton_p
                          trajectory_from_clip)
 from .perturbation import ForcePulses, pulses
 from .rotations import quat_to_matrix
-from .skeleton import Character, Model, build_character
+from .anatomy import prepare_clip
+from .skeleton import BODY_KEYWORDS, Character, MassModelOptions, Model, build_character, keyword_body
 
 DEFAULT_CLIP_NAME = "mocapbank_19joint.bvh"
 
@@ -37,9 +38,12 @@ def default_clip_path() -> pathlib.Path:
     return pathlib.Path(str(importlib.resources.files("neuromotor") / "data" / DEFAULT_CLIP_NAME))
 
 
-def load_character(path=None, units="auto", up_axis: int = 1) -> tuple[Character, Trajectory]:
-    clip = read_bvh(path or default_clip_path(), units=units)
-    character = build_character(clip, up_axis=up_axis)
+def load_character(path=None, units="auto", up_axis: int | None = None, stature: float | None = None,
+                   options: MassModelOptions | None = None) -> tuple[Character, Trajectory]:
+    """Read a clip, understand its skeleton (units, up axis, segments, a virtual root) and build
+    the character and its mocap trajectory. ``up_axis`` None: found from the motion."""
+    clip, anatomy, source = prepare_clip(path or default_clip_path(), units=units, stature=stature)
+    character = build_character(clip, options, up_axis=up_axis, anatomy=anatomy, source_clip=source)
     return character, trajectory_from_clip(character.model, clip)
 
 
@@ -61,11 +65,16 @@ class Setup:
         return self.character.model
 
 
-def body_lookup(model: Model, source: str = "config"):
+def body_lookup(model: Model, source: str = "config", character: Character | None = None):
+    """Name -> body index: a body (joint) name, or a segment keyword such as ``chest``."""
     def index(name: str) -> int:
-        if name not in model.body_names:
-            raise ConfigError(f"{source}: unknown body {name!r}; bodies are {', '.join(model.body_names)}")
-        return model.body_names.index(name)
+        if name in model.body_names:
+            return model.body_names.index(name)
+        b = keyword_body(character, name) if character is not None else None
+        if b is None:
+            raise ConfigError(f"{source}: unknown body {name!r}; bodies are {', '.join(model.body_names)}"
+                              f" (or one of {', '.join(BODY_KEYWORDS)})")
+        return b
 
     return index
 
@@ -73,7 +82,8 @@ def body_lookup(model: Model, source: str = "config"):
 def prepare(config: SimulationConfig, character: Character | None = None,
             traj: Trajectory | None = None) -> Setup:
     if character is None:
-        character, traj = load_character(config.clip, config.units, config.up_axis)
+        character, traj = load_character(config.clip, config.units, config.up_axis, config.stature,
+                                         config.mass_options())
     model, clip = character.model, character.clip
     duration = clip.duration - config.start if config.duration is None else config.duration
     if config.start + duration > clip.duration + 1e-9:
@@ -82,7 +92,7 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     n_steps = int(round(duration / config.h))
     if n_steps < 1:
         raise ConfigError(f"{config.source}: sim.duration is shorter than one step")
-    index = body_lookup(model, config.source)
+    index = body_lookup(model, config.source, character)
     driven = []
     for name in config.driven_joints:
         b = index(name)
@@ -97,6 +107,9 @@ def prepare(config: SimulationConfig, character: Character | None = None,
                     stab_iters=config.stabilization_steps)
     # An impulse is a one-step square pulse: it needs the step to know its force.
     specs = [dict(p, step=config.h) for p in config.perturbations]
+    for s in specs:  # no point given: push at the body's centre of mass
+        if s.get("point") is None:
+            s["point"] = [float(x) for x in np.asarray(model.com[index(s["body"])])]
     ball = contact.ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
     return Setup(character, traj, ref, gains, sim, pulses(specs, index), config, ball)
 
@@ -227,12 +240,50 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
         "skeleton_points_unperturbed": rollout_points(setup, base),
         "skeleton_edges": skeleton_edges(model),
         "skeleton_radii": np.asarray(setup.character.radii)[skeleton_edges(model)[:, 0]],
-        "up_axis": np.asarray(setup.config.up_axis),
+        "up_axis": np.asarray(up_axis_of(model)),
         "source_clip": np.asarray(str(pathlib.Path(clip.path).resolve())),
-        "source_units": np.asarray(str(setup.config.units)),
+        "source_units": np.asarray(repr(float(clip.length_scale))),
         "clip_start": np.asarray(setup.config.start),
         "metrics_json": np.asarray(json.dumps(result.metrics)),
     }
+    # Body shapes for drawing: every body's polyhedron in its body frame less its COM, so that a
+    # vertex v of body b is at body_pos[:, b] + R(body_quat[:, b]) @ v in the world.
+    com = np.asarray(model.com)
+    verts, faces, owner, n_v = [], [], [], 0
+    for b, shape in enumerate(setup.character.shapes):
+        if shape is None:
+            continue
+        v = np.asarray(shape.vertices, dtype=np.float64)
+        verts.append(v - com[b])
+        faces.append(np.asarray(shape.faces, dtype=np.int64) + n_v)
+        owner.append(np.full(len(v), b, dtype=np.int64))
+        n_v += len(v)
+    arrays["shape_vertices"] = np.concatenate(verts) if verts else np.zeros((0, 3))
+    arrays["shape_faces"] = np.concatenate(faces) if faces else np.zeros((0, 3), np.int64)
+    arrays["shape_body"] = np.concatenate(owner) if owner else np.zeros(0, np.int64)
+    # Body whose shape carries each drawn bone (its parent joint's body), -1 for detail bones.
+    arrays["skeleton_edge_body"] = np.asarray(model.joint_body, dtype=np.int64)[arrays["skeleton_edges"][:, 0]]
+    # Horizontal facing direction: the anatomy's forward (a world direction at the clip's
+    # reference frame), carried with the root body to the simulated window; else estimated from
+    # the skeleton.
+    from .render import facing_direction
+
+    forward = getattr(getattr(setup.character, "anatomy", None), "forward", None)
+    if forward is not None:
+        try:
+            from .kinematics import body_poses
+
+            forward = np.asarray(forward, dtype=np.float64).reshape(3)
+            ref_frame = getattr(setup.character.anatomy, "reference_frame", None)
+            if ref_frame is not None:
+                _, rot_ref = body_poses(model, setup.traj.q(jnp.asarray(float(ref_frame) * clip.frame_time)))
+                local = np.asarray(rot_ref)[0].T @ forward
+                forward = (quat_to_matrix(jnp.asarray(base.states.quat[:, 0])) @ local).mean(axis=0)
+                forward = np.asarray(forward)
+        except Exception:  # an anatomy without a usable forward: the skeleton estimate
+            forward = None
+    arrays["facing"] = facing_direction(arrays["skeleton_points_unperturbed"], arrays["skeleton_edges"],
+                                        int(arrays["up_axis"]), forward)
     if getattr(result, "ball", None) is not None:
         arrays.update(contact.ball_arrays(setup, result))
     return arrays
@@ -244,6 +295,11 @@ def save_npz_atomic(path, arrays: dict) -> pathlib.Path:
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **arrays)
     return path
+
+
+def up_axis_of(model: Model) -> int:
+    """The coordinate axis gravity pulls against (0, 1 or 2)."""
+    return int(np.argmax(np.abs(np.asarray(model.gravity))))
 
 
 def clip_of(setup: Setup) -> BvhClip:

@@ -1,39 +1,32 @@
 """Skeleton and mass model in maximal coordinates (Sections 4 and 5.1 of the paper).
 
-One rigid body per BVH joint that carries a bone. The body's frame is the joint's frame (origin
-at the joint, axes of the BVH joint); its shape is a convex polyhedron that wraps its bones, and
-its mass, centre of mass and inertia are integrated exactly from that polyhedron at the density
-of water (Section 5.1: "approximating the shape of the character with polyhedra ... assuming the
-density of water").
+One rigid body per BVH joint that carries a segment of the body. The body's frame is the joint's
+frame (origin at the joint, axes of the BVH joint); its shape is a convex polyhedron and its mass,
+centre of mass and inertia are integrated exactly from that polyhedron at the density of water
+(Section 5.1: "approximating the shape of the character with polyhedra ... assuming the density
+of water").
 
-Radius rule (each bone j -> child or End Site of length L is wrapped by an 8-sided prism, and a
-body is the convex hull of the prisms of all its bones):
+Which joints are bodies, and the shapes, come from the clip's anatomy
+(:mod:`neuromotor.anatomy`: every joint labelled trunk, head, upper arm, forearm, hand, thigh,
+shank, foot or extremity detail from the skeleton's topology and bone lengths) and the
+anthropometric mass model (:mod:`neuromotor.massmodel`: de Leva's segment masses, shapes a
+person would recognise):
 
-* limb bones: radius = ``limb_radius_ratio * L`` (0.15 by default; gives thigh ~7 kg, shank
-  ~3.5 kg for an adult);
-* trunk bodies, those with two or more leaves (End Sites) below them: radius =
-  ``trunk_radius_ratio * span``, where ``span`` is the skeleton's largest leaf-to-leaf path length
-  (hand to foot), a pose-independent size;
-* head: a body whose joint, or whose massless leaf child, is named like ``head`` uses radius =
-  ``head_radius_ratio * L``;
-* every radius is at least ``min_radius``.
-
-Well-posedness rule:
-
-* A bone shorter than ``min_bone_length`` does not count. A joint whose subtree has no bone that
-  counts carries no body: its rotational DOFs are not simulated (nothing is moved by them; their
-  torque is zero). Example: the zero-length End Sites of hands, toes and head in the walk clip.
-* A joint with a short bone but with bodies below it (a zero-length link inside a chain) gets a
-  body all the same, padded to a cube of half-size ``min_radius``, so every joint between two
-  bodies is a proper ball joint.
+* Every joint that is not extremity detail and carries a bone, and every hand, foot and skull
+  joint (even with a zero-length End Site), is a body; so is a zero-length link with bodies
+  below it (a small block, so every joint between two bodies is a proper ball joint).
+* Extremity detail (fingers, toes, face, eyes) is by default no body: its mass counts in the hand,
+  foot or head, and its angles follow the capture relative to its parent (not simulated DOFs,
+  still drawn and exported). ``MassModelOptions.simulate_extremities`` makes them bodies.
 * Translation channels on non-root joints are replaced by their mean over the clip (joints are
-  ball joints with fixed offsets); the root keeps its full 6-DOF path.
+  ball joints with fixed offsets); the root keeps its full 6-DOF path. A virtual root (a ground
+  marker whose child carries the translation) has been removed before (see
+  :func:`neuromotor.anatomy.prepare_clip`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import re
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -41,22 +34,24 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import polyhedron as poly
+from .anatomy import Anatomy, analyse
 from .bvh import BvhClip
-
-HEAD_PATTERN = re.compile("head", re.IGNORECASE)
+from .massmodel import plan_bodies, plan_generic
 
 
 @dataclasses.dataclass(frozen=True)
 class MassModelOptions:
-    """Parameters of the polyhedral mass model (see the module docstring)."""
+    """Parameters of the anthropometric mass model (see :mod:`neuromotor.massmodel`).
+
+    ``body_mass`` (kg) defaults to a BMI of 22 at the clip's stature; ``sex`` picks de Leva's
+    column (male, female or average); ``simulate_extremities`` makes fingers, toes and face
+    joints bodies with simulated DOFs."""
 
     density: float = 1000.0
-    limb_radius_ratio: float = 0.15
-    trunk_radius_ratio: float = 0.055
-    head_radius_ratio: float = 0.5
-    min_radius: float = 0.02
-    min_bone_length: float = 0.03
-    sides: int = 8
+    body_mass: float | None = None
+    sex: str = "average"
+    simulate_extremities: bool = False
+    sides: int = 10
 
 
 class Model(eqx.Module):
@@ -106,39 +101,35 @@ class Model(eqx.Module):
         return tuple(i for i, db in enumerate(self.dof_body) if db == b)
 
 
+def scale_masses(model: Model, body_mass=None, body_scale=None) -> Model:
+    """The same shapes at another total mass and/or per-body mass factors (B,): masses and
+    inertias scale together (the density changes, the geometry does not). Pure array maths,
+    so ``body_mass`` and ``body_scale`` can be fitted or swept (jit, vmap, grad)."""
+    factor = jnp.ones_like(model.mass)
+    if body_scale is not None:
+        factor = factor * jnp.asarray(body_scale, model.mass.dtype)
+    if body_mass is not None:
+        factor = factor * (jnp.asarray(body_mass, model.mass.dtype) / jnp.sum(model.mass * factor))
+    return dataclasses.replace(model, mass=model.mass * factor, inertia=model.inertia * factor[:, None, None])
+
+
 @dataclasses.dataclass(frozen=True)
 class Character:
-    """A model together with its source clip and body shapes (for rendering and contact)."""
+    """A model together with its source clip, anatomy and body shapes (for rendering and contact)."""
 
     model: Model
-    clip: BvhClip
+    clip: BvhClip  # the clip the model is built on (metres; a virtual root removed)
     shapes: tuple[poly.Polyhedron | None, ...]  # per body, in the body frame
     radii: np.ndarray  # (J,) drawing radius of each joint's bone
     options: MassModelOptions
+    anatomy: Anatomy | None = None
+    body_segment: tuple[str, ...] = ()  # mass-budget segment of each body
+    source_clip: BvhClip | None = None  # the file as read (metres), for export
+    warnings: tuple[str, ...] = ()
 
-
-def _leaf_counts(children: list[list[int]], has_end: list[bool]) -> list[int]:
-    counts = [0] * len(children)
-    for j in reversed(range(len(children))):
-        counts[j] = int(has_end[j] or not children[j]) + sum(counts[c] for c in children[j])
-    return counts
-
-
-def _tree_span(clip: BvhClip, offsets: np.ndarray, children: list[list[int]]) -> float:
-    """Largest leaf-to-leaf path length along bones (the tree's weighted diameter)."""
-    n = len(clip.joints)
-    best = 0.0
-    depth = [0.0] * n  # longest downward path from joint j to a leaf
-    for j in reversed(range(n)):
-        paths = [depth[c] + float(np.linalg.norm(offsets[c])) for c in children[j]]
-        if clip.joints[j].end_site is not None:
-            paths.append(float(np.linalg.norm(clip.joints[j].end_site)))
-        paths.sort(reverse=True)
-        depth[j] = paths[0] if paths else 0.0
-        if len(paths) >= 2:
-            best = max(best, paths[0] + paths[1])
-        best = max(best, depth[j])
-    return best
+    @property
+    def source(self) -> BvhClip:
+        return self.source_clip if self.source_clip is not None else self.clip
 
 
 def joint_offsets(clip: BvhClip) -> np.ndarray:
@@ -155,87 +146,38 @@ def build_character(
     clip: BvhClip,
     options: MassModelOptions | None = None,
     gravity: tuple[float, float, float] | None = None,
-    up_axis: int = 1,
+    up_axis: int | None = None,
+    anatomy: Anatomy | None = None,
+    source_clip: BvhClip | None = None,
 ) -> Character:
-    """Build the maximal-coordinate model of a BVH clip (bodies, masses, joints, DOFs)."""
+    """Build the maximal-coordinate model of a clip in metres (bodies, masses, joints, DOFs).
+
+    ``anatomy`` labels the joints (default: :func:`neuromotor.anatomy.analyse` of ``clip``
+    taken as metres); ``up_axis`` (0, 1, 2) overrides the up axis found from the motion."""
     options = options or MassModelOptions()
+    if anatomy is None:
+        anatomy = analyse(clip, units=1.0)
     joints = clip.joints
     n = len(joints)
     offsets = joint_offsets(clip)
-    children: list[list[int]] = [[] for _ in range(n)]
-    for k, j in enumerate(joints):
-        if j.parent >= 0:
-            children[j.parent].append(k)
-    # Bones of each joint: (end point in joint frame, leaf name for the head rule).
-    bones: list[list[tuple[np.ndarray, str]]] = [[] for _ in range(n)]
-    for k, j in enumerate(joints):
-        for c in children[k]:
-            bones[k].append((offsets[c], joints[c].name))
-        if j.end_site is not None:
-            bones[k].append((np.asarray(j.end_site, dtype=np.float64), j.name))
-    bone_len = [max((float(np.linalg.norm(e)) for e, _ in bones[k]), default=0.0) for k in range(n)]
-    # A joint carries a body if a counted bone exists in its subtree (itself included).
-    counts_below = [False] * n
-    for k in reversed(range(n)):
-        counts_below[k] = bone_len[k] >= options.min_bone_length or any(
-            counts_below[c] for c in children[k]
-        )
-    if not counts_below[0]:
-        raise ValueError(f"{clip.path}: the skeleton has no bone longer than "
-                         f"{options.min_bone_length} m; nothing to simulate")
-    has_body = counts_below
-    leaves = _leaf_counts(children, [j.end_site is not None for j in joints])
-    span = _tree_span(clip, offsets, children)
-
-    joint_body = [-1] * n
-    body_joint: list[int] = []
-    for k in range(n):
-        if has_body[k]:
-            joint_body[k] = len(body_joint)
-            body_joint.append(k)
+    if anatomy.humanoid:
+        plan = plan_bodies(clip, anatomy, offsets, body_mass=options.body_mass, sex=options.sex,
+                           density=options.density, simulate_extremities=options.simulate_extremities,
+                           sides=options.sides)
+    else:
+        plan = plan_generic(clip, offsets, options.density)
+    joint_body, body_joint = list(plan.joint_body), plan.body_joint
+    has_body = [b >= 0 for b in joint_body]
     body_parent = []
     for k in body_joint:
         p = joints[k].parent
         body_parent.append(joint_body[p] if p >= 0 else -1)
         if p >= 0 and joint_body[p] < 0:  # cannot happen: ancestors of bodies have bodies
             raise AssertionError("body with a massless parent joint")
-
-    shapes: list[poly.Polyhedron] = []
-    masses, coms, inertias = [], [], []
-    radii = np.zeros(n)
-    for k in body_joint:
-        segs = []
-        is_trunk = leaves[k] >= 2
-        massless_kids = [joints[c].name for c in children[k] if not has_body[c]]
-        is_head = bool(HEAD_PATTERN.search(joints[k].name)) or any(
-            HEAD_PATTERN.search(name) for name in massless_kids
-        )
-        for end, _name in bones[k]:
-            length = float(np.linalg.norm(end))
-            if length < options.min_bone_length:
-                continue
-            if is_trunk:
-                r = options.trunk_radius_ratio * span
-            elif is_head:
-                r = options.head_radius_ratio * length
-            else:
-                r = options.limb_radius_ratio * length
-            r = max(r, options.min_radius)
-            radii[k] = max(radii[k], r)
-            segs.append((np.zeros(3), end, r))
-        if segs:
-            shape = poly.segment_hull(segs, sides=options.sides)
-        else:  # short link inside a chain: padded cube keeps the body well-conditioned
-            shape = poly.box(np.full(3, options.min_radius))
-            radii[k] = options.min_radius
-        m, c, inertia = poly.mass_properties(shape, options.density)
-        shapes.append(shape)
-        masses.append(m)
-        coms.append(c)
-        inertias.append(inertia)
-    for k in range(n):
-        if radii[k] == 0.0:
-            radii[k] = options.min_radius
+    radii = np.full(n, 0.012 * float(anatomy.stature))
+    for b, k in enumerate(body_joint):
+        v = plan.shapes[b].vertices
+        radii[k] = max(radii[k], 0.5 * float(np.median(np.linalg.norm(v - v.mean(0), axis=1))))
 
     # DOFs: every rotation channel of a non-root joint; simulated if the joint has a body.
     all_dofs, sim_cols, dof_body, dof_slot, dof_names = [], [], [], [], []
@@ -260,8 +202,10 @@ def build_character(
 
     end_joint = tuple(k for k, j in enumerate(joints) if j.end_site is not None)
     end_off = np.array([joints[k].end_site for k in end_joint], dtype=np.float64).reshape(-1, 3)
-    g = np.zeros(3)
-    g[up_axis] = -9.81
+    up = np.asarray(anatomy.up, dtype=np.float64)
+    if up_axis is not None:
+        up = np.eye(3)[int(up_axis)]
+    g = -9.81 * up
     if gravity is not None:
         g = np.asarray(gravity, dtype=np.float64)
 
@@ -279,11 +223,52 @@ def build_character(
         all_dof_names=tuple(all_dofs),
         sim_dof_columns=tuple(sim_cols),
         end_site_joint=end_joint,
-        mass=jnp.asarray(masses),
-        inertia=jnp.asarray(np.stack(inertias)),
-        com=jnp.asarray(np.stack(coms)),
+        mass=jnp.asarray(plan.mass),
+        inertia=jnp.asarray(plan.inertia),
+        com=jnp.asarray(plan.com),
         joint_offset=jnp.asarray(offsets),
         end_site_offset=jnp.asarray(end_off),
         gravity=jnp.asarray(g),
     )
-    return Character(model=model, clip=clip, shapes=tuple(shapes), radii=radii, options=options)
+    warnings = tuple(getattr(clip, "warnings", ())) + tuple(anatomy.warnings)
+    return Character(model=model, clip=clip, shapes=plan.shapes, radii=radii, options=options,
+                     anatomy=anatomy, body_segment=plan.body_segment, source_clip=source_clip,
+                     warnings=warnings)
+
+
+BODY_KEYWORDS = ("pelvis", "chest", "head") + tuple(
+    f"{side}_{seg}" for side in ("left", "right")
+    for seg in ("upper_arm", "forearm", "hand", "thigh", "shank", "foot"))
+
+
+def keyword_body(character: Character, keyword: str) -> int | None:
+    """Body index of a segment keyword (``chest``, ``pelvis``, ``head``, ``left_hand``, ...), so a
+    config can name a place on any skeleton: ``chest`` is the trunk body the arms hang from,
+    ``pelvis`` the one the legs hang from, ``head`` the skull. None if the rig has no such body."""
+    anat, model = character.anatomy, character.model
+    if anat is None or keyword not in BODY_KEYWORDS:
+        return None
+    seg = anat.segment
+    parent = model.joint_parent
+    if keyword in ("pelvis", "chest"):
+        limb = "thigh" if keyword == "pelvis" else "upper_arm"
+        tops = [k for k in range(len(seg)) if seg[k] == limb and seg[parent[k]] != limb]
+        if not tops:
+            return None
+        paths = []
+        for k in tops:
+            path = []
+            while k >= 0:
+                path.append(k)
+                k = parent[k]
+            paths.append(path[::-1])
+        common = [a for a, *rest in zip(*paths) if all(r == a for r in rest)]
+        bodies = [k for k in common if model.joint_body[k] >= 0 and seg[k] == "trunk"]
+        return model.joint_body[bodies[-1]] if bodies else None
+    if keyword == "head":
+        heads = [k for k in range(len(seg)) if seg[k] == "head" and model.joint_body[k] >= 0]
+        return model.joint_body[heads[-1]] if heads else None
+    side, segment = keyword.split("_", 1)
+    found = [k for k in range(len(seg)) if seg[k] == segment and anat.side[k] == side
+             and model.joint_body[k] >= 0]
+    return model.joint_body[found[0]] if found else None

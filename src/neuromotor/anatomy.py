@@ -1,0 +1,943 @@
+"""What a humanoid BVH skeleton from the wild is made of (numpy only).
+
+:func:`analyse` labels every joint of a clip with the body segment it carries, its side and its
+mirror joint, and finds the world up axis, the facing direction, a reference frame, the stature
+and the length unit. It works from topology, bone lengths and the motion, never from the rest
+pose's orientation and only as a last resort from names:
+
+* Limbs are the two largest pairs of sibling subtrees with matching bone-length structure; the
+  pair whose two longest consecutive bones are longer is the legs (thigh + shank is ~1.5x upper
+  arm + forearm), else the pair branching nearer the root, else names.
+* Along a limb's main chain (to its farthest leaf) the two consecutive longest "bones" are upper
+  arm/forearm (thigh/shank). A bone may span several joints: a zero-length joint joins the bone
+  after it, and a twist joint (its bones collinear in every frame while it turns) joins the bone
+  before it. The joint that ends the second bone is the hand (foot); below it are fingers (toes).
+* The head is the largest other branch at (or nearest above) the arms' branch joint; its chain
+  climbs along the up axis, the rest under it is face.
+* Up is the coordinate axis nearest to the mean of head top minus mid-ankles over the clip; the
+  facing direction comes from the feet (ankle to toe), else the knees; left = up x forward.
+* Stature from the long bones with de Leva's (1996) segment/stature ratios; ``units="auto"``
+  picks the unit in :data:`UNIT_CHOICES` that makes a plausible adult.
+
+:func:`collapse_virtual_root` removes a ROOT that is only a ground marker (its link to the body
+changes length every frame) and :func:`prepare_clip` chains reading, collapsing and analysis.
+
+Conventions are those of :mod:`neuromotor.bvh`: rotation channels are intrinsic Euler angles in
+file order, ``p_parent = R @ p_joint + translation``, position channels replace the OFFSET.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import re
+
+import numpy as np
+
+from .bvh import BvhClip, read_bvh
+
+__all__ = [
+    "SEGMENTS",
+    "DETAIL_SEGMENTS",
+    "UNIT_CHOICES",
+    "Anatomy",
+    "analyse",
+    "collapse_virtual_root",
+    "prepare_clip",
+    "scale_clip",
+    "forward_kinematics",
+    "euler_to_matrix",
+    "matrix_to_euler",
+]
+
+SEGMENTS = ("trunk", "head", "upper_arm", "forearm", "hand", "thigh", "shank", "foot", "finger", "toe",
+            "face", "detail")
+DETAIL_SEGMENTS = frozenset({"finger", "toe", "face", "detail"})  # extremity detail, not simulated by default
+UNIT_CHOICES: dict[str, float] = {  # metres per file unit
+    "m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "cmu": 0.0254 / 0.45, "ft": 0.3048, "dm": 0.1,
+}
+
+# de Leva (1996) segment lengths relative to stature (sexes averaged).
+_LEG_RATIO = 0.2425 + 0.2493  # thigh + shank
+_ARM_RATIO = 0.1618 + 0.1545  # upper arm + forearm
+_PLAUSIBLE_M = (1.3, 2.2)
+_TYPICAL_M = 1.70
+_FALLBACK_M = 1.75
+_MAX_FK_FRAMES = 400  # analysis needs the motion's shape, not every frame
+_MATCH_REL = 0.12  # solved skeletons differ left/right by ~1-3 %; 12 % leaves room
+_TWIST_COLLINEAR_DEG = 3.0
+_TWIST_TURN_DEG = 5.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Anatomy:
+    """Per-joint labels (same order as the analysed clip's joints) and whole-body facts."""
+
+    segment: tuple[str, ...]  # one of SEGMENTS per joint
+    side: tuple[str, ...]  # "left" | "right" | ""
+    mirror: tuple[int, ...]  # index of the mirror-image joint, -1 if none
+    up: np.ndarray  # (3,) world up, a signed unit coordinate axis
+    forward: np.ndarray  # (3,) unit facing direction (at reference_frame), perpendicular to up
+    reference_frame: int  # frame of the clip where the character stands most upright
+    stature: float  # metres
+    length_scale: float  # metres per file unit
+    units: str  # key of UNIT_CHOICES, "given" or "scaled"
+    warnings: tuple[str, ...]
+    limb_chains: dict  # "arm_left", "arm_right", "leg_left", "leg_right", "head", "spine" -> joint indices
+
+    @property
+    def humanoid(self) -> bool:
+        """Arms and legs were found (else every joint is "trunk" and bodies get generic shapes)."""
+        return bool(self.limb_chains)
+
+    @property
+    def up_axis(self) -> int:
+        return int(np.flatnonzero(self.up)[0])
+
+    def joints_of(self, *segments: str) -> tuple[int, ...]:
+        """Indices of the joints labelled with any of ``segments``."""
+        return tuple(k for k, s in enumerate(self.segment) if s in segments)
+
+
+# --------------------------------------------------------------------------------------------
+# Rotations and forward kinematics
+
+
+def _axis_rotation(axis: int, angle: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    out = np.zeros(np.shape(angle) + (3, 3))
+    i, j = (axis + 1) % 3, (axis + 2) % 3
+    out[..., axis, axis] = 1.0
+    out[..., i, i] = c
+    out[..., j, j] = c
+    out[..., i, j] = -s
+    out[..., j, i] = s
+    return out
+
+
+def euler_to_matrix(order: str, angles: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) from intrinsic Euler ``angles`` (..., 3) in radians, axes ``order`` e.g. "ZXY"."""
+    angles = np.asarray(angles, dtype=np.float64)
+    out = None
+    for n, letter in enumerate(order.upper()):
+        r = _axis_rotation("XYZ".index(letter), angles[..., n])
+        out = r if out is None else out @ r
+    return out
+
+
+def matrix_to_euler(order: str, R: np.ndarray) -> np.ndarray:
+    """Intrinsic Euler angles (..., 3) in radians of rotation matrices (..., 3, 3), the middle one
+    in [-pi/2, pi/2]. At gimbal lock the first angle is set to 0."""
+    i, j, k = ("XYZ".index(c) for c in order.upper())
+    s = 1.0 if (j - i) % 3 == 1 else -1.0  # sign of the permutation
+    R = np.asarray(R, dtype=np.float64)
+    cos_mid = np.hypot(R[..., i, i], R[..., i, j])
+    mid = np.arctan2(s * R[..., i, k], cos_mid)
+    first = np.arctan2(-s * R[..., j, k], R[..., k, k])
+    last = np.arctan2(-s * R[..., i, j], R[..., i, i])
+    locked = cos_mid < 1e-12
+    if np.any(locked):  # only first +/- last is defined: put it all in the last angle
+        first = np.where(locked, 0.0, first)
+        last = np.where(locked, np.arctan2(s * R[..., j, i], R[..., j, j]), last)
+    return np.stack([first, mid, last], axis=-1)
+
+
+def _local_motion(clip: BvhClip, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Local rotations (T, J, 3, 3) and translations (T, J, 3) of the given frames."""
+    motion = clip.motion[rows]
+    T, J = len(rows), len(clip.joints)
+    rot = np.broadcast_to(np.eye(3), (T, J, 3, 3)).copy()
+    trans = np.zeros((T, J, 3))
+    for k, joint in enumerate(clip.joints):
+        if joint.rotation_order:
+            rot[:, k] = euler_to_matrix(joint.rotation_order, np.deg2rad(motion[:, list(joint.rotation_columns)]))
+        cols = joint.translation_columns
+        trans[:, k] = motion[:, list(cols)] if cols else joint.offset
+    return rot, trans
+
+
+def forward_kinematics(clip: BvhClip, rows=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World joint positions (T, J, 3), rotations (T, J, 3, 3) and End Site positions (T, J, 3)
+    (a joint without End Site gets its own position) of frames ``rows`` (default: all)."""
+    rows = np.arange(clip.n_frames) if rows is None else np.asarray(rows, dtype=int)
+    local_rot, local_trans = _local_motion(clip, rows)
+    rot = np.empty_like(local_rot)
+    pos = np.empty_like(local_trans)
+    for k, joint in enumerate(clip.joints):
+        p = joint.parent
+        if p < 0:
+            rot[:, k], pos[:, k] = local_rot[:, k], local_trans[:, k]
+        else:
+            rot[:, k] = rot[:, p] @ local_rot[:, k]
+            pos[:, k] = np.einsum("tab,tb->ta", rot[:, p], local_trans[:, k]) + pos[:, p]
+    ends = pos.copy()
+    for k, joint in enumerate(clip.joints):
+        if joint.end_site is not None:
+            ends[:, k] += rot[:, k] @ joint.end_site
+    return pos, rot, ends
+
+
+def _rotation_angle(R: np.ndarray) -> np.ndarray:
+    return np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0))
+
+
+# --------------------------------------------------------------------------------------------
+# Clip transforms
+
+
+def scale_clip(clip: BvhClip, factor: float) -> BvhClip:
+    """Lengths (OFFSETs, End Sites, position channels) times ``factor``; ``length_scale`` too."""
+    factor = float(factor)
+    if not (math.isfinite(factor) and factor > 0):
+        raise ValueError(f"scale factor must be positive, got {factor!r}")
+    motion = clip.motion.copy()
+    joints = []
+    for joint in clip.joints:
+        motion[:, list(joint.translation_columns)] *= factor
+        joints.append(dataclasses.replace(
+            joint, offset=joint.offset * factor,
+            end_site=None if joint.end_site is None else joint.end_site * factor))
+    return dataclasses.replace(clip, joints=tuple(joints), motion=motion,
+                               length_scale=clip.length_scale * factor)
+
+
+def _continuous_euler(order: str, R: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Euler angles (T, 3) radians of R (T, 3, 3), each frame the equivalent solution nearest to
+    the previous one (frame 0: nearest to ``start``), so the curves stay continuous."""
+    base = matrix_to_euler(order, R)
+    alt = np.stack([base[:, 0] + np.pi, np.pi - base[:, 1], base[:, 2] + np.pi], axis=1)
+    out = np.empty_like(base)
+    prev = np.asarray(start, dtype=np.float64)
+    two_pi = 2.0 * np.pi
+    for t in range(len(base)):
+        best, best_d = None, np.inf
+        for cand in (base[t], alt[t]):
+            cand = cand + two_pi * np.round((prev - cand) / two_pi)
+            d = float(np.abs(cand - prev).sum())
+            if d < best_d:
+                best, best_d = cand, d
+        out[t] = prev = best
+    return out
+
+
+def _subtree_end(clip: BvhClip, k: int) -> int:
+    end = k + 1
+    while end < len(clip.joints) and _is_below(clip, end, k):
+        end += 1
+    return end
+
+
+def _is_below(clip: BvhClip, j: int, k: int) -> bool:
+    while j >= 0:
+        if j == k:
+            return True
+        j = clip.joints[j].parent
+    return False
+
+
+def _rest_size(clip: BvhClip, k: int) -> float:
+    """Bounding-box diagonal of joint k's subtree in its zero pose (offsets only)."""
+    stop = _subtree_end(clip, k)
+    pos = {k: np.zeros(3)}
+    pts = [np.zeros(3)]
+    for j in range(k + 1, stop):
+        pos[j] = pos[clip.joints[j].parent] + clip.joints[j].offset
+        pts.append(pos[j])
+    for j in range(k, stop):
+        if clip.joints[j].end_site is not None:
+            pts.append(pos[j] + clip.joints[j].end_site)
+    pts = np.array(pts)
+    return float(np.linalg.norm(pts.max(0) - pts.min(0)))
+
+
+def _collapse_once(clip: BvhClip, tolerance_m: float):
+    joints = clip.joints
+    root = joints[0]
+    if not root.translation_columns:
+        return None
+    if root.end_site is not None and np.linalg.norm(root.end_site) > 0:
+        return None
+    kids = clip.children(0)
+    moving, others = [], []
+    for c in kids:
+        joint = joints[c]
+        if joint.translation_columns:
+            moving.append(c)
+        else:
+            others.append(c)
+    if len(moving) != 1:
+        return None
+    c = moving[0]
+    for o in others:  # anything else on the root must be a zero-length leaf (a marker)
+        j = joints[o]
+        if clip.children(o) or np.linalg.norm(j.offset) > 0 or (
+                j.end_site is not None and np.linalg.norm(j.end_site) > 0):
+            return None
+    child = joints[c]
+    trans = clip.motion[:, list(child.translation_columns)]
+    lengths = np.linalg.norm(trans, axis=1)
+    change = float(lengths.max() - lengths.min())
+    # Tolerance relative to the skeleton: tolerance_m on a 1.75 m body whatever the unit.
+    size = _rest_size(clip, c)
+    if not change > tolerance_m * size / _FALLBACK_M:
+        return None
+
+    rows = np.arange(clip.n_frames)
+    local_rot, local_trans = _local_motion(clip, rows)
+    R = local_rot[:, 0] @ local_rot[:, c]
+    p = np.einsum("tab,tb->ta", local_rot[:, 0], local_trans[:, c]) + local_trans[:, 0]
+    order = child.rotation_order or root.rotation_order
+    columns = [p]
+    if order:
+        start = np.deg2rad(clip.motion[0, list(child.rotation_columns)]) if child.rotation_order else np.zeros(3)
+        columns.append(np.rad2deg(_continuous_euler(order, R, start)))
+    channels = ("Xposition", "Yposition", "Zposition") + tuple(f"{a}rotation" for a in order)
+
+    keep = list(range(c, _subtree_end(clip, c)))
+    new_index = {old: n for n, old in enumerate(keep)}
+    new_joints = [dataclasses.replace(child, parent=-1, offset=p[0], channels=channels, channel_start=0)]
+    blocks = [np.concatenate(columns, axis=1)]
+    column = len(channels)
+    for old in keep[1:]:
+        j = joints[old]
+        new_joints.append(dataclasses.replace(j, parent=new_index[j.parent], channel_start=column))
+        blocks.append(clip.motion[:, j.channel_start:j.channel_start + len(j.channels)])
+        column += len(j.channels)
+    new_clip = dataclasses.replace(clip, joints=tuple(new_joints), motion=np.concatenate(blocks, axis=1))
+    removed = (root.name,) + tuple(joints[o].name for o in others)
+    warning = (f"joint {root.name!r} is a virtual root (its link to {child.name!r} changes length by "
+               f"{change:.4g} file units over the clip): removed, {child.name!r} is the root now and "
+               f"carries the composed world motion")
+    return new_clip, removed, warning
+
+
+def collapse_virtual_root(clip: BvhClip, tolerance_m: float = 0.01) -> tuple[BvhClip, tuple[str, ...], tuple[str, ...]]:
+    """Remove a ROOT that is only a ground marker: it has position channels, no real bone of its own
+    (other children and End Site zero-length or absent), and its one child with position channels
+    changes distance from it over the clip by more than ``tolerance_m`` (scaled to a 1.75 m body).
+    The child becomes the ROOT with position channels plus its own rotation order (the root's if it
+    has none) and the composed world motion ``R = R_root R_child``, ``p = R_root p_child + p_root``
+    (Euler angles kept continuous over time). Repeats while it applies.
+
+    Returns (new clip, names of removed joints, warnings)."""
+    removed: list[str] = []
+    warnings: list[str] = []
+    while True:
+        result = _collapse_once(clip, tolerance_m)
+        if result is None:
+            return clip, tuple(removed), tuple(warnings)
+        clip, names, warning = result
+        removed.extend(names)
+        warnings.append(warning)
+
+
+# --------------------------------------------------------------------------------------------
+# Skeleton structure
+
+
+_LEFT_RE = re.compile(r"left|links|gauche|izquierd|sinistr", re.IGNORECASE)
+_RIGHT_RE = re.compile(r"right|rechts|droit|derech|destr", re.IGNORECASE)
+
+
+def _name_side(name: str) -> str:
+    """'left'/'right' from a name, '' if it does not say."""
+    if _LEFT_RE.search(name) and not _RIGHT_RE.search(name):
+        return "left"
+    if _RIGHT_RE.search(name) and not _LEFT_RE.search(name):
+        return "right"
+    for side, letter in (("left", "l"), ("right", "r")):
+        # L_x, x_L, x.L, x-L, Lx (L then a capital: LHipJoint), xL at the end after lower case
+        if re.search(rf"(^|[_.\-\s:|]){letter}([_.\-\s:|]|$)", name, re.IGNORECASE):
+            return side
+        if re.match(rf"^{letter.upper()}(?=[A-Z])", name) or re.search(rf"[a-z]{letter.upper()}$", name):
+            return side
+    return ""
+
+
+_LEG_WORDS = re.compile(r"leg|thigh|knee|foot|feet|ankle|toe|hip|shin|calf", re.IGNORECASE)
+_ARM_WORDS = re.compile(r"arm|shoulder|elbow|hand|wrist|clav|collar|finger|thumb", re.IGNORECASE)
+
+
+class _Tree:
+    """Topology and bone lengths of a clip (file units)."""
+
+    def __init__(self, clip: BvhClip):
+        J = len(clip.joints)
+        self.J = J
+        self.parents = [j.parent for j in clip.joints]
+        self.children: list[list[int]] = [[] for _ in range(J)]
+        for k, p in enumerate(self.parents):
+            if p >= 0:
+                self.children[p].append(k)
+        offsets = np.zeros((J, 3))
+        for k, joint in enumerate(clip.joints):
+            cols = joint.translation_columns
+            # Translation channels replace the OFFSET: their mean is the bone.
+            offsets[k] = clip.motion[:, list(cols)].mean(axis=0) if cols else joint.offset
+        self.L = np.linalg.norm(offsets, axis=1)
+        self.L[0] = 0.0
+        self.end_len = np.array([0.0 if j.end_site is None else float(np.linalg.norm(j.end_site))
+                                 for j in clip.joints])
+        self.reach = np.zeros(J)
+        for k in range(J - 1, -1, -1):
+            best = self.end_len[k]
+            for c in self.children[k]:
+                best = max(best, self.L[c] + self.reach[c])
+            self.reach[k] = best
+        self.size = max(float(self.reach[0] + max((self.L[c] + self.reach[c] for c in self.children[0]),
+                                                  default=0.0)), 1e-12)
+        self.tiny = 1e-4 * self.size
+        self.sub_end = [0] * J
+        for k in range(J - 1, -1, -1):
+            self.sub_end[k] = max([k + 1] + [self.sub_end[c] for c in self.children[k]])
+
+    def subtree(self, k: int) -> range:
+        return range(k, self.sub_end[k])
+
+    def is_below(self, j: int, k: int) -> bool:
+        return k <= j < self.sub_end[k]
+
+    def path_to_root(self, k: int) -> list[int]:
+        out = []
+        while k >= 0:
+            out.append(k)
+            k = self.parents[k]
+        return out
+
+    def main_chain(self, k: int) -> list[int]:
+        """k then, repeatedly, the child leading to the farthest leaf (stops where the End Site is
+        farther than any child's subtree)."""
+        chain = [k]
+        while True:
+            kids = self.children[chain[-1]]
+            if not kids:
+                return chain
+            best = max(kids, key=lambda c: (self.L[c] + self.reach[c], -c))
+            if self.end_len[chain[-1]] > self.L[best] + self.reach[best]:
+                return chain
+            chain.append(best)
+
+    def close(self, x: float, y: float) -> bool:
+        return abs(x - y) <= _MATCH_REL * max(x, y) + 0.01 * self.size
+
+    def match(self, a: int, b: int) -> dict[int, int] | None:
+        """Joint-to-joint map of subtree a onto subtree b if they have the same structure and
+        matching lengths, else None."""
+        if not (self.close(self.L[a], self.L[b]) and self.close(self.end_len[a], self.end_len[b])
+                and self.close(self.reach[a], self.reach[b])):
+            return None
+        ka, kb = self.children[a], self.children[b]
+        if len(ka) != len(kb):
+            return None
+        out = {a: b}
+        in_order = [self.match(x, y) for x, y in zip(ka, kb)]
+        if all(m is not None for m in in_order):
+            for m in in_order:
+                out.update(m)
+            return out
+        # Children listed in another order: greedy by length difference.
+        cost = sorted((abs(self.L[x] - self.L[y]) + abs(self.reach[x] - self.reach[y]), x, y)
+                      for x in ka for y in kb)
+        used_a, used_b = set(), set()
+        for _, x, y in cost:
+            if x in used_a or y in used_b:
+                continue
+            m = self.match(x, y)
+            if m is not None:
+                used_a.add(x)
+                used_b.add(y)
+                out.update(m)
+        return out if len(used_a) == len(ka) else None
+
+    def sibling_pairs(self) -> list[tuple[float, int, int, dict[int, int]]]:
+        """(size, a, b, map) of every pair of sibling subtrees that match, largest first."""
+        out = []
+        for kids in self.children:
+            for x in range(len(kids)):
+                for y in range(x + 1, len(kids)):
+                    a, b = kids[x], kids[y]
+                    score = min(self.L[a] + self.reach[a], self.L[b] + self.reach[b])
+                    if score <= 100 * self.tiny:
+                        continue
+                    m = self.match(a, b)
+                    if m is not None:
+                        out.append((float(score), a, b, m))
+        out.sort(key=lambda e: (-e[0], e[1]))
+        return out
+
+
+@dataclasses.dataclass
+class _Limb:
+    chain: list[int]
+    groups: list[list[int]]  # consecutive chain joints forming one bone
+    group_len: list[float]
+    upper: int  # index into groups
+    hand: int | None  # joint ending the second long bone, or None (the chain ends there)
+    end_point: int  # joint whose position or End Site ends the lower bone (see end_is_site)
+    end_is_site: bool
+
+    @property
+    def window(self) -> float:
+        return self.group_len[self.upper] + self.group_len[self.upper + 1]
+
+    @property
+    def upper_len(self) -> float:
+        return self.group_len[self.upper]
+
+    @property
+    def lower_len(self) -> float:
+        return self.group_len[self.upper + 1]
+
+
+def _limb(tree: _Tree, pos: np.ndarray, rot: np.ndarray, ends: np.ndarray, member: int) -> _Limb:
+    chain = tree.main_chain(member)
+    n = len(chain)
+    body = [tree.L[chain[i + 1]] if i + 1 < n else tree.end_len[chain[i]] for i in range(n)]
+
+    def tip(i: int) -> np.ndarray:  # (T, 3) far end of chain[i]'s bone
+        return pos[:, chain[i + 1]] if i + 1 < n else ends[:, chain[i]]
+
+    groups: list[list[int]] = []
+    pending: list[int] = []  # zero-length joints waiting for the next bone
+    last_real = None  # chain index of the previous joint with a bone
+    for i in range(n):
+        if body[i] <= tree.tiny:
+            pending.append(i)
+            continue
+        twist = False
+        if last_real is not None:
+            v1 = pos[:, chain[i]] - pos[:, chain[last_real]]
+            v2 = tip(i) - pos[:, chain[i]]
+            cos = np.sum(v1 * v2, axis=1) / np.maximum(np.linalg.norm(v1, axis=1) * np.linalg.norm(v2, axis=1), 1e-300)
+            collinear = np.all(cos > math.cos(math.radians(_TWIST_COLLINEAR_DEG)))
+            if collinear:
+                rel = np.swapaxes(rot[:, chain[last_real]], 1, 2) @ rot[:, chain[i]]
+                turn = _rotation_angle(rel @ np.swapaxes(rel[:1], 1, 2))
+                twist = bool(turn.max() > math.radians(_TWIST_TURN_DEG))
+        if twist:
+            groups[-1].extend(pending + [i])
+        else:
+            groups.append(pending + [i])
+        pending = []
+        last_real = i
+    if pending:
+        groups.append(pending)
+    group_len = [float(sum(body[i] for i in g)) for g in groups]
+    groups = [[chain[i] for i in g] for g in groups]
+    if len(groups) < 2:
+        groups.append([])
+        group_len.append(0.0)
+    limb = _Limb(chain, groups, group_len, 0, None, chain[0], True)
+    _set_window(limb, max(range(len(groups) - 1), key=lambda g: (group_len[g] + group_len[g + 1], -g)))
+    return limb
+
+
+def _set_window(limb: _Limb, upper: int) -> None:
+    groups = limb.groups
+    limb.upper = upper
+    limb.hand = groups[upper + 2][0] if upper + 2 < len(groups) and groups[upper + 2] else None
+    lower_group = groups[upper + 1]
+    if limb.hand is not None:
+        limb.end_point, limb.end_is_site = limb.hand, False
+    elif lower_group:
+        limb.end_point, limb.end_is_site = lower_group[-1], True
+    else:
+        limb.end_point, limb.end_is_site = groups[upper][-1], True
+
+
+def _choose_windows(a: _Limb, b: _Limb, mapping: dict[int, int], pos: np.ndarray) -> None:
+    """Pick the two long bones of a pair of limbs together. Among windows within 10 % of the longest,
+    the one starting farthest from its mirror joint: a clavicle or hip link starts near the midline,
+    the upper arm or thigh well beside it (CMU's clavicle is longer than its forearm)."""
+    if len(a.groups) != len(b.groups):
+        return  # sides disagree on the bone split: keep each side's longest window
+    n = len(a.groups) - 1
+    sums = [0.5 * (a.group_len[g] + a.group_len[g + 1] + b.group_len[g] + b.group_len[g + 1]) for g in range(n)]
+    best = max(sums)
+    candidates = [g for g in range(n) if sums[g] >= 0.9 * best and a.groups[g] and a.groups[g][0] in mapping]
+    if len(candidates) < 2:
+        return
+
+    def spread(g: int) -> float:
+        j = a.groups[g][0]
+        return float(np.linalg.norm(pos[:, j] - pos[:, mapping[j]], axis=1).mean())
+
+    upper = max(candidates, key=lambda g: (spread(g), sums[g], -g))
+    _set_window(a, upper)
+    _set_window(b, upper)
+
+
+def _nearest_axis(v: np.ndarray) -> np.ndarray:
+    k = int(np.argmax(np.abs(v)))
+    out = np.zeros(3)
+    out[k] = 1.0 if v[k] >= 0 else -1.0
+    return out
+
+
+def _resolve_units(units) -> float | None:
+    if isinstance(units, str):
+        key = units.strip().lower()
+        if key == "auto":
+            return None
+        if key in UNIT_CHOICES:
+            return UNIT_CHOICES[key]
+    elif isinstance(units, (int, float, np.integer, np.floating)) and not isinstance(units, (bool, np.bool_)):
+        value = float(units)
+        if math.isfinite(value) and value > 0:
+            return value
+    raise ValueError(f"units must be 'auto', one of {', '.join(UNIT_CHOICES)} or a positive number of "
+                     f"metres per file unit, got {units!r}")
+
+
+def _frame_rows(n_frames: int) -> np.ndarray:
+    return np.unique(np.linspace(0, n_frames - 1, min(n_frames, _MAX_FK_FRAMES)).round().astype(int))
+
+
+def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatomy:
+    """Anatomy of ``clip``, whose lengths are taken as file units (read it with ``units=1.0``).
+
+    ``units``: "auto", a key of :data:`UNIT_CHOICES` or a positive number of metres per file unit.
+    ``stature`` (metres): with "auto", sets the scale (units "given"); with explicit units, is
+    reported as the stature.
+    """
+    fixed = _resolve_units(units)
+    if stature is not None:
+        stature = float(stature)
+        if not (math.isfinite(stature) and stature > 0):
+            raise ValueError(f"stature must be a positive number of metres, got {stature!r}")
+    tree = _Tree(clip)
+    J = tree.J
+    rows = _frame_rows(clip.n_frames)
+    pos, rot, ends = forward_kinematics(clip, rows)
+    warnings: list[str] = []
+    names = [j.name for j in clip.joints]
+
+    segment = ["detail"] * J
+    side = [""] * J
+    mirror = [-1] * J
+
+    pairs = tree.sibling_pairs()
+    limbs_pairs = []
+    for entry in pairs:
+        _, a, b, _ = entry
+        if any(a == x or b == x or tree.is_below(a, x) or tree.is_below(b, x) or tree.is_below(x, a)
+               or tree.is_below(x, b) for e in limbs_pairs for x in (e[1], e[2])):
+            continue
+        limbs_pairs.append(entry)
+        if len(limbs_pairs) == 2:
+            break
+    if len(limbs_pairs) < 2:
+        warnings.append("no two symmetric limb pairs found: every joint is labelled trunk")
+        up = np.array([0.0, 1.0, 0.0])
+        extent = pos[:, :, 1].max(1) - pos[:, :, 1].min(1)
+        ref = int(rows[int(np.argmax(extent))])
+        height = float(extent.max()) or 1.0
+        scale, unit_name, stat = _choose_units(height, fixed, stature, warnings)
+        return Anatomy(("trunk",) * J, ("",) * J, (-1,) * J, up, np.array([0.0, 0.0, 1.0]), ref, stat,
+                       scale, unit_name, tuple(warnings), {})
+
+    limbs = [[_limb(tree, pos, rot, ends, e[1]), _limb(tree, pos, rot, ends, e[2])] for e in limbs_pairs]
+    for (x, y), e in zip(limbs, limbs_pairs):
+        _choose_windows(x, y, e[3], pos)
+    windows = [0.5 * (x.window + y.window) for x, y in limbs]
+    legs_i = _pick_legs(tree, limbs_pairs, windows, names)
+    arms_i = 1 - legs_i
+    legs_pair, arms_pair = limbs_pairs[legs_i], limbs_pairs[arms_i]
+    legs, arms = limbs[legs_i], limbs[arms_i]
+
+    def ankle_points():  # (T, 2, 3)
+        return np.stack([ends[:, l.end_point] if l.end_is_site else pos[:, l.end_point] for l in legs], axis=1)
+
+    ankles = ankle_points().mean(axis=1)
+    arm_branch = tree.parents[arms_pair[1]]
+    up0 = _nearest_axis((pos[:, arm_branch] - ankles).mean(axis=0))
+
+    # Head: largest other branch at the arms' branch joint, else nearest above it.
+    limb_members = {legs_pair[1], legs_pair[2], arms_pair[1], arms_pair[2]}
+    head0 = None
+    for anc in tree.path_to_root(arm_branch):
+        cands = [c for c in tree.children[anc]
+                 if c not in limb_members and not any(tree.is_below(m, c) for m in limb_members)]
+        if cands:
+            head0 = max(cands, key=lambda c: (tree.L[c] + tree.reach[c], -c))
+            break
+    paired = set()
+    for _, a, b, _ in pairs:
+        paired.update((a, b))
+    head_chain: list[int] = []
+    if head0 is not None:
+        head_chain = [head0]
+        while True:
+            cur = head_chain[-1]
+            kids = [c for c in tree.children[cur] if c not in paired]
+            upward = []
+            lone = len(tree.children[cur]) == 1
+            for c in kids:
+                last = tree.main_chain(c)[-1]
+                v = ends[:, last] - pos[:, cur]  # to the far end of c's branch
+                length = np.linalg.norm(v, axis=1)
+                if float(length.mean()) <= tree.tiny:
+                    rise = 1.0 if lone else -1.0
+                else:
+                    rise = float(np.mean(v @ up0 / np.maximum(length, 1e-300)))
+                # A lone child continues the chain unless its branch hangs down (a jaw); among
+                # several, only a branch climbing steeply (the skull top, not a jaw).
+                if rise > (-0.1 if lone else 0.5):
+                    upward.append(c)
+            if not upward:
+                break
+            head_chain.append(max(upward, key=lambda c: (tree.L[c] + tree.reach[c], -c)))
+        skull = head_chain[-1]
+        head_top = ends[:, skull]
+    else:
+        warnings.append("no head branch found: up is taken from the arms' branch joint")
+        head_top = pos[:, arm_branch]
+
+    up = _nearest_axis((head_top - ankles).mean(axis=0))
+    ref_i = int(np.argmax((head_top - ankles) @ up))
+    reference_frame = int(rows[ref_i])
+
+    # Facing per frame, unnormalised: feet (ankle to toe), else knees.
+    def horiz(v):
+        return v - np.outer(v @ up, up)
+
+    leg_len = float(np.mean([l.window for l in legs]))
+    fwd_t = np.zeros((len(rows), 3))
+    for l in legs:
+        if l.hand is not None:
+            foot_chain = tree.main_chain(l.hand)
+            last = foot_chain[-1]
+            toe = ends[:, last] if tree.end_len[last] > tree.tiny else pos[:, last]
+            if np.linalg.norm(toe - pos[:, l.hand], axis=1).mean() > 0.05 * leg_len:
+                fwd_t += horiz(toe - pos[:, l.hand])
+    facing_from = "feet"
+    if np.linalg.norm(fwd_t, axis=1).mean() < 0.02 * leg_len:
+        fwd_t = np.zeros((len(rows), 3))
+        for l in legs:
+            hip = pos[:, l.groups[l.upper][0]]
+            knee = pos[:, l.groups[l.upper + 1][0]] if l.groups[l.upper + 1] else hip
+            ank = ends[:, l.end_point] if l.end_is_site else pos[:, l.end_point]
+            fwd_t += horiz(knee - 0.5 * (hip + ank))
+        facing_from = "knees"
+        if np.linalg.norm(fwd_t, axis=1).mean() < 0.01 * leg_len:
+            facing_from = ""
+    left_t = np.cross(up, fwd_t)
+
+    def mean_points(k: int) -> np.ndarray:
+        sub = list(tree.subtree(k))
+        return pos[:, sub].mean(axis=1)
+
+    def decide(a: int, b: int) -> tuple[str, str] | None:
+        """Sides of siblings a and b, from geometry, else names."""
+        if facing_from:
+            d = mean_points(a) - mean_points(b)
+            lat = float(np.sum(d * left_t))
+            norm = float(np.sum(np.linalg.norm(d, axis=1) * np.linalg.norm(left_t, axis=1)))
+            if norm > 0 and abs(lat) > 0.2 * norm:
+                return ("left", "right") if lat > 0 else ("right", "left")
+        na, nb = _name_side(names[a]), _name_side(names[b])
+        if {na, nb} == {"left", "right"}:
+            return na, nb
+        return None
+
+    def apply_pair(a: int, b: int, mapping: dict[int, int], sides) -> None:
+        for x, y in mapping.items():
+            mirror[x], mirror[y] = y, x
+            if sides is not None:
+                side[x], side[y] = sides
+
+    chains: dict[str, tuple[int, ...]] = {}
+    limb_sides = {}
+    for kind, pair, limb_pair in (("leg", legs_pair, legs), ("arm", arms_pair, arms)):
+        _, a, b, mapping = pair
+        sides = decide(a, b)
+        if sides is None:
+            warnings.append(f"cannot tell the left {kind} from the right one ({names[a]!r}, {names[b]!r}): "
+                            f"{names[a]!r} is taken as left")
+            sides = ("left", "right")
+            apply_pair(a, b, mapping, None)
+            for x, y in mapping.items():
+                side[x], side[y] = sides
+        else:
+            apply_pair(a, b, mapping, sides)
+        limb_sides[kind] = sides
+        for member, limb, s in ((a, limb_pair[0], sides[0]), (b, limb_pair[1], sides[1])):
+            _label_limb(tree, pos[ref_i], ends[ref_i], limb, kind, segment)
+            end = limb.hand if limb.hand is not None else (limb.groups[limb.upper + 1] or limb.groups[limb.upper])[-1]
+            chains[f"{kind}_{s}"] = tuple(limb.chain[:limb.chain.index(end) + 1])
+
+    # Other symmetric pairs outside the limbs (eyes, ...).
+    limb_roots = [legs_pair[1], legs_pair[2], arms_pair[1], arms_pair[2]]
+    for _, a, b, mapping in pairs:
+        if mirror[a] >= 0 or mirror[b] >= 0 or any(tree.is_below(a, m) or tree.is_below(b, m) for m in limb_roots):
+            continue
+        sides = decide(a, b)
+        if sides is not None:
+            apply_pair(a, b, mapping, sides)
+
+    # Head chain and face.
+    for k in head_chain:
+        segment[k] = "head"
+    for n_chain, k in enumerate(head_chain):
+        for c in tree.children[k]:
+            if c in head_chain:
+                continue
+            label = "detail" if (n_chain == 0 and len(head_chain) > 1) else "face"
+            for j in tree.subtree(c):
+                segment[j] = label
+    if head_chain:
+        chains["head"] = tuple(head_chain)
+
+    # Trunk: every ancestor of a limb or of the head.
+    anchors = limb_roots + head_chain[:1]
+    for m in anchors:
+        for k in tree.path_to_root(tree.parents[m]):
+            segment[k] = "trunk"
+    segment[0] = "trunk"
+    chains["spine"] = tuple(reversed(tree.path_to_root(arm_branch)))
+
+    # Facing at the reference frame.
+    f = fwd_t[ref_i]
+    if np.linalg.norm(f) < 1e-9 * tree.size:
+        f = fwd_t.sum(axis=0)
+    if np.linalg.norm(f) < 1e-9 * tree.size:  # no geometric facing: from the legs' sides
+        li = chains["leg_left"][0]
+        ri = chains["leg_right"][0]
+        lat = horiz(mean_points(li) - mean_points(ri))[ref_i]
+        f = np.cross(lat, up)
+        if np.linalg.norm(f) < 1e-12:
+            f = np.cross(up, np.roll(up, 1))
+            warnings.append("facing direction unknown: an arbitrary horizontal axis is used")
+    forward = horiz(f[None])[0]
+    forward = forward / np.linalg.norm(forward)
+
+    # Stature from the long bones, sides averaged.
+    leg = float(np.mean([l.window for l in legs]))
+    arm = float(np.mean([l.window for l in arms]))
+    height_raw = (leg + arm) / (_LEG_RATIO + _ARM_RATIO) if arm > 0 else leg / _LEG_RATIO
+    scale, unit_name, stat = _choose_units(height_raw, fixed, stature, warnings)
+
+    for k, joint in enumerate(clip.joints):
+        cols = joint.translation_columns
+        if k == 0 or not cols:
+            continue
+        values = clip.motion[:, list(cols)]
+        move = float(np.linalg.norm(values - values.mean(axis=0), axis=1).max()) * scale
+        if move > 0.01:
+            warnings.append(f"joint {joint.name!r}: translation channels move it by up to {100 * move:.3g} cm; "
+                            f"its mean offset is used")
+
+    up.setflags(write=False)
+    forward.setflags(write=False)
+    return Anatomy(tuple(segment), tuple(side), tuple(mirror), up, forward, reference_frame, stat, scale,
+                   unit_name, tuple(warnings), chains)
+
+
+def _pick_legs(tree: _Tree, pairs, windows, names) -> int:
+    """Index (0/1) of the legs among the two limb pairs."""
+    big = int(windows[1] > windows[0])
+    if max(windows) > 1.2 * min(windows):
+        return big
+    branch = [tree.parents[p[1]] for p in pairs]
+    if branch[0] != branch[1]:
+        if tree.is_below(branch[1], branch[0]):
+            return 0
+        if tree.is_below(branch[0], branch[1]):
+            return 1
+    votes = []
+    for p in pairs:
+        text = " ".join(names[j] for j in list(tree.subtree(p[1])) + list(tree.subtree(p[2])))
+        votes.append(len(_LEG_WORDS.findall(text)) - len(_ARM_WORDS.findall(text)))
+    if votes[0] != votes[1]:
+        return int(votes[1] > votes[0])
+    return big
+
+
+def _label_limb(tree: _Tree, pos: np.ndarray, ends: np.ndarray, limb: _Limb, kind: str,
+                segment: list[str]) -> None:
+    """Labels of one limb's subtree (pos, ends: one frame)."""
+    upper_name, lower_name, end_name, below_name = (
+        ("thigh", "shank", "foot", "toe") if kind == "leg" else ("upper_arm", "forearm", "hand", "finger"))
+    member = limb.chain[0]
+    for k in tree.subtree(member):
+        segment[k] = "detail"
+    upper_group = limb.groups[limb.upper]
+    lower_group = limb.groups[limb.upper + 1]
+    for k in upper_group:
+        segment[k] = upper_name
+    for k in lower_group:
+        segment[k] = lower_name
+    first_bone = limb.chain.index(upper_group[0]) if upper_group else 0
+    for k in limb.chain[:first_bone]:
+        segment[k] = "trunk"
+    if limb.hand is not None:
+        for k in tree.subtree(limb.hand):
+            segment[k] = below_name
+        segment[limb.hand] = end_name
+    # Branches off the long bones: part of the bone if they lie along it (a twist leaf), else detail.
+    for group, name in ((upper_group, upper_name), (lower_group, lower_name)):
+        if not group:
+            continue
+        a = pos[group[0]]
+        last = group[-1]
+        i = limb.chain.index(last)
+        b = pos[limb.chain[i + 1]] if i + 1 < len(limb.chain) else ends[last]
+        seg = b - a
+        length = float(np.linalg.norm(seg))
+        for k in group:
+            for c in tree.children[k]:
+                if c in limb.chain:
+                    continue
+                pts = np.concatenate([pos[list(tree.subtree(c))], ends[list(tree.subtree(c))]])
+                if length > 0:
+                    s = np.clip((pts - a) @ seg / length ** 2, 0.0, 1.0)
+                    dist = np.linalg.norm(pts - (a + s[:, None] * seg), axis=1)
+                    along = bool(dist.max() <= 0.1 * length)
+                else:
+                    along = False
+                for j in tree.subtree(c):
+                    segment[j] = name if along else "detail"
+
+
+def _choose_units(height_raw: float, fixed: float | None, stature: float | None,
+                  warnings: list[str]) -> tuple[float, str, float]:
+    """(metres per file unit, units name, stature in metres)."""
+    if fixed is not None:
+        name = next((k for k, v in UNIT_CHOICES.items() if v == fixed), "given")
+        return fixed, name, stature if stature is not None else height_raw * fixed
+    if stature is not None:
+        return stature / height_raw, "given", stature
+    best = None
+    for name, value in UNIT_CHOICES.items():
+        h = height_raw * value
+        if _PLAUSIBLE_M[0] <= h <= _PLAUSIBLE_M[1]:
+            d = abs(math.log(h / _TYPICAL_M))
+            if best is None or d < best[0]:
+                best = (d, name, value)
+    if best is not None:
+        return best[2], best[1], height_raw * best[2]
+    scale = _FALLBACK_M / height_raw
+    warnings.append(f"no unit among {', '.join(UNIT_CHOICES)} gives a plausible stature "
+                    f"({_PLAUSIBLE_M[0]}-{_PLAUSIBLE_M[1]} m) for a body {height_raw:.4g} file units tall: "
+                    f"scaled to {_FALLBACK_M} m ({scale:.4g} m per file unit)")
+    return scale, "scaled", _FALLBACK_M
+
+
+def prepare_clip(path_or_clip, units="auto", stature: float | None = None) -> tuple[BvhClip, Anatomy, BvhClip]:
+    """Read a BVH file (or take a clip), collapse a virtual root, analyse it.
+
+    Returns (clip in metres ready for the model, its anatomy, the source clip in metres with the
+    same length_scale, for export). The anatomy's warnings start with the parser's and the
+    collapse's."""
+    if isinstance(path_or_clip, BvhClip):
+        raw = path_or_clip
+        if raw.length_scale != 1.0:  # back to file units
+            raw = scale_clip(raw, 1.0 / raw.length_scale)
+            raw = dataclasses.replace(raw, length_scale=1.0)
+    else:
+        raw = read_bvh(os.fspath(path_or_clip), units=1.0)
+    collapsed, _, collapse_warnings = collapse_virtual_root(raw)
+    anatomy = analyse(collapsed, units=units, stature=stature)
+    anatomy = dataclasses.replace(anatomy, warnings=tuple(raw.warnings) + collapse_warnings + anatomy.warnings)
+    return scale_clip(collapsed, anatomy.length_scale), anatomy, scale_clip(raw, anatomy.length_scale)
