@@ -107,8 +107,12 @@ def test_shipped_clip_facts(prepared):
     assert prepared["cmu"][1].stature == pytest.approx(1.63, abs=0.03)
     assert prepared["walk"][1].stature == pytest.approx(1.78, abs=0.03)
     assert prepared["walk"][1].forward[2] > 0.9
-    for key in ("mocapbank", "walk", "cmu"):
+    for key in ("mocapbank", "walk"):
         assert prepared[key][1].warnings == ()
+    # CMU's conversion writes the bind pose as frame 1: skipped, and said so.
+    (warning,) = prepared["cmu"][1].warnings
+    assert "first 1 frame jumps" in warning and "bind pose" in warning
+    assert prepared["cmu"][0].n_frames == read_bvh(_path("cmu"), units=1.0).n_frames - 1
 
 
 def _rotate_file_root(raw, R: np.ndarray):

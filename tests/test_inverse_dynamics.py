@@ -38,13 +38,19 @@ def test_total_mass_is_adult(loaded):
     assert eig.min() > 0
 
 
-def test_walk_bodiless_leaves_are_not_simulated():
+def test_walk_detail_is_not_simulated_but_zero_length_hands_and_head_are():
+    """The walk clip's toes are extremity detail (no body, DOFs follow the capture); its head and
+    hands end in zero-length End Sites yet get their anthropometric segments and DOFs."""
     character, _ = load_character(pytest.importorskip("conftest").CLIPS["walk"])
     model = character.model
-    for name in ("LeftToe", "RightToe", "Head", "LeftHand", "RightHand"):
+    for name in ("LeftToe", "RightToe"):
         assert model.joint_body[model.joint_names.index(name)] == -1
         assert not any(d.startswith(name + ".") for d in model.dof_names)
         assert any(d.startswith(name + ".") for d in model.all_dof_names)
+    for name in ("Head", "LeftHand", "RightHand"):
+        b = model.joint_body[model.joint_names.index(name)]
+        assert b >= 0 and float(model.mass[b]) > 0.2
+        assert sum(d.startswith(name + ".") for d in model.dof_names) == 3
     assert model.n_dofs == 3 * (model.n_bodies - 1)
 
 

@@ -109,10 +109,13 @@ def test_shapes_look_human(character):
         verts = character.shapes[b].vertices
         world = pos[k] + verts @ rot[k].T
         low = min(low, float((world @ up).min()))
-        if anat.segment[k] in ("hand", "foot"):
+        if anat.segment[k] == "hand":
             centred = verts - verts.mean(0)
             sv = np.linalg.svd(centred, compute_uv=False)
             assert sv[2] < 0.6 * sv[1], (clip.joints[k].name, sv)
+        if anat.segment[k] == "foot":  # a flat sole: four or more vertices on the lowest plane
+            height = world @ up
+            assert np.sum(height < height.min() + 1e-6) >= 4, clip.joints[k].name
     head = [k for k in model.body_joint if anat.segment[k] == "head"][-1]
     b = model.joint_body[head]
     top = float((pos[head] + character.shapes[b].vertices @ rot[head].T).max(0) @ up)
@@ -153,7 +156,8 @@ def test_body_mass_sex_and_extremity_options():
     heavy = character_of(path, body_mass=90.0, sex="female")
     np.testing.assert_allclose(float(np.sum(heavy.model.mass)), 90.0, rtol=1e-9)
     thigh = lambda ch: segment_masses(ch)[("thigh", "left")] / float(np.sum(ch.model.mass))
-    np.testing.assert_allclose(thigh(heavy), deleva.segment_parameters("thigh", "female").mass, rtol=1e-6)
+    # (the female column sums to 99.99 %: shares are renormalised to the body mass)
+    np.testing.assert_allclose(thigh(heavy), deleva.segment_parameters("thigh", "female").mass, rtol=2e-4)
     fingers = character_of(path, simulate_extremities=True)
     assert fingers.model.n_bodies > base.model.n_bodies
     np.testing.assert_allclose(float(np.sum(fingers.model.mass)), float(np.sum(base.model.mass)), rtol=1e-9)

@@ -35,7 +35,7 @@ import re
 
 import numpy as np
 
-from .bvh import BvhClip, read_bvh
+from .bvh import BvhClip, _auto_scale, read_bvh
 
 __all__ = [
     "SEGMENTS",
@@ -633,6 +633,9 @@ def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatom
         extent = pos[:, :, 1].max(1) - pos[:, :, 1].min(1)
         ref = int(rows[int(np.argmax(extent))])
         height = float(extent.max()) or 1.0
+        if fixed is None and stature is None:  # not a person: no stature to go by
+            fixed = _auto_scale(np.array([j.offset for j in clip.joints]), [j.parent for j in clip.joints],
+                                [j.end_site for j in clip.joints])
         scale, unit_name, stat = _choose_units(height, fixed, stature, warnings)
         return Anatomy(("trunk",) * J, ("",) * J, (-1,) * J, up, np.array([0.0, 0.0, 1.0]), ref, stat,
                        scale, unit_name, tuple(warnings), {})
@@ -924,6 +927,28 @@ def _choose_units(height_raw: float, fixed: float | None, stature: float | None,
     return scale, "scaled", _FALLBACK_M
 
 
+def skip_rest_frames(clip: BvhClip, max_frames: int = 5) -> tuple[BvhClip, tuple[str, ...]]:
+    """Drop leading frames that are not part of the motion: many exporters write the bind pose
+    (all channels zero) as frame 1, and the capture jumps away from it at once (CMU's BVH
+    conversions: 136 deg in one 1/120 s frame). A leading frame is dropped when some joint turns
+    by more than 30 deg and more than 6x the clip's 99th-percentile frame-to-frame turn."""
+    if clip.n_frames < 12:
+        return clip, ()
+    local, _ = _local_motion(clip, np.arange(clip.n_frames))
+    rel = np.einsum("tjab,tjac->tjbc", local[:-1], local[1:])
+    turn = np.degrees(_rotation_angle(rel)).max(axis=1)  # (T-1,) largest joint turn per frame
+    typical = float(np.percentile(turn[max_frames:], 99))
+    drop = 0
+    while drop < max_frames and turn[drop] > max(30.0, 6.0 * typical):
+        drop += 1
+    if drop == 0:
+        return clip, ()
+    msg = (f"{clip.path}: the first {drop} frame{'s' if drop > 1 else ''} jump{'s' if drop == 1 else ''} "
+           f"{turn[drop - 1]:.0f} deg to the next (a bind pose, not motion): skipped, the clip starts at "
+           f"frame {drop + 1}")
+    return dataclasses.replace(clip, motion=clip.motion[drop:]), (msg,)
+
+
 def prepare_clip(path_or_clip, units="auto", stature: float | None = None) -> tuple[BvhClip, Anatomy, BvhClip]:
     """Read a BVH file (or take a clip), collapse a virtual root, analyse it.
 
@@ -937,7 +962,9 @@ def prepare_clip(path_or_clip, units="auto", stature: float | None = None) -> tu
             raw = dataclasses.replace(raw, length_scale=1.0)
     else:
         raw = read_bvh(os.fspath(path_or_clip), units=1.0)
+    raw, skip_warnings = skip_rest_frames(raw)
     collapsed, _, collapse_warnings = collapse_virtual_root(raw)
     anatomy = analyse(collapsed, units=units, stature=stature)
-    anatomy = dataclasses.replace(anatomy, warnings=tuple(raw.warnings) + collapse_warnings + anatomy.warnings)
+    anatomy = dataclasses.replace(anatomy, warnings=tuple(raw.warnings) + skip_warnings + collapse_warnings
+                                  + anatomy.warnings)
     return scale_clip(collapsed, anatomy.length_scale), anatomy, scale_clip(raw, anatomy.length_scale)

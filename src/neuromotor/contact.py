@@ -199,26 +199,54 @@ class ContactRollout(eqx.Module):
 # ----------------------------------------------------------------------------- shapes
 
 
+MIN_CAPSULE_BONE = 0.03  # m: shorter bones get no capsule of their own
+
+
 def fit_capsules(character: Character) -> Capsules:
-    """One capsule per body, fitted to the body's polyhedron: its axis is the shape's principal
-    direction through the vertex centroid, its radius the largest vertex distance from that
-    axis, and its end points stop one radius short of the shape's extremes along the axis."""
+    """Capsules fitted to each body's polyhedron: one per bone of the body (to a child joint or
+    End Site, at least ``MIN_CAPSULE_BONE`` long), radius the largest distance of the vertices
+    nearest that bone; a body without such a bone (a hand, foot or skull whose End Site has zero
+    length) gets one capsule along its shape's principal axis."""
     model = character.model
-    body, aa, bb, rr = [], [], [], []
-    for b in range(model.n_bodies):
+    offsets = np.asarray(model.joint_offset)
+    ends = {k: np.asarray(model.end_site_offset[i]) for i, k in enumerate(model.end_site_joint)}
+    body, aa, bb, rr, names = [], [], [], [], []
+    for b, k in enumerate(model.body_joint):
+        bones = [offsets[c] for c, p in enumerate(model.joint_parent) if p == k]
+        if k in ends:
+            bones.append(ends[k])
+        bones = [e for e in bones if np.linalg.norm(e) >= MIN_CAPSULE_BONE]
         verts = np.asarray(character.shapes[b].vertices, np.float64)
-        centre = verts.mean(0)
-        _, _, vt = np.linalg.svd(verts - centre, full_matrices=False)
-        axis = vt[0]
-        t = (verts - centre) @ axis
-        radial = np.linalg.norm((verts - centre) - np.outer(t, axis), axis=1)
-        r = float(radial.max())
-        lo, hi = float(t.min()) + r, float(t.max()) - r
-        if hi < lo:  # shorter than it is wide: a sphere
-            lo = hi = 0.5 * (lo + hi)
-        body.append(b), aa.append(centre + lo * axis), bb.append(centre + hi * axis), rr.append(r)
+        if not bones:
+            a, e, r = _principal_capsule(verts)
+            body.append(b), aa.append(a), bb.append(e), rr.append(r), names.append(model.body_names[b])
+            continue
+        dist = np.stack([_segment_distance_np(verts, np.zeros(3), e) for e in bones], 1)
+        nearest = np.argmin(dist, 1)
+        for i, e in enumerate(bones):
+            mine = dist[nearest == i, i]
+            r = float(mine.max()) if mine.size else float(dist[:, i].min())
+            body.append(b), aa.append(np.zeros(3)), bb.append(np.asarray(e, np.float64)), rr.append(r)
+            names.append(f"{model.body_names[b]}[{i}]" if len(bones) > 1 else model.body_names[b])
     return Capsules(jnp.asarray(body, jnp.int32), jnp.asarray(np.stack(aa)), jnp.asarray(np.stack(bb)),
-                    jnp.asarray(rr), tuple(model.body_names))
+                    jnp.asarray(rr), tuple(names))
+
+
+def _principal_capsule(verts):
+    """(a, b, radius) of a capsule along the principal axis of a vertex cloud that covers every
+    vertex: radius the largest distance from the axis, end points at the extremes along it."""
+    centre = verts.mean(0)
+    _, _, vt = np.linalg.svd(verts - centre, full_matrices=False)
+    axis = vt[0]
+    t = (verts - centre) @ axis
+    r = float(np.linalg.norm((verts - centre) - np.outer(t, axis), axis=1).max())
+    return centre + float(t.min()) * axis, centre + float(t.max()) * axis, r
+
+
+def _segment_distance_np(points, a, b):
+    seg = b - a
+    t = np.clip((points - a) @ seg / max(seg @ seg, _TINY), 0.0, 1.0)
+    return np.linalg.norm(points - (a + t[:, None] * seg), axis=1)
 
 
 def candidate_bodies(caps: Capsules, settings: ContactSettings) -> Int[Array, " C"]:
