@@ -186,3 +186,30 @@ def test_ellipse_ring_hull_volume_matches_the_elliptic_frustum():
     area = 0.5 * n * np.sin(2 * np.pi / n) * a * b
     np.testing.assert_allclose(m, h / 3 * area * (1 + t + t * t), rtol=1e-9)
     np.testing.assert_allclose(com[2], h * (1 + 2 * t + 3 * t * t) / (4 * (1 + t + t * t)), rtol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_synthetic_rigs_get_a_plausible_symmetric_body(seed, tmp_path):
+    """Random rigs (random names, extra leaves, fingers, toes, faces, units, Y- or Z-up, zero-length
+    End Sites, 6-channel joints, a ground-marker root, a bent zero pose): a plausible adult whose
+    segments have their de Leva shares, equal on both sides, and the same masses when the rig is
+    turned Z-up <-> Y-up."""
+    from synthetic_rigs import make_rig
+
+    masses = []
+    for up in ("Y", "Z"):
+        rig = make_rig(seed, up=up)
+        path = tmp_path / f"rig_{up}.bvh"
+        path.write_text(rig.text)
+        ch = character_of(path)
+        h, total = ch.anatomy.stature, float(np.sum(ch.model.mass))
+        assert 1.3 <= h <= 2.1 and 18.5 * h * h <= total <= 30.0 * h * h
+        np.testing.assert_allclose(h, rig.stature, rtol=0.08)
+        got = segment_masses(ch)
+        for seg, frac in deleva.mass_fractions().items():
+            for side in (("",) if seg in ("trunk", "head") else ("left", "right")):
+                assert 0.6 <= got[(seg, side)] / (frac * total) <= 1.67, (seg, side)
+            if seg not in ("trunk", "head"):
+                np.testing.assert_allclose(got[(seg, "left")], got[(seg, "right")], rtol=1e-6)
+        masses.append(np.sort(np.asarray(ch.model.mass)))
+    np.testing.assert_allclose(masses[0], masses[1], rtol=1e-6)

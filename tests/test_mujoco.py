@@ -21,6 +21,7 @@ import pytest
 
 mujoco = pytest.importorskip("mujoco")
 
+from conftest import ALL_CLIPS  # noqa: E402
 from neuromotor.inverse import mocap_angles, sim_columns, solve_eq3  # noqa: E402
 from neuromotor.kinematics import body_kinematics  # noqa: E402
 from neuromotor.mjcf import export_mjcf, model_to_mjcf  # noqa: E402
@@ -30,9 +31,10 @@ N_FRAMES = 20
 RTOL = 1e-6
 
 
-@pytest.fixture(scope="module")
-def loaded(clip_path):
-    return load_character(clip_path)
+@pytest.fixture(scope="module", params=sorted(ALL_CLIPS), ids=str)
+def loaded(request):
+    """Every shipped clip (a CMU conversion with fingers, a ground-marker rig, ...)."""
+    return load_character(ALL_CLIPS[request.param])
 
 
 def test_export_loads_in_mujoco(loaded, tmp_path):

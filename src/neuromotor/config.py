@@ -99,7 +99,7 @@ class SimulationConfig:
 
 DEFAULT_HIT = {
     "kind": "force",
-    "body": "Chest2",
+    "body": "chest",  # a segment keyword: Chest2 on the embedded clip, the same place on any rig
     "point": [0.0, 0.1, 0.0],
     "direction": [0.0, 0.0, 1.0],
     "magnitude": 400.0,
