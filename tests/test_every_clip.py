@@ -43,7 +43,7 @@ def test_chest_push_deflects_and_recovers(result):
     m = res.metrics
     assert not m["diverged"]
     assert m["peak_deviation_deg"] > 0.5  # the push is felt...
-    assert 1.0 < m["time_of_peak_s"] < 1.6
+    assert 1.0 < m["time_of_peak_s"] < 2.0
     if name in BOUNDS:  # ...and dies down (the kick's own drift keeps it above the 0.5 deg line)
         assert m["final_error_deg"] < 0.35 * m["peak_deviation_deg"]
     else:  # ...and is recovered from within the window

@@ -35,7 +35,7 @@ import re
 
 import numpy as np
 
-from .bvh import BvhClip, _auto_scale, read_bvh
+from .bvh import UNIT_SCALES, BvhClip, _auto_scale, _resolve_units_arg, read_bvh
 
 __all__ = [
     "SEGMENTS",
@@ -54,9 +54,7 @@ __all__ = [
 SEGMENTS = ("trunk", "head", "upper_arm", "forearm", "hand", "thigh", "shank", "foot", "finger", "toe",
             "face", "detail")
 DETAIL_SEGMENTS = frozenset({"finger", "toe", "face", "detail"})  # extremity detail, not simulated by default
-UNIT_CHOICES: dict[str, float] = {  # metres per file unit
-    "m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "cmu": 0.0254 / 0.45, "ft": 0.3048, "dm": 0.1,
-}
+UNIT_CHOICES = UNIT_SCALES  # metres per file unit, by name
 
 # de Leva (1996) segment lengths relative to stature (sexes averaged).
 _LEG_RATIO = 0.2425 + 0.2493  # thigh + shank
@@ -575,21 +573,6 @@ def _nearest_axis(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def _resolve_units(units) -> float | None:
-    if isinstance(units, str):
-        key = units.strip().lower()
-        if key == "auto":
-            return None
-        if key in UNIT_CHOICES:
-            return UNIT_CHOICES[key]
-    elif isinstance(units, (int, float, np.integer, np.floating)) and not isinstance(units, (bool, np.bool_)):
-        value = float(units)
-        if math.isfinite(value) and value > 0:
-            return value
-    raise ValueError(f"units must be 'auto', one of {', '.join(UNIT_CHOICES)} or a positive number of "
-                     f"metres per file unit, got {units!r}")
-
-
 def _frame_rows(n_frames: int) -> np.ndarray:
     return np.unique(np.linspace(0, n_frames - 1, min(n_frames, _MAX_FK_FRAMES)).round().astype(int))
 
@@ -601,7 +584,7 @@ def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatom
     ``stature`` (metres): with "auto", sets the scale (units "given"); with explicit units, is
     reported as the stature.
     """
-    fixed = _resolve_units(units)
+    fixed = _resolve_units_arg(units)
     if stature is not None:
         stature = float(stature)
         if not (math.isfinite(stature) and stature > 0):

@@ -18,9 +18,11 @@ an error; more (common in exported files) are all loaded, and :attr:`BvhClip.war
 Units
 -----
 Lengths (OFFSETs, End Sites, position channels) are stored in metres: file value times
-``length_scale``. Rotation channels stay in degrees, as in the file. ``units`` is ``"m"`` (1.0),
-``"cm"`` (0.01), ``"mm"`` (0.001), ``"in"`` (0.0254), a positive float (metres per file unit) or
-``"auto"``. The ``"auto"`` rule: place the skeleton in its rest pose (all rotations zero, the root at
+``length_scale``. Rotation channels stay in degrees, as in the file. ``units`` is a key of
+:data:`UNIT_SCALES` (m, cm, mm, in, cmu = CMU's 1/0.45 inch, ft, dm), a positive float (metres per
+file unit) or ``"auto"``. Humanoid clips get their unit from the stature their long bones give
+(:func:`neuromotor.anatomy.prepare_clip`, which reads files with ``units=1.0``); this module's own
+``"auto"`` rule, used for skeletons that are not humanoid: place the skeleton in its rest pose (all rotations zero, the root at
 the origin, i.e. the root OFFSET is ignored), take the diagonal of the bounding box of all joint and
 End Site positions as its size in file units, and choose among m, cm and mm the scale whose size in
 metres is closest to 1.8 m in log ratio (smallest ``|log(size * scale / 1.8)|``; ties go to the
@@ -61,7 +63,9 @@ __all__ = [
     "rest_pose_positions",
 ]
 
-UNIT_SCALES: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+# Metres per file unit. "cmu" is the CMU database's own unit, 1/0.45 inch.
+UNIT_SCALES: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "cmu": 0.0254 / 0.45,
+                                 "ft": 0.3048, "dm": 0.1}
 _AUTO_UNITS: tuple[float, ...] = (1.0, 0.01, 0.001)  # m, cm, mm, in this order (ties -> larger unit)
 _AUTO_TARGET_SIZE_M = 1.8
 
@@ -576,8 +580,8 @@ def _resolve_units_arg(units: str | float) -> float | None:
         value = float(units)
         if math.isfinite(value) and value > 0:
             return value
-    raise ValueError(f"units must be 'auto', 'm', 'cm', 'mm', 'in' or a positive number of metres per "
-                     f"file unit, got {units!r}")
+    raise ValueError(f"units must be 'auto', one of {', '.join(UNIT_SCALES)} or a positive number of "
+                     f"metres per file unit, got {units!r}")
 
 
 def _rest_points(offsets: np.ndarray, parents: list[int], end_sites: list[np.ndarray | None],
