@@ -281,3 +281,28 @@ def test_scale_clip():
     np.testing.assert_allclose(scaled.motion[:, cols], raw.motion[:, cols] * 0.5)
     rot = list(raw.joints[0].rotation_columns)
     np.testing.assert_array_equal(scaled.motion[:, rot], raw.motion[:, rot])
+
+
+def test_inspect_shows_labels_units_stature_and_warnings(capsys):
+    """`inspect` prints a segment column, the units, stature and up axis and every warning;
+    `--json` gives `segment` and `side` per joint."""
+    import json
+
+    from neuromotor.cli import main
+
+    path = str(_path("bandai"))
+    assert main(["inspect", path, "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["units"] == "cm" and 1.4 < data["stature"] < 2.0 and data["up"] == [0.0, 1.0, 0.0]
+    assert any("virtual root" in w for w in data["warnings"])
+    by_name = {j["name"]: j for j in data["joints"]}
+    assert "joint_Root" not in by_name  # removed: Hips is the driven root
+    assert by_name["UpperLeg_L"]["segment"] == "thigh" and by_name["UpperLeg_L"]["side"] == "left"
+    assert by_name["Toes_R"]["segment"] == "toe" and by_name["Toes_R"]["body"] is None
+    assert by_name["Hand_R"]["segment"] == "hand" and by_name["Hand_R"]["body"]["mass"] > 0.2
+    assert main(["inspect", path, "--stature", "1.80", "--body-mass", "80"]) == 0
+    out = capsys.readouterr().out
+    assert "stature   1.800 m" in out and "80.00 kg total" in out and "warning   joint 'joint_Root'" in out
+    header = next(line for line in out.splitlines() if line.startswith("joint "))
+    assert header.split()[:4] == ["joint", "parent", "segment", "mass"]
+    assert re.search(r"^LowerLeg_R\s+UpperLeg_R\s+shank \(R\)", out, re.MULTILINE)

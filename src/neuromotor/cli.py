@@ -123,6 +123,8 @@ def cmd_idyn(args) -> int:
     from .simulate import save_npz_atomic
 
     character, traj = _load(args)
+    for line in character.warnings:
+        print(f"neuromotor idyn: warning: {line}", file=sys.stderr)
     clip = character.clip
     times = np.arange(clip.n_frames) * clip.frame_time
     arrays = idyn_arrays(character.model, traj, times)
@@ -159,6 +161,8 @@ def cmd_simulate(args) -> int:
     from .simulate import prepare, run, run_arrays, save_npz_atomic
 
     setup = prepare(_sim_config(args))
+    for line in setup.warnings:
+        print(f"neuromotor simulate: warning: {line}", file=sys.stderr)
     result = run(setup)
     save_npz_atomic(args.output, run_arrays(setup, result))
     if args.json:

@@ -59,10 +59,28 @@ class Setup:
     pulses: ForcePulses
     config: SimulationConfig
     ball: "contact.BallSetup | None" = None  # a [ball] config: the flying ball and its contacts
+    warnings: tuple[str, ...] = ()  # the clip's (see Character.warnings) and the run's, one line each
 
     @property
     def model(self) -> Model:
         return self.character.model
+
+
+# The driven root turning more than this per step (rad) makes the replay drift by degrees: the
+# step integrates every body's rotation in the world frame, with an error that grows with the
+# rotation per step (the Bandai-Namco kick spins at 11 rad/s: 1.97 deg RMS at h = 1/120 s,
+# 0.72 deg at 1/360 s; docs/body-model.md).
+MAX_ROOT_TURN_PER_STEP = 0.05
+
+
+def step_warnings(ref: Reference, h: float) -> tuple[str, ...]:
+    """A warning when the driven root turns faster than the time step follows well."""
+    omega = float(np.max(np.linalg.norm(np.asarray(ref.root_omega), axis=-1)))
+    if omega * h <= MAX_ROOT_TURN_PER_STEP:
+        return ()
+    h_good = MAX_ROOT_TURN_PER_STEP / omega
+    return (f"the root turns at up to {omega:.1f} rad/s, {omega * h:.3f} rad per step of h = {h:.4g} s: the "
+            f"replay may drift by degrees; sim.h <= {h_good:.4g} s keeps it within about a degree",)
 
 
 def body_lookup(model: Model, source: str = "config", character: Character | None = None):
@@ -111,7 +129,8 @@ def prepare(config: SimulationConfig, character: Character | None = None,
         if s.get("point") is None:
             s["point"] = [float(x) for x in np.asarray(model.com[index(s["body"])])]
     ball = contact.ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
-    return Setup(character, traj, ref, gains, sim, pulses(specs, index), config, ball)
+    warnings = tuple(character.warnings) + step_warnings(ref, config.h)
+    return Setup(character, traj, ref, gains, sim, pulses(specs, index), config, ball, warnings)
 
 
 @jax.jit
