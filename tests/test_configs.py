@@ -40,3 +40,30 @@ def test_stabilization_steps_is_read_and_checked():
     for bad in (0, 6, 1.5, True, "2"):
         with pytest.raises(ConfigError, match=r"x\.toml: field 'sim\.stabilization_steps' must be an integer from 1 to 5"):
             simulation_config({"sim": {"stabilization_steps": bad}}, "x.toml")
+
+
+def test_body_fields_are_read_checked_and_win_over_the_estimates():
+    """units, up_axis, stature, body_mass, sex and simulate_extremities: read, validated with the
+    field named, and the character built from them (stature with units "auto" scales the rig)."""
+    import numpy as np
+
+    from conftest import ALL_CLIPS
+    from neuromotor.simulate import load_character
+
+    clip = str(ALL_CLIPS["cmu_01_01_jumps_31joint"])
+    cfg = simulation_config({"clip": clip, "units": "auto", "up_axis": "auto", "stature": 1.6, "body_mass": 55.0,
+                             "sex": "female", "simulate_extremities": True}, "<t>")
+    assert (cfg.units, cfg.up_axis, cfg.stature, cfg.body_mass, cfg.sex, cfg.simulate_extremities) == \
+        ("auto", None, 1.6, 55.0, "female", True)
+    character, _ = load_character(cfg.clip, cfg.units, cfg.up_axis, cfg.stature, cfg.mass_options())
+    assert character.anatomy.stature == 1.6 and character.anatomy.units == "given"
+    np.testing.assert_allclose(float(np.sum(character.model.mass)), 55.0, rtol=1e-9)
+    assert any(n.startswith("LeftFingerBase.") for n in character.model.dof_names)  # fingers simulated
+    inches, _ = load_character(clip, "in", 2)  # explicit units and up axis win
+    assert inches.clip.length_scale == 0.0254 and inches.model.gravity[2] == -9.81
+    for table, field in (({"stature": -1.0}, "stature"), ({"stature": 17.0}, "stature"),
+                         ({"body_mass": "heavy"}, "body_mass"), ({"sex": "x"}, "sex"),
+                         ({"units": "furlong"}, "units"), ({"up_axis": 3}, "up_axis"),
+                         ({"simulate_extremities": 1}, "simulate_extremities")):
+        with pytest.raises(ConfigError, match=f"<t>: field '{field}'"):
+            simulation_config(table, "<t>")

@@ -110,7 +110,11 @@ def cmd_inspect(args) -> int:
     print(f"units     {anat.units} ({clip.length_scale:g} m per file unit)")
     print(f"stature   {anat.stature:.3f} m, up axis {up}")
     print(f"bodies    {model.n_bodies}, simulated DOFs {model.n_dofs}, constraint rows {model.n_constraints}")
-    print(f"mass      {float(np.sum(model.mass)):.2f} kg total ({character.options.sex} de Leva segments)")
+    total = float(np.sum(model.mass))
+    source = ("given" if character.options.body_mass is not None else
+              f"BMI {total / anat.stature ** 2:.0f} at the stature") if anat.humanoid else "polyhedra at 1000 kg/m^3"
+    segments = f", {character.options.sex} de Leva segments" if anat.humanoid else ""
+    print(f"mass      {total:.2f} kg total ({source}{segments})")
     for w in character.warnings:
         print(f"warning   {w}")
     print()
