@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import pathlib
 import sys
 
@@ -30,6 +32,21 @@ def _table(rows: list[list[str]], header: list[str]) -> str:
     widths = [max(len(str(r[i])) for r in rows + [header]) for i in range(len(header))]
     line = lambda r: "  ".join(str(c).ljust(w) for c, w in zip(r, widths)).rstrip()
     return "\n".join([line(header), line(["-" * w for w in widths])] + [line(r) for r in rows])
+
+
+def json_safe(metrics: dict) -> dict:
+    """Metrics as strict JSON: NaN and infinities become null, and ``null_reasons`` says why."""
+    why = {"recovery_time_s": "the deviation does not stay below recovery_threshold_deg before the window ends"}
+    out, reasons = {}, {}
+    for key, value in metrics.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            out[key] = None
+            reasons[key] = why.get(key, f"{value} (not a finite number)")
+        else:
+            out[key] = value
+    if reasons:
+        out["null_reasons"] = reasons
+    return out
 
 
 def model_json(character) -> dict:
@@ -170,7 +187,7 @@ def cmd_simulate(args) -> int:
     result = run(setup)
     save_npz_atomic(args.output, run_arrays(setup, result))
     if args.json:
-        print(json.dumps(result.metrics, indent=2))
+        print(json.dumps(json_safe(result.metrics), indent=2))
     else:
         m = result.metrics
         print(f"wrote {args.output}: peak deviation {m['peak_deviation_deg']:.2f} deg at "
@@ -289,7 +306,10 @@ def _up_arg(text: str):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
     p = argparse.ArgumentParser(prog="neuromotor", description=__doc__.split("\n")[0])
+    p.add_argument("--version", action="version", version=f"neuromotor {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     def body_args(sp, defaults=True):
@@ -398,8 +418,17 @@ def main(argv=None) -> int:
     from .dynamics import SimulationDiverged
 
     try:
-        return args.func(args)
-    except (BvhError, ConfigError, SimulationDiverged, FileNotFoundError, ValueError, KeyError) as e:
+        status = args.func(args)
+        sys.stdout.flush()  # a closed pipe shows here, not at exit
+        return status
+    except BrokenPipeError:  # `neuromotor inspect | head`: the reader left, nothing is wrong
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except OSError as e:  # a directory as the clip, no permission, ...: name the file
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"neuromotor {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
+        return 2
+    except (BvhError, ConfigError, SimulationDiverged, ValueError, KeyError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else e
         print(f"neuromotor {args.command}: error: {msg}", file=sys.stderr)
         return 2

@@ -1,0 +1,49 @@
+"""The command line as a careful user meets it: one-line errors naming the file, exit status 2,
+no tracebacks, strict JSON (issue 16, first part)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+
+from neuromotor.cli import json_safe, main
+
+
+def test_version(capsys):
+    from neuromotor import __version__
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"neuromotor {__version__}"
+
+
+@pytest.mark.parametrize("command", [["inspect"], ["idyn", "-o", "never.npz"], ["export-mjcf", "-o", "never.xml"]])
+def test_a_directory_as_the_clip_is_a_one_line_error(command, tmp_path, capsys):
+    argv = [command[0], str(tmp_path)] + command[1:]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and str(tmp_path) in err and "Is a directory" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("flags", [[], ["--json"]])  # a short table (flushed at exit) and a long one
+def test_output_closed_early_is_not_an_error(flags):
+    """`neuromotor inspect | head`: the reader goes away before the table is written."""
+    proc = subprocess.Popen([sys.executable, "-m", "neuromotor.cli", "inspect", *flags],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 0 and "Traceback" not in err and "BrokenPipe" not in err
+
+
+def test_metrics_json_is_strict_and_says_why_a_value_is_null():
+    out = json_safe({"peak_deviation_deg": 1.5, "recovery_time_s": math.nan, "diverged": False})
+    text = json.dumps(out, allow_nan=False)  # raises on NaN
+    back = json.loads(text)
+    assert back["recovery_time_s"] is None and back["peak_deviation_deg"] == 1.5
+    assert "recovery_threshold_deg" in back["null_reasons"]["recovery_time_s"]
+    assert "null_reasons" not in json_safe({"peak_deviation_deg": 1.5})
