@@ -11,6 +11,7 @@
     neuromotor demo [-o DIR]        # the main job: simulate the default hit, render it
     neuromotor bench [CLIP.bvh] [--plot PNG] [--json OUT]   # speed figures (docs/benchmarks.md)
     neuromotor export-mjcf [CLIP.bvh] -o MODEL.xml          # the same model for MuJoCo
+    neuromotor info RUN.npz [--json]   # provenance: version, clip SHA-256, resolved config, metrics
 
 Every command writes its outputs atomically and exits non-zero with a one-line message on bad
 input, leaving no partial file behind.
@@ -274,6 +275,61 @@ def cmd_bench(args) -> int:
     return run_from_args(args)
 
 
+def _flat(prefix: str, value, out: list) -> None:
+    """Nested JSON values as (dotted key, text) rows, lists of dicts numbered."""
+    if isinstance(value, dict):
+        if not value:
+            out.append((prefix, "{}"))
+        for k, v in value.items():
+            _flat(f"{prefix}.{k}" if prefix else str(k), v, out)
+    elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        for i, v in enumerate(value):
+            _flat(f"{prefix}[{i}]", v, out)
+    elif isinstance(value, list):
+        out.append((prefix, "[" + ", ".join(f"{v:.6g}" if isinstance(v, float) else json.dumps(v)
+                                            for v in value) + "]"))
+    elif isinstance(value, float):
+        out.append((prefix, f"{value:.6g}"))
+    else:
+        out.append((prefix, "null" if value is None else str(value)))
+
+
+def _strict_json(value):
+    """NaN and infinities as null, recursively (strict JSON)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _strict_json(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_strict_json(v) for v in value]
+    return value
+
+
+def cmd_info(args) -> int:
+    from .simulate import read_run_info
+
+    info = read_run_info(args.run)
+    if args.json:
+        print(json.dumps(_strict_json(info), indent=2, default=str))
+        return 0
+    print(f"run       {info['file']}")
+    for title, key in (("provenance", "provenance"), ("metrics", "metrics")):
+        print()
+        if info[key] is None:
+            print(f"{title}: not recorded (a run file from an older neuromotor)")
+            continue
+        print(f"{title}:")
+        rows: list = []
+        _flat("", info[key], rows)
+        width = max(len(k) for k, _ in rows) if rows else 0
+        for k, v in rows:
+            print(f"  {k.ljust(width)}  {v}")
+    print()
+    arrays = info["arrays"]
+    print(f"arrays: {len(arrays)} ({', '.join(f'{k} {tuple(v)}' for k, v in arrays.items() if k in ('time', 'theta'))}, ...)")
+    return 0
+
+
 def cmd_export_mjcf(args) -> int:
     from .mjcf import export_mjcf
 
@@ -295,6 +351,29 @@ def _units_arg(text: str):
     if not (value > 0 and value < float("inf")):
         raise argparse.ArgumentTypeError(f"must be auto, {', '.join(UNIT_CHOICES)} or a positive number, got {text!r}")
     return value
+
+
+def _number_arg(text: str, low: float, strict: bool, what: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and (value > low if strict else value >= low)):
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+    return value
+
+
+def _gain_arg(text: str) -> float:
+    """--ks/--kd: finite and >= 0 (a negative stiffness pushes away from the mocap)."""
+    return _number_arg(text, 0.0, False, "a finite number >= 0")
+
+
+def _positive_arg(text: str) -> float:
+    return _number_arg(text, 0.0, True, "a finite number > 0")
+
+
+def _nonneg_arg(text: str) -> float:
+    return _number_arg(text, 0.0, False, "a finite number >= 0")
 
 
 def _up_arg(text: str):
@@ -319,8 +398,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "in, cmu (CMU's 1/0.45 inch), ft, dm, or metres per file unit")
         sp.add_argument("--up-axis", default=d("auto"), type=_up_arg,
                         help="world up axis: auto (from the motion), 0 (X), 1 (Y) or 2 (Z); gravity along -up")
-        sp.add_argument("--stature", type=float, default=None, help="stature in metres (default: estimated)")
-        sp.add_argument("--body-mass", type=float, default=None, help="body mass in kg (default: BMI 22)")
+        sp.add_argument("--stature", type=_positive_arg, default=None, help="stature in metres (default: estimated)")
+        sp.add_argument("--body-mass", type=_positive_arg, default=None, help="body mass in kg (default: BMI 22)")
         sp.add_argument("--sex", choices=("average", "male", "female"), default=d("average"),
                         help="column of de Leva's segment table")
         sp.add_argument("--simulate-extremities", action="store_true", default=d(False),
@@ -343,8 +422,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("simulate", help="perturbed forward simulation (Eq. 2)")
     sp.add_argument("config", nargs="?", default=None)
     sp.add_argument("-o", "--output", required=True)
-    sp.add_argument("--ks", type=float)
-    sp.add_argument("--kd", type=float)
+    sp.add_argument("--ks", type=_gain_arg, help="stiffness gain, 1/s^2 (>= 0)")
+    sp.add_argument("--kd", type=_gain_arg, help="damping gain, 1/s (>= 0)")
     sp.add_argument("--clip", default=None, help="BVH file (overrides the config's clip)")
     body_args(sp, defaults=False)
     sp.add_argument("--json", action="store_true")
@@ -366,7 +445,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", help="folder (default: the config's sweep.output)")
     sp.add_argument("--chunk", type=int, help="runs per device call")
     sp.add_argument("--inner-batch", type=int, help="rollouts vmapped together inside each shard")
-    sp.add_argument("--fitted", type=float, nargs=2, metavar=("KS", "KD"), help="fitted pair to mark on the gains map")
+    sp.add_argument("--fitted", type=_gain_arg, nargs=2, metavar=("KS", "KD"), help="fitted pair to mark on the gains map")
     sp.add_argument("--fitted-json", help="JSON file with the fitted ks and kd")
     sp.add_argument("--no-progress", action="store_true")
     sp.set_defaults(func=cmd_sweep)
@@ -382,9 +461,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--solver", default=None, help="override fit.solver (optimistix_lm, optimistix_gn, "
                     "optimistix_bfgs, jaxopt_lm, jaxopt_lbfgs)")
     sp.add_argument("--no-progress", action="store_true")
-    sp.add_argument("--write-synthetic", nargs=2, type=float, metavar=("KS", "KD"),
+    sp.add_argument("--write-synthetic", nargs=2, type=_gain_arg, metavar=("KS", "KD"),
                     help="instead of fitting, simulate the config's target file at these gains")
-    sp.add_argument("--noise-deg", type=float, default=0.0)
+    sp.add_argument("--noise-deg", type=_nonneg_arg, default=0.0)
     sp.add_argument("--seed", type=int, default=0)
     sp.set_defaults(func=cmd_fit)
 
@@ -402,8 +481,13 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("export-mjcf", help="write the character as MuJoCo MJCF (hinges, position servos)")
     clip_args(sp)
     sp.add_argument("-o", "--output", required=True)
-    sp.add_argument("--timestep", type=float, default=1.0 / 120.0)
+    sp.add_argument("--timestep", type=_positive_arg, default=1.0 / 120.0, help="MuJoCo time step (s, > 0)")
     sp.set_defaults(func=cmd_export_mjcf)
+
+    sp = sub.add_parser("info", help="what made a run: version, clip and its SHA-256, resolved config, metrics")
+    sp.add_argument("run")
+    sp.add_argument("--json", action="store_true")
+    sp.set_defaults(func=cmd_info)
 
     sp = sub.add_parser("demo", help="main job: simulate the default hit on the embedded clip and render it")
     sp.add_argument("-o", "--output", default="out/demo")
@@ -411,16 +495,74 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _io_paths(args) -> tuple[list, list, list]:
+    """(inputs, output files, output folders) of a command, for :func:`outputs.check_outputs`.
+    Reads config files (cheap) but computes nothing."""
+    from .outputs import inputs_of_run
+
+    cmd, out = args.command, getattr(args, "output", None)
+    clip = getattr(args, "clip", None)
+    if cmd in ("idyn", "export-mjcf"):
+        return [clip], [out], []
+    if cmd == "simulate":
+        return [args.config, clip, _sim_config(args).clip], [out], []
+    if cmd in ("render", "plot"):
+        return [args.run], [out], []
+    if cmd == "export-bvh":
+        return [args.run, *inputs_of_run(args.run)], [out], []
+    if cmd == "bench":
+        return [clip, *args.idyn], [args.plot, args.json], []
+    if cmd == "demo":
+        d = pathlib.Path(out)
+        return [], [d / n for n in ("run.npz", "filmstrip.png", "video.mp4", "deviation.png")], [d]
+    if cmd == "sweep":
+        from .sweep import load_sweep_config
+
+        cfg, spec = load_sweep_config(args.config)
+        d = pathlib.Path(out or spec.output or pathlib.Path("out") / "sweep" / pathlib.Path(args.config).stem)
+        files = [d / n for n in ("sweep.csv", "sweep.png", "gains_map.png")]
+        return [args.config, cfg.clip, args.fitted_json], files, [d]
+    if cmd == "fit":
+        from .config import read_toml, simulation_config
+
+        path = pathlib.Path(args.config)
+        data = read_toml(path)
+        cfg = simulation_config(data, str(path), path.parent)
+        target = data.get("fit", {}).get("target", {}) if isinstance(data.get("fit"), dict) else {}
+        file = target.get("file") if isinstance(target, dict) else None
+        file = path.parent / file if isinstance(file, str) else None
+        if args.write_synthetic:
+            return [args.config, cfg.clip], [file], []
+        d = pathlib.Path(out)
+        return [args.config, cfg.clip, file], [d / "fit.json", d / "fit.png"], [d]
+    return [], [], []
+
+
+def _preflight(args) -> None:
+    """Before any computation: every output can be written and overwrites no input."""
+    from .outputs import check_outputs
+
+    inputs, files, folders = _io_paths(args)
+    check_outputs(files=files, folders=folders, inputs=inputs)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    from .atomic import cleanup_on_signals
     from .bvh import BvhError
     from .config import ConfigError
     from .dynamics import SimulationDiverged
 
     try:
-        status = args.func(args)
+        with cleanup_on_signals():  # SIGINT/SIGTERM remove the temporaries of unfinished outputs
+            _preflight(args)
+            status = args.func(args)
         sys.stdout.flush()  # a closed pipe shows here, not at exit
         return status
+    except KeyboardInterrupt:
+        print(f"neuromotor {args.command}: interrupted; no output written for the unfinished step",
+              file=sys.stderr)
+        return 130
     except BrokenPipeError:  # `neuromotor inspect | head`: the reader left, nothing is wrong
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0

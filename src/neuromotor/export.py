@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .bvh import read_bvh, write_bvh
+from .metrics import continuous_angles
 from .rotations import matrix_to_euler, quat_to_matrix
 from .simulate import load_character
 
@@ -61,13 +62,18 @@ def export_bvh(run_path, out_path) -> pathlib.Path:
     root = clip.joints[0]
     if root.name == model.joint_names[0]:
         _write_root(motion, root, np.asarray(jax.vmap(traj.q)(jnp.asarray(times))))
-    # ...and the simulated DOFs from the run.
-    theta = np.rad2deg(np.asarray(run["theta"]))
-    for i, name in enumerate(model.dof_names):
+    # ...and the simulated DOFs from the run, continuous in time and starting on the mocap's
+    # branch. RUN.npz files store them so already (run_arrays), and then they are written as
+    # they are: the exported angle minus RUN.npz theta is exactly 0.
+    columns = []
+    for name in model.dof_names:
         joint_name, channel = name.rsplit(".", 1)
         joint = clip.joints[clip.joint_index(joint_name)]
-        slot = joint.rotation_order.index(channel[0])
-        motion[:, joint.rotation_columns[slot]] = theta[:, i]
+        columns.append(joint.rotation_columns[joint.rotation_order.index(channel[0])])
+    if columns:
+        mocap = np.deg2rad(motion[:, columns])
+        theta = continuous_angles(np.asarray(run["theta"], dtype=np.float64), mocap)
+        motion[:, columns] = np.rad2deg(theta)
     step = float(times[1] - times[0]) if len(times) > 1 else clip.frame_time
     out = dataclasses.replace(clip, frame_time=step, motion=motion)
     write_bvh(out_path, out)

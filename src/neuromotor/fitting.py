@@ -171,13 +171,17 @@ class FitProblem(eqx.Module):
 
 
 def deviation_deg(theta, theta_ref, dofs=None) -> Float[Array, " T"]:
-    """:func:`neuromotor.metrics.deviation` with a derivative at zero deviation.
+    """:func:`neuromotor.metrics.deviation` (wrapped differences) with a derivative at zero deviation.
 
     Before the hit the perturbed and unperturbed runs are identical; d sqrt(u) = du / 2 sqrt(u)
     is then 0/0 and would put NaN in the Jacobian. Where u = 0 the derivative is taken as 0
     (the double-``where`` keeps the NaN out of the unselected branch too).
     """
-    diff = theta - theta_ref
+    return _rms_deg(mx.wrap_angle(theta - theta_ref), dofs)
+
+
+def _rms_deg(diff, dofs=None) -> Float[Array, " T"]:
+    """Zero-safe RMS over DOFs of ``diff`` (radians, or rad/s^2), scaled by 180/pi."""
     if dofs is not None:
         diff = diff[:, dofs]
     u = jnp.mean(diff**2, axis=-1)
@@ -197,7 +201,7 @@ def acceleration_deg(theta_dot, theta_dot_ref, h: float, dofs=None) -> Float[Arr
     """
     w = theta_dot - theta_dot_ref
     acc = (w[2:] - w[:-2]) / (2.0 * h)
-    inner = deviation_deg(acc, jnp.zeros_like(acc), dofs)
+    inner = _rms_deg(acc, dofs)  # a rate, not an angle: no wrapping
     return jnp.pad(inner, (1, 1))
 
 

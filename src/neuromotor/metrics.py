@@ -1,7 +1,8 @@
 """Recovery metrics of a perturbed rollout against its unperturbed twin.
 
-The deviation signal is ``d(t) = sqrt(mean_i (theta_i - theta_unperturbed_i)^2)`` in degrees
-over the simulated DOFs (or a chosen subset). From it:
+The deviation signal is ``d(t) = sqrt(mean_i wrap(theta_i - theta_unperturbed_i)^2)`` in
+degrees over the simulated DOFs (or a chosen subset), where ``wrap`` gives the shortest signed
+angle (a joint that turns by 356 degrees has moved by -4 degrees, not 356). From it:
 
 * peak deviation (deg) and its time (s);
 * recovery time (s): from the perturbation's start until d(t) falls below
@@ -25,16 +26,44 @@ RECOVERY_FRACTION = 0.2
 RECOVERY_FLOOR_DEG = 0.5
 
 
+def wrap_angle(a):
+    """The angle equal to ``a`` modulo 2 pi in [-pi, pi] (the shortest signed difference when
+    ``a`` is a difference of angles). ``atan2(sin a, cos a)``: smooth, with derivative 1
+    everywhere, so it can sit inside ``jacfwd``/``grad`` (fitting)."""
+    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
+
+
+def wrap_angle_np(a) -> np.ndarray:
+    """:func:`wrap_angle` in NumPy (no device round trip)."""
+    a = np.asarray(a, dtype=np.float64)
+    return np.arctan2(np.sin(a), np.cos(a))
+
+
+def continuous_angles(theta, reference=None) -> np.ndarray:
+    """(T, n) angles made continuous in time (``np.unwrap`` along axis 0), each column then
+    shifted by a whole number of turns so that its first sample is the branch nearest
+    ``reference[0]`` (e.g. the mocap's angles; default: the wrapped first sample)."""
+    theta = np.unwrap(np.asarray(theta, dtype=np.float64), axis=0)
+    if theta.shape[0] == 0:
+        return theta
+    first = theta[0]
+    target = wrap_angle_np(first) if reference is None else np.asarray(reference, dtype=np.float64)[0]
+    turns = np.round((first - target) / (2 * np.pi))
+    return theta - 2 * np.pi * turns
+
+
 def deviation(theta, theta_ref, dofs=None) -> Float[Array, " T"]:
-    """RMS over DOFs of the angle difference, degrees, per time sample."""
-    diff = theta - theta_ref
+    """RMS over DOFs of the wrapped (shortest) angle difference, degrees, per time sample."""
+    diff = wrap_angle(theta - theta_ref)
     if dofs is not None:
         diff = diff[:, jnp.asarray(dofs)]
     return jnp.rad2deg(jnp.sqrt(jnp.mean(diff**2, axis=-1)))
 
 
 def rms_error_deg(theta, theta_ref) -> float:
-    return float(np.rad2deg(np.sqrt(np.mean((np.asarray(theta) - np.asarray(theta_ref)) ** 2))))
+    """RMS of the wrapped angle differences over all samples and DOFs, degrees."""
+    diff = wrap_angle_np(np.asarray(theta) - np.asarray(theta_ref))
+    return float(np.rad2deg(np.sqrt(np.mean(diff ** 2))))
 
 
 def recovery_metrics(time, dev, start: float, fraction: float = RECOVERY_FRACTION,

@@ -239,12 +239,16 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
     pts = np.asarray(pert.points)
     origin = pts[:, 0, :] if pts.shape[1] else np.zeros_like(total)
     clip = setup.character.clip
+    # Continuous angles (no 2 pi jumps in time), on the mocap's branch at the start: what
+    # export-bvh writes and what a plot of theta against time should show.
+    theta_desired = np.asarray(setup.ref.theta)[: pert.time.shape[0]]
+    theta_base = mx.continuous_angles(np.asarray(base.theta), theta_desired)
     arrays = {
         "time": np.asarray(pert.time),
         "dof_names": np.array(model.dof_names),
-        "theta": np.asarray(pert.theta),
-        "theta_unperturbed": np.asarray(base.theta),
-        "theta_desired": np.asarray(setup.ref.theta)[: pert.time.shape[0]],
+        "theta": mx.continuous_angles(np.asarray(pert.theta), theta_base),
+        "theta_unperturbed": theta_base,
+        "theta_desired": theta_desired,
         "body_names": np.array(model.body_names),
         "body_pos": np.asarray(pert.states.pos),
         "body_quat": np.asarray(pert.states.quat),
@@ -264,6 +268,7 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
         "source_units": np.asarray(repr(float(clip.length_scale))),
         "clip_start": np.asarray(setup.config.start),
         "metrics_json": np.asarray(json.dumps(result.metrics)),
+        "provenance_json": np.asarray(json.dumps(provenance(setup), default=_json_default)),
     }
     # Body shapes for drawing: every body's polyhedron in its body frame less its COM, so that a
     # vertex v of body b is at body_pos[:, b] + R(body_quat[:, b]) @ v in the world.
@@ -306,6 +311,130 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
     if getattr(result, "ball", None) is not None:
         arrays.update(contact.ball_arrays(setup, result))
     return arrays
+
+
+def file_sha256(path) -> str:
+    """Hex SHA-256 of a file's bytes."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _json_default(obj):
+    if isinstance(obj, (np.ndarray, jax.Array)):
+        return np.asarray(obj).tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, pathlib.Path):
+        return str(obj)
+    return repr(obj)
+
+
+def _floats(a):
+    a = np.asarray(a, dtype=np.float64)
+    return a.tolist()
+
+
+def provenance(setup: Setup) -> dict:
+    """What made a run, as plain JSON values (RUN.npz ``provenance_json``): the package
+    version, the clip file and its SHA-256, and the fully resolved configuration (gains, step,
+    window, perturbations with their resolved body and point, units, up axis, stature, mass
+    options, ball)."""
+    from . import __version__
+
+    cfg, model, character = setup.config, setup.model, setup.character
+    clip = character.source
+    clip_path = pathlib.Path(clip.path).resolve()
+    anat = getattr(character, "anatomy", None)
+    p = setup.pulses
+    names = model.body_names
+    perts = []
+    for i, spec in enumerate(cfg.perturbations):
+        b = int(np.asarray(p.body)[i])
+        perts.append({
+            "kind": spec.get("kind", "force"),
+            "body_requested": spec.get("body"),
+            "body": names[b],
+            "body_index": b,
+            "point": _floats(np.asarray(p.point)[i]),
+            "point_given": spec.get("point") is not None,
+            "direction": _floats(np.asarray(p.direction)[i]),
+            "magnitude": float(np.asarray(p.magnitude)[i]),
+            "start": float(np.asarray(p.start)[i]),
+            "duration": float(np.asarray(p.duration)[i]),
+            "shape": p.shape[i],
+        })
+    ball = None
+    if setup.ball is not None:
+        b = setup.ball.ball
+        ball = {"config": cfg.ball}
+        ball.update({f.name: _floats(getattr(b, f.name)) for f in dataclasses.fields(b)})
+    elif cfg.ball:
+        ball = {"config": cfg.ball}
+    sim = setup.sim
+    return {
+        "neuromotor_version": __version__,
+        "jax_version": jax.__version__,
+        "config_source": cfg.source,
+        "clip": {
+            "path": str(clip_path),
+            "sha256": file_sha256(clip_path) if clip_path.is_file() else None,
+            "frames": int(clip.n_frames),
+            "frame_time": float(clip.frame_time),
+        },
+        "gains": {"ks": float(cfg.ks), "kd": float(cfg.kd), "tau_floor": float(cfg.tau_floor)},
+        "h": float(cfg.h),
+        "start": float(cfg.start),
+        "duration": float(sim.n_steps * cfg.h),
+        "n_steps": int(sim.n_steps),
+        "implicit": bool(cfg.implicit),
+        "stabilization_steps": int(cfg.stabilization_steps),
+        "driven_joints": [names[b] for b in sim.driven],
+        "perturbations": perts,
+        "ball": ball,
+        "units": {"requested": cfg.units, "resolved": getattr(anat, "units", None),
+                  "length_scale": float(character.clip.length_scale)},
+        "up_axis": {"requested": cfg.up_axis, "resolved": up_axis_of(model),
+                    "up": _floats(anat.up) if anat is not None else None},
+        "stature": {"requested": cfg.stature,
+                    "resolved": float(anat.stature) if anat is not None else None},
+        "body_mass": {"requested": cfg.body_mass, "total": float(np.sum(np.asarray(model.mass)))},
+        "sex": cfg.sex,
+        "simulate_extremities": bool(cfg.simulate_extremities),
+        "n_bodies": int(model.n_bodies),
+        "n_dofs": int(model.n_dofs),
+    }
+
+
+def read_run_info(path) -> dict:
+    """Provenance, metrics and array shapes of a RUN.npz; ValueError naming the file when it
+    is not one (unreadable, not an .npz, no ``time``/``theta``, malformed JSON)."""
+    path = pathlib.Path(path)
+    if not path.exists():
+        raise ValueError(f"{path}: no such file")
+    if path.is_dir():
+        raise ValueError(f"{path}: is a directory, not a run file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            shapes = {k: list(data[k].shape) for k in data.files}
+            text = {k: str(data[k]) for k in ("provenance_json", "metrics_json") if k in data.files}
+    except Exception as e:  # zip, pickle, truncation errors all mean the same to the user
+        raise ValueError(f"{path}: not a readable .npz run file ({type(e).__name__}: {e})") from None
+    missing = [k for k in ("time", "theta") if k not in shapes]
+    if missing:
+        raise ValueError(f"{path}: not a neuromotor run file (no {', '.join(missing)} array)")
+    out = {"file": str(path), "provenance": None, "metrics": None, "arrays": shapes}
+    for key, field in (("provenance_json", "provenance"), ("metrics_json", "metrics")):
+        if key in text:
+            try:
+                out[field] = json.loads(text[key])
+            except json.JSONDecodeError as e:
+                raise ValueError(f"{path}: {key} is not valid JSON ({e})") from None
+    return out
 
 
 def save_npz_atomic(path, arrays: dict) -> pathlib.Path:
