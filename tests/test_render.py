@@ -256,7 +256,7 @@ def test_filmstrip_synthetic(synth, tmp_path):
     times = scene.time[scene.index_at(scene.filmstrip_times(5))]
     assert times[0] < HIT_START < times[1] and times[-1] > HIT_START + 0.3
     _check_filmstrip(out, 5, times, HIT_START)
-    assert not list(tmp_path.glob(".film-*"))                  # no temporary left behind
+    assert not list(tmp_path.glob(".film*"))                   # no temporary left behind
 
 
 def test_filmstrip_draws_force_arrow(synth, tmp_path):
@@ -369,7 +369,7 @@ def test_bad_inputs(tmp_path, synth):
     with pytest.raises(RenderError, match="theta_desired"):
         plot_run(npz, tmp_path / "p.png")
     assert not (tmp_path / "o.png").exists() and not (tmp_path / "p.png").exists()
-    assert not list(tmp_path.glob(".o-*")) and not list(tmp_path.glob(".p-*"))
+    assert not list(tmp_path.glob(".o.*")) and not list(tmp_path.glob(".p.*"))
 
 
 def test_cli_plot_and_render(synth, tmp_path, capsys):

@@ -45,7 +45,7 @@ def is_temporary(name: str) -> bool:
 
 
 def temporary_prefix_suffix(out: pathlib.Path) -> tuple[str, str]:
-    return f".{out.name}.{TAG}-{os.getpid()}-", ".tmp" + out.suffix
+    return f".{out.name[:100]}.{TAG}-{os.getpid()}-", ".tmp" + out.suffix[:20]  # within NAME_MAX
 
 
 def live_temporaries() -> list[str]:
@@ -160,18 +160,6 @@ def _restore_handlers() -> None:
             _previous.clear()
 
 
-@contextlib.contextmanager
-def cleanup_on_signals() -> Iterator[None]:
-    """Keep the signal handlers that remove live temporaries installed for the whole block (the
-    command line holds them for a whole command; :func:`atomic_path` installs them itself)."""
-    installed = _install_handlers()
-    try:
-        yield
-    finally:
-        if installed:
-            _restore_handlers()
-
-
 def _renamed(e: OSError, tmp: str, out: pathlib.Path) -> OSError:
     """``e`` naming the target instead of the hidden temporary."""
     if e.filename is not None and os.path.abspath(os.fspath(e.filename)) == tmp:
@@ -218,12 +206,14 @@ def _signals_blocked(active: bool) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def atomic_path(out_path) -> Iterator[pathlib.Path]:
+def atomic_path(out_path, make_parents: bool = True) -> Iterator[pathlib.Path]:
     """Yield a temporary path beside ``out_path`` (same suffix); rename it onto ``out_path``
     when the block succeeds, delete it when it raises or the process is interrupted. Missing
-    parent folders are created. Errors name ``out_path``, never the temporary."""
+    parent folders are created (unless ``make_parents`` is false: then a missing folder is an
+    ``OSError``). Errors name ``out_path``, never the temporary."""
     out = pathlib.Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    if make_parents:
+        out.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(out.parent)
     prefix, suffix = temporary_prefix_suffix(out)
     installed = _install_handlers()

@@ -48,7 +48,6 @@ import dataclasses
 import math
 import os
 import re
-import tempfile
 from typing import Callable, NoReturn
 
 import numpy as np
@@ -710,25 +709,13 @@ def _format_bvh(clip: BvhClip, motion: np.ndarray, precision: int) -> str:
 
 
 def _atomic_write(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to a temp file beside ``path`` and rename it over ``path``."""
-    target = os.path.abspath(os.fspath(path))
-    directory, base = os.path.split(target)
-    fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        # mkstemp makes 0600 files; keep an existing file's mode, else the usual 0644.
-        mode = os.stat(target).st_mode & 0o7777 if os.path.exists(target) else 0o644
-        os.chmod(tmp, mode)
-        os.replace(tmp, target)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    """Write ``data`` to a temp file beside ``path`` and rename it over ``path`` (see
+    :func:`neuromotor.atomic.atomic_path`: an existing file's mode is kept, signals clean up;
+    the folder must exist)."""
+    from .atomic import atomic_path
+
+    with atomic_path(path, make_parents=False) as tmp:
+        tmp.write_bytes(data)
 
 
 def write_bvh(path: str | os.PathLike, clip: BvhClip, motion: np.ndarray | None = None,

@@ -14,7 +14,9 @@
     neuromotor info RUN.npz [--json]   # provenance: version, clip SHA-256, resolved config, metrics
 
 Every command writes its outputs atomically and exits non-zero with a one-line message on bad
-input, leaving no partial file behind.
+input, leaving no partial file behind. Outputs are checked before any computation: one that is
+an input of the command, an existing directory (for a file), under a regular file, or in a folder
+that cannot be written is refused with exit status 2.
 """
 
 from __future__ import annotations
@@ -384,10 +386,17 @@ def _up_arg(text: str):
     raise argparse.ArgumentTypeError(f"must be auto, 0, 1 or 2, got {text!r}")
 
 
+class _Parser(argparse.ArgumentParser):
+    """Argument errors as one line (``neuromotor simulate: error: argument --ks: ...``), exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
 
-    p = argparse.ArgumentParser(prog="neuromotor", description=__doc__.split("\n")[0])
+    p = _Parser(prog="neuromotor", description=__doc__.split("\n")[0])
     p.add_argument("--version", action="version", version=f"neuromotor {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -548,20 +557,21 @@ def _preflight(args) -> None:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from .atomic import cleanup_on_signals
+    from .compiler import enable_compile_cache
+
+    if args.command != "bench":  # bench reports compile times: it compiles for real
+        enable_compile_cache()  # persistent XLA cache: a second `simulate` loads instead of compiling
     from .bvh import BvhError
     from .config import ConfigError
     from .dynamics import SimulationDiverged
 
     try:
-        with cleanup_on_signals():  # SIGINT/SIGTERM remove the temporaries of unfinished outputs
-            _preflight(args)
-            status = args.func(args)
+        _preflight(args)  # SIGINT/SIGTERM while an output is being written: atomic.atomic_path
+        status = args.func(args)
         sys.stdout.flush()  # a closed pipe shows here, not at exit
         return status
     except KeyboardInterrupt:
-        print(f"neuromotor {args.command}: interrupted; no output written for the unfinished step",
-              file=sys.stderr)
+        print(f"neuromotor {args.command}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # `neuromotor inspect | head`: the reader left, nothing is wrong
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -65,3 +65,56 @@ def jit(fun, **kwargs):
     """``jax.jit`` with :func:`compiler_options` on the CPU (a drop-in for the rollout programs:
     call it, or ``.lower(...).compile()`` it)."""
     return _TunedJit(fun, kwargs)
+
+
+# --- Persistent compilation cache (the CLI turns it on; importing the package does not) ---
+
+_OFF = ("off", "0", "none", "false", "no", "")
+
+
+def cache_dir() -> "pathlib.Path | None":
+    """Folder of the persistent compilation cache for the CLI, or None when disabled.
+
+    ``NEUROMOTOR_CACHE_DIR`` (``off`` disables), else ``$XDG_CACHE_HOME/neuromotor/jax``, else
+    ``~/.cache/neuromotor/jax``. (A cache folder already given to JAX, by
+    ``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``, is left as it is: see
+    :func:`enable_compile_cache`.)"""
+    import pathlib
+
+    env = os.environ.get("NEUROMOTOR_CACHE_DIR")
+    if env is not None:
+        return None if env.strip().lower() in _OFF else pathlib.Path(env).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return pathlib.Path(base) / "neuromotor" / "jax"
+
+
+def enable_compile_cache(min_compile_time_s: float = 0.0) -> "str | None":
+    """Turn on JAX's persistent compilation cache so that a second ``neuromotor simulate`` loads
+    its programs instead of compiling them again (JAX keys entries by program, backend, compiler
+    options and versions, and writes them atomically, so concurrent runs share it safely).
+
+    Returns the folder in use, or None. ``NEUROMOTOR_CACHE_DIR=off`` disables it; an already set
+    ``JAX_COMPILATION_CACHE_DIR`` (or ``jax_compilation_cache_dir``) is respected. A folder that
+    cannot be created leaves the cache off (compiling as before) rather than failing. Every
+    program is cached (``min_compile_time_s`` 0): the hundred small ones of a run add up to a
+    few seconds (measured: second ``simulate`` 12.6 s with a 0.5 s threshold, 9.4 s with 0).
+    What remains of a warm start is Python tracing, which no cache skips."""
+    env = os.environ.get("NEUROMOTOR_CACHE_DIR")
+    if env is not None and env.strip().lower() in _OFF:
+        return None
+    current = jax.config.jax_compilation_cache_dir or os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if current:
+        if not jax.config.jax_compilation_cache_dir:
+            jax.config.update("jax_compilation_cache_dir", current)
+        return str(current)
+    path = cache_dir()
+    if path is None:
+        return None
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
+    return str(path)

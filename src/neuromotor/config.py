@@ -110,15 +110,29 @@ DEFAULT_HIT = {
 
 
 def read_toml(path) -> dict:
+    """The TOML table of a config file; an unreadable, binary, empty or comment-only file is a
+    :class:`ConfigError` naming the file (an empty config would silently run the defaults)."""
     path = pathlib.Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        raw = path.read_bytes()
     except OSError as e:
         raise ConfigError(f"{path}: cannot read config: {e.strerror}") from None
     try:
-        return tomllib.loads(text)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a text (UTF-8 TOML) config: byte 0x{raw[e.start]:02x} at offset "
+                          f"{e.start}") from None
+    if "\x00" in text:
+        raise ConfigError(f"{path}: not a text (TOML) config: NUL byte at offset {text.index(chr(0))}")
+    if not text.strip():
+        raise ConfigError(f"{path}: config is empty")
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: invalid TOML: {e}") from None
+    if not data:
+        raise ConfigError(f"{path}: config has no settings (only comments)")
+    return data
 
 
 class _Fields:

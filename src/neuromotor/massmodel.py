@@ -407,7 +407,7 @@ def plan_bodies(clip: BvhClip, anatomy: Anatomy, offsets: np.ndarray, *, body_ma
     target: dict[tuple[str, str], float] = {}
     for seg, frac in fractions.items():
         for side in (("left", "right") if seg not in ("trunk", "head") else ("",)):
-            share = frac * total * (1.0 if side else 1.0)
+            share = frac * total
             key = (seg, side)
             while key not in groups:  # the rig lacks this segment: its parent segment carries it
                 parent = _FALLBACK.get(key[0])

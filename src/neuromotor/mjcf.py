@@ -52,7 +52,13 @@ def model_to_mjcf(
     kv: float = 10.0,
     name: str | None = None,
 ) -> str:
-    """MJCF XML text of the character (see the module docstring for the conventions)."""
+    """MJCF XML text of the character (see the module docstring for the conventions).
+    ``timestep`` must be a finite number of seconds > 0, ``kp`` and ``kv`` finite and >= 0."""
+    for key, value, low in (("timestep", timestep, None), ("kp", kp, 0.0), ("kv", kv, 0.0)):
+        ok = (not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+              and np.isfinite(value) and (value > 0 if low is None else value >= low))
+        if not ok:
+            raise ValueError(f"MJCF {key} must be a finite number {'> 0' if low is None else '>= 0'}, got {value!r}")
     model = character.model
     joint_names = model.joint_names
     mass = np.asarray(model.mass, dtype=np.float64)

@@ -19,7 +19,7 @@ import numpy as np
 from . import compiler, contact
 from . import metrics as mx
 from .atomic import atomic_path
-from .bvh import BvhClip, read_bvh
+from .bvh import BvhClip
 from .config import ConfigError, SimulationConfig
 from .control import Gains, make_gains
 from .dynamics import Reference, Rollout, SimConfig, check_rollout, make_reference, rollout
@@ -110,6 +110,22 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     n_steps = int(round(duration / config.h))
     if n_steps < 1:
         raise ConfigError(f"{config.source}: sim.duration is shorter than one step")
+    # A perturbation (or ball launch) that never acts inside the simulated window [t0, t1) would
+    # give a run of zeros ('peak 0.00 deg') that looks like a result: refuse it, naming the field.
+    t0, t1 = config.start, config.start + n_steps * config.h
+    window = f"the simulated window {t0:.3f} to {t1:.3f} s (the clip ends at {clip.duration:.3f} s)"
+    for i, p in enumerate(config.perturbations):
+        p_start, impulse = float(p.get("start", 0.5)), p.get("kind") == "impulse"
+        p_end = p_start + (0.5 * config.h if impulse else float(p.get("duration", 0.1)))  # impulse: centred
+        if p_start >= t1 - 1e-9:
+            raise ConfigError(f"{config.source}: field 'perturbation[{i}].start' = {p_start:g} s is at or "
+                              f"after the end of {window}")
+        if p_end <= t0:
+            raise ConfigError(f"{config.source}: field 'perturbation[{i}].start' = {p_start:g} s: the "
+                              f"perturbation is over before {window} begins")
+    if config.ball is not None and float(config.ball.get("launch", 0.0)) >= t1 - 1e-9:
+        raise ConfigError(f"{config.source}: field 'ball.launch' = {float(config.ball['launch']):g} s is at "
+                          f"or after the end of {window}")
     index = body_lookup(model, config.source, character)
     driven = []
     for name in config.driven_joints:
