@@ -47,3 +47,17 @@ def test_metrics_json_is_strict_and_says_why_a_value_is_null():
     assert back["recovery_time_s"] is None and back["peak_deviation_deg"] == 1.5
     assert "recovery_threshold_deg" in back["null_reasons"]["recovery_time_s"]
     assert "null_reasons" not in json_safe({"peak_deviation_deg": 1.5})
+
+
+def test_every_option_says_what_it_means():
+    """Every positional and option of every command has a help text (meaning and units)."""
+    import argparse
+
+    from neuromotor.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    missing = [f"{name} {'/'.join(a.option_strings) or a.dest}"
+               for name, sp in sub.choices.items() for a in sp._actions
+               if not isinstance(a, argparse._HelpAction) and not (a.help and a.help.strip())]
+    assert not missing, missing

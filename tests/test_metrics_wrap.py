@@ -99,3 +99,74 @@ def test_continuous_angles():
     np.testing.assert_allclose(shifted, pert, atol=1e-12)
     # Already continuous and on the branch: returned exactly.
     assert np.array_equal(mx.continuous_angles(pert, base), pert)
+
+
+# --- Fit convergence in the loss (issue 16, item 6) --------------------------------------------
+
+from neuromotor import fitting
+
+
+def test_loss_is_flat_rule():
+    assert fitting.loss_is_flat([5.0, 2.0, 1.0, 1.0 + 1e-10, 1.0 + 2e-10, 1.0 + 2.5e-10])
+    assert not fitting.loss_is_flat([5.0, 2.0, 1.0, 1.0 + 1e-10, 1.0 + 2e-10, 1.0 + 1e-6])
+    assert not fitting.loss_is_flat([1.0, 1.0, 1.0])  # fewer than 3 changes
+    assert not fitting.loss_is_flat([1.0, 1.0, 1.0, 0.999])  # last change 1e-3
+    assert not fitting.loss_is_flat([1.0, 0.99, 0.99, 0.99, float("nan")])
+    assert fitting.loss_is_flat([0.0, 0.0, 0.0, 0.0])
+
+
+class _LinearEvaluator:
+    """What :func:`fitting.fit` needs of a ResponseEvaluator, for y = A x (no rollouts)."""
+
+    jacobian = "forward"
+
+    def __init__(self):
+        import collections
+
+        self.A = np.array([[1.0, 0.5], [0.2, 1.0], [0.3, 0.3]])
+        self._cache = collections.OrderedDict()
+        self.n_evals, self.diverged_evals = 0, []
+
+    def __call__(self, x):
+        x = np.asarray(x, np.float64).reshape(2)
+        ev = fitting.Evaluation(x.copy(), self.A @ x, self.A.copy(), np.zeros((1, 1, 1)), np.array([-1]))
+        self._cache[x.tobytes()] = ev
+        self.n_evals += 1
+        return ev
+
+
+def _fake_solver(path):
+    """A run_solver stand-in that walks ``path`` and stops at the step limit, unconverged."""
+    def run_solver(name, residual, x0, m, opts, on_iter):
+        for k, x in enumerate(path[: opts.max_steps], start=1):
+            _EVAL(x)
+            on_iter(k, np.asarray(x))
+        return np.asarray(path[opts.max_steps - 1]), opts.max_steps, False, "maximum number of steps reached"
+    return run_solver
+
+
+_EVAL = None
+
+
+@pytest.mark.parametrize("flat", [True, False])
+def test_fit_converged_in_loss_is_a_success(monkeypatch, flat):
+    global _EVAL
+    ev = _LinearEvaluator()
+    _EVAL = ev
+    x_true = np.array([0.3, -0.2])
+    target = ev.A @ x_true + np.array([0.1, -0.1, 0.2])  # no exact fit: the best loss is > 0
+    n = 8
+    if flat:  # approaches x_true, the last iterates move by round-off-sized amounts only
+        path = [x_true + 0.5 ** k * np.array([1.0, 1.0]) if k < 4 else x_true + 1e-9 * (k % 2) for k in range(n)]
+    else:  # still descending at the step limit
+        path = [x_true + 0.7 ** k * np.array([1.0, 1.0]) for k in range(n)]
+    monkeypatch.setattr(fitting, "run_solver", _fake_solver(path))
+    opts = fitting.SolverOptions(max_steps=n)
+    res = fitting.fit(ev, target, np.ones(3), np.array([1.0, 1.0]), options=opts, progress=False,
+                      residual=lambda x: ev.A @ x - target)
+    if flat:
+        assert res.status == "converged (loss flat)" and res.converged
+        assert "loss flat" in res.message
+    else:
+        assert res.status == "max_steps" and not res.converged
+        assert "did not converge" in res.message

@@ -148,3 +148,63 @@ def test_info_bad_file_is_one_line_exit_2(kind, tmp_path, capsys):
     assert cli.main(["info", str(path)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(path) in err and err.startswith("neuromotor info: error:")
+
+
+def _cfg(dotted) -> str:
+    path = dotted["dir"] / "short.toml"
+    path.write_text(f'''clip = {json.dumps(str(dotted["clip"]))}
+[sim]
+duration = 0.3
+[[perturbation]]
+kind = "force"
+body = "chest"
+direction = [0.0, 0.0, 1.0]
+magnitude = 150.0
+start = 0.1
+duration = 0.1
+shape = "half_sine"
+''')
+    return str(path)
+
+
+def test_cli_simulate_progress_lines_and_quiet(dotted, capsys, monkeypatch):
+    monkeypatch.setenv("NEUROMOTOR_PROGRESS", "1")  # as on a terminal
+    out = dotted["dir"] / "cli_run.npz"
+    assert cli.main(["simulate", _cfg(dotted), "-o", str(out)]) == 0
+    err = capsys.readouterr().err.splitlines()
+    stages = [line for line in err if line.startswith("neuromotor simulate: [")]
+    assert len(stages) == 4
+    for word, line in zip(("loading clip", "inverse dynamics", "simulating 36 steps", "writing"), stages):
+        assert word in line
+    # Same run as the Python API, and the provenance names the config file.
+    arrays = np.load(out)
+    np.testing.assert_allclose(arrays["theta"], dotted["arrays"]["theta"], atol=1e-12)
+    assert json.loads(str(arrays["provenance_json"]))["config_source"].endswith("short.toml")
+    assert cli.main(["simulate", _cfg(dotted), "-o", str(out), "--quiet"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_cli_idyn_and_render_progress(dotted, capsys, monkeypatch):
+    monkeypatch.setenv("NEUROMOTOR_PROGRESS", "1")  # as on a terminal
+    out = dotted["dir"] / "idyn.npz"
+    assert cli.main(["idyn", str(dotted["clip"]), "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("neuromotor idyn: [") == 3 and "inverse dynamics of 40 frames" in err
+    assert cli.main(["idyn", str(dotted["clip"]), "-o", str(out), "--quiet"]) == 0
+    assert capsys.readouterr().err == ""
+    png = dotted["dir"] / "strip.png"
+    assert cli.main(["render", str(dotted["npz"]), "-o", str(png), "--frames", "3"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("neuromotor render: [") == 3 and "3-panel filmstrip" in err and png.exists()
+    assert cli.main(["render", str(dotted["npz"]), "-o", str(png), "--frames", "3", "--quiet"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_progress_lines_not_in_captured_stderr_by_default(dotted, capsys, monkeypatch):
+    """Not a terminal (a script, CI): stderr keeps only warnings and errors (a failing command's
+    stderr stays one line)."""
+    monkeypatch.delenv("NEUROMOTOR_PROGRESS", raising=False)
+    assert cli.main(["idyn", str(dotted["clip"]), "-o", str(dotted["dir"] / "i2.npz")]) == 0
+    assert capsys.readouterr().err == ""
+    assert cli.main(["idyn", str(dotted["dir"]), "-o", str(dotted["dir"] / "i3.npz")]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1

@@ -142,17 +142,46 @@ def cmd_inspect(args) -> int:
     return 0
 
 
+class _Stages:
+    """One stderr line as each stage of a long command begins, with the seconds since the
+    command started (``neuromotor simulate: [3.1 s] simulating ...``). Shown when stderr is a
+    terminal (or ``NEUROMOTOR_PROGRESS=1``), so that captured stderr of a failing command stays
+    its one error line; never with --quiet."""
+
+    def __init__(self, command: str, quiet: bool = False):
+        import time
+
+        shown = os.environ.get("NEUROMOTOR_PROGRESS", "").strip().lower()
+        if shown in ("1", "true", "yes", "on"):
+            tty = True
+        elif shown in ("0", "false", "no", "off"):
+            tty = False
+        else:
+            tty = bool(getattr(sys.stderr, "isatty", lambda: False)())
+        self._clock, self.command, self.quiet = time.perf_counter, command, bool(quiet) or not tty
+        self._t0 = self._clock()
+
+    def __call__(self, text: str) -> None:
+        if not self.quiet:
+            print(f"neuromotor {self.command}: [{self._clock() - self._t0:5.1f} s] {text}", file=sys.stderr,
+                  flush=True)
+
+
 def cmd_idyn(args) -> int:
     from .inverse import idyn_arrays
     from .simulate import save_npz_atomic
 
+    stage = _Stages("idyn", getattr(args, "quiet", False))
+    stage(f"loading clip {args.clip or '(embedded default)'}")
     character, traj = _load(args)
     for line in character.warnings:
         print(f"neuromotor idyn: warning: {line}", file=sys.stderr)
     clip = character.clip
     times = np.arange(clip.n_frames) * clip.frame_time
+    stage(f"inverse dynamics of {len(times)} frames (compiling on first use)")
     arrays = idyn_arrays(character.model, traj, times)
     arrays["joint_names"] = np.array(character.model.joint_names)
+    stage(f"writing {args.output}")
     save_npz_atomic(args.output, arrays)
     print(f"wrote {args.output}: {len(times)} frames, {len(arrays['dof_names'])} DOFs, "
           f"max Eq. 3 residual {arrays['kkt_residual'].max():.2e}")
@@ -182,12 +211,20 @@ def _sim_config(args):
 
 
 def cmd_simulate(args) -> int:
-    from .simulate import prepare, run, run_arrays, save_npz_atomic
+    from .simulate import load_character, prepare, run, run_arrays, save_npz_atomic
 
-    setup = prepare(_sim_config(args))
+    stage = _Stages("simulate", getattr(args, "quiet", False))
+    cfg = _sim_config(args)
+    stage(f"loading clip {cfg.clip or '(embedded default)'}")
+    character, traj = load_character(cfg.clip, cfg.units, cfg.up_axis, cfg.stature, cfg.mass_options())
+    stage("inverse dynamics of the reference motion (compiling on first use)")
+    setup = prepare(cfg, character, traj)
     for line in setup.warnings:
         print(f"neuromotor simulate: warning: {line}", file=sys.stderr)
+    stage(f"simulating {setup.sim.n_steps} steps of {setup.sim.h * 1000:.2f} ms, perturbed and unperturbed "
+          "(compiling on first use)")
     result = run(setup)
+    stage(f"writing {args.output}")
     save_npz_atomic(args.output, run_arrays(setup, result))
     if args.json:
         print(json.dumps(json_safe(result.metrics), indent=2))
@@ -202,7 +239,9 @@ def cmd_simulate(args) -> int:
 def cmd_render(args) -> int:
     from .render import render_run
 
-    render_run(args.run, args.output, frames=args.frames)
+    quiet = getattr(args, "quiet", False)
+    render_run(args.run, args.output, frames=args.frames, progress=not quiet,
+               stage=_Stages("render", quiet))
     print(f"wrote {args.output}")
     return 0
 
@@ -245,6 +284,8 @@ def cmd_fit(args) -> int:
     if not res.converged:
         print(f"neuromotor fit: error: {res.status}: {res.message}", file=sys.stderr)
         return 3
+    if res.status != "converged":  # converged (loss flat): a success, said so
+        print(f"neuromotor fit: {res.message}", file=sys.stderr)
     return 0
 
 
@@ -393,6 +434,16 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def _count_arg(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
 
@@ -420,67 +471,73 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("inspect", help="bodies, masses, DOFs of a clip")
     clip_args(sp)
-    sp.add_argument("--json", action="store_true")
+    sp.add_argument("--json", action="store_true", help="print the model as JSON (README: file contracts)")
     sp.set_defaults(func=cmd_inspect)
 
     sp = sub.add_parser("idyn", help="inverse dynamics (Eq. 3) on every frame")
     clip_args(sp)
-    sp.add_argument("-o", "--output", required=True)
+    sp.add_argument("-o", "--output", required=True, help="NPZ file of joint angles, torques (N m), root wrench")
+    sp.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     sp.set_defaults(func=cmd_idyn)
 
     sp = sub.add_parser("simulate", help="perturbed forward simulation (Eq. 2)")
-    sp.add_argument("config", nargs="?", default=None)
-    sp.add_argument("-o", "--output", required=True)
+    sp.add_argument("config", nargs="?", default=None,
+                    help="TOML config (default: the embedded clip and a 400 N chest push)")
+    sp.add_argument("-o", "--output", required=True, help="RUN.npz: the perturbed and unperturbed runs")
     sp.add_argument("--ks", type=_gain_arg, help="stiffness gain, 1/s^2 (>= 0)")
     sp.add_argument("--kd", type=_gain_arg, help="damping gain, 1/s (>= 0)")
     sp.add_argument("--clip", default=None, help="BVH file (overrides the config's clip)")
     body_args(sp, defaults=False)
-    sp.add_argument("--json", action="store_true")
+    sp.add_argument("--json", action="store_true", help="print the recovery metrics as JSON (deg, s)")
+    sp.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     sp.set_defaults(func=cmd_simulate)
 
     sp = sub.add_parser("render", help="filmstrip PNG or MP4/GIF of a run")
-    sp.add_argument("run")
-    sp.add_argument("-o", "--output", required=True)
-    sp.add_argument("--frames", type=int, default=6)
+    sp.add_argument("run", help="RUN.npz written by simulate")
+    sp.add_argument("-o", "--output", required=True, help="PNG (filmstrip), MP4 or GIF (side-by-side video)")
+    sp.add_argument("--frames", type=_count_arg, default=6, help="panels of the filmstrip per row")
+    sp.add_argument("--quiet", action="store_true", help="no progress lines or bar on stderr")
     sp.set_defaults(func=cmd_render)
 
     sp = sub.add_parser("plot", help="PNG plots of a run: deviation and joint angles vs time")
-    sp.add_argument("run")
-    sp.add_argument("-o", "--output", required=True)
+    sp.add_argument("run", help="RUN.npz written by simulate")
+    sp.add_argument("-o", "--output", required=True, help="PNG of the deviation (deg) and joint angles against time (s)")
     sp.set_defaults(func=cmd_plot)
 
     sp = sub.add_parser("sweep", help="batch grid of perturbed runs (sharded over devices) -> CSV + plots")
-    sp.add_argument("config")
+    sp.add_argument("config", help="TOML config with a [sweep] table")
     sp.add_argument("-o", "--output", help="folder (default: the config's sweep.output)")
-    sp.add_argument("--chunk", type=int, help="runs per device call")
-    sp.add_argument("--inner-batch", type=int, help="rollouts vmapped together inside each shard")
+    sp.add_argument("--chunk", type=_count_arg, help="runs per device call")
+    sp.add_argument("--inner-batch", type=_count_arg, help="rollouts vmapped together inside each shard")
     sp.add_argument("--fitted", type=_gain_arg, nargs=2, metavar=("KS", "KD"), help="fitted pair to mark on the gains map")
     sp.add_argument("--fitted-json", help="JSON file with the fitted ks and kd")
-    sp.add_argument("--no-progress", action="store_true")
+    sp.add_argument("--no-progress", action="store_true", help="no progress bar")
     sp.set_defaults(func=cmd_sweep)
 
     sp = sub.add_parser("export-bvh", help="write the perturbed motion as BVH")
-    sp.add_argument("run")
-    sp.add_argument("-o", "--output", required=True)
+    sp.add_argument("run", help="RUN.npz written by simulate")
+    sp.add_argument("-o", "--output", required=True, help="BVH in the source clip's skeleton, channel orders and units")
     sp.set_defaults(func=cmd_export_bvh)
 
     sp = sub.add_parser("fit", help="calibrate the gain pair (ks, kd) to a target response -> fit.json + fit.png")
-    sp.add_argument("config")
-    sp.add_argument("-o", "--output", default="out/fit")
+    sp.add_argument("config", help="TOML config with a [fit] table")
+    sp.add_argument("-o", "--output", default="out/fit", help="folder for fit.json and fit.png")
     sp.add_argument("--solver", default=None, help="override fit.solver (optimistix_lm, optimistix_gn, "
                     "optimistix_bfgs, jaxopt_lm, jaxopt_lbfgs)")
-    sp.add_argument("--no-progress", action="store_true")
+    sp.add_argument("--no-progress", action="store_true", help="no progress bar")
     sp.add_argument("--write-synthetic", nargs=2, type=_gain_arg, metavar=("KS", "KD"),
                     help="instead of fitting, simulate the config's target file at these gains")
-    sp.add_argument("--noise-deg", type=_nonneg_arg, default=0.0)
-    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--noise-deg", type=_nonneg_arg, default=0.0,
+                    help="with --write-synthetic: Gaussian noise added to the target angles (deg)")
+    sp.add_argument("--seed", type=int, default=0, help="with --write-synthetic: random seed of the noise")
     sp.set_defaults(func=cmd_fit)
 
     sp = sub.add_parser("bench", help="speed: steps/s, real-time factor, batch throughput, vs MuJoCo")
     sp.add_argument("clip", nargs="?", default=None, help="BVH clip (default: the embedded 19-joint clip)")
-    sp.add_argument("--solver", choices=("nullspace", "tree", "dense"), default="nullspace")
-    sp.add_argument("--sizes", type=int, nargs="+", default=[1, 8, 64, 256], help="vmap batch sizes")
-    sp.add_argument("--repeats", type=int, default=5, help="timed repeats; the best is reported")
+    sp.add_argument("--solver", choices=("nullspace", "tree", "dense"), default="nullspace",
+                    help="KKT solver of Eq. 2 to time")
+    sp.add_argument("--sizes", type=_count_arg, nargs="+", default=[1, 8, 64, 256], help="vmap batch sizes")
+    sp.add_argument("--repeats", type=_count_arg, default=5, help="timed repeats; the best is reported")
     sp.add_argument("--idyn", nargs="*", default=[], help="clips for the inverse-dynamics figure")
     sp.add_argument("--plot", default=None, help="PNG of throughput against batch size")
     sp.add_argument("--json", default=None, help="write all figures as JSON")
@@ -489,17 +546,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("export-mjcf", help="write the character as MuJoCo MJCF (hinges, position servos)")
     clip_args(sp)
-    sp.add_argument("-o", "--output", required=True)
+    sp.add_argument("-o", "--output", required=True, help="MJCF XML file")
     sp.add_argument("--timestep", type=_positive_arg, default=1.0 / 120.0, help="MuJoCo time step (s, > 0)")
     sp.set_defaults(func=cmd_export_mjcf)
 
     sp = sub.add_parser("info", help="what made a run: version, clip and its SHA-256, resolved config, metrics")
-    sp.add_argument("run")
-    sp.add_argument("--json", action="store_true")
+    sp.add_argument("run", help="RUN.npz written by simulate")
+    sp.add_argument("--json", action="store_true", help="print it as JSON")
     sp.set_defaults(func=cmd_info)
 
     sp = sub.add_parser("demo", help="main job: simulate the default hit on the embedded clip and render it")
-    sp.add_argument("-o", "--output", default="out/demo")
+    sp.add_argument("-o", "--output", default="out/demo", help="folder for run.npz, filmstrip.png, video.mp4, deviation.png")
     sp.set_defaults(func=cmd_demo)
     return p
 

@@ -277,7 +277,7 @@ def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> Simu
             p = pathlib.Path(base_dir) / p
         cfg.clip = str(p)
     units = top.get("units", "auto")
-    if not (units == "auto" or units in UNIT_CHOICES
+    if not (units == "auto" or (isinstance(units, str) and units in UNIT_CHOICES)
             or (isinstance(units, (int, float)) and not isinstance(units, bool) and math.isfinite(units)
                 and units > 0)):
         top.fail("units", f"must be auto, {', '.join(UNIT_CHOICES)} or a positive number of metres per "

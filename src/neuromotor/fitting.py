@@ -36,9 +36,11 @@ available for ``jit``/``grad``/``vmap`` by users.
 After the fit (:class:`FitResult`): the Gauss-Newton covariance of (log ks, log kd),
 ``s^2 (J^T J)^-1`` with ``s^2 = ||r||^2 / (m - 2)``, standard errors (also of ks and kd by the
 delta method), the final residual, iteration and evaluation counts, wall time, and a status:
-``converged``, ``max_steps``, ``diverged`` (the rollout at the returned gains blew up) or
+``converged``, ``converged (loss flat)`` (the step limit was reached with the loss flat: relative
+change below ``LOSS_FLAT_RTOL`` in each of the last ``LOSS_FLAT_ITERATIONS`` iterations; counts as
+converged), ``max_steps``, ``diverged`` (the rollout at the returned gains blew up) or
 ``nonfinite`` (the solver produced NaN; the last finite iterate is returned instead). A fit
-never returns NaN gains; with ``strict=True`` anything but ``converged`` raises
+never returns NaN gains; with ``strict=True`` anything but the two converged statuses raises
 :class:`FitError`.
 """
 
@@ -520,6 +522,24 @@ def run_solver(name: str, residual: Callable, x0, m: int, opts: SolverOptions, o
 # The fit and its report
 
 
+LOSS_FLAT_RTOL = 1e-8  # relative change of the loss per iteration that counts as none
+LOSS_FLAT_ITERATIONS = 3  # ... over this many consecutive iterations
+CONVERGED_STATUSES = ("converged", "converged (loss flat)")
+
+
+def loss_is_flat(losses, rtol: float = LOSS_FLAT_RTOL, n: int = LOSS_FLAT_ITERATIONS) -> bool:
+    """True when each of the last ``n`` changes of the loss (a sequence over iterations) is
+    below ``rtol`` relative to the loss before it: the fit has converged in its objective even
+    if the solver's step-size test has not fired (the gains then move by round-off only)."""
+    vals = [float(v) for v in losses if v is not None]
+    if len(vals) < n + 1:
+        return False
+    tail = np.asarray(vals[-(n + 1):])
+    if not np.all(np.isfinite(tail)):
+        return False
+    return bool(np.all(np.abs(np.diff(tail)) <= rtol * np.maximum(np.abs(tail[:-1]), 1e-300)))
+
+
 @dataclasses.dataclass
 class FitResult:
     """Everything the calibration reports (``to_json`` gives the JSON contract)."""
@@ -551,7 +571,7 @@ class FitResult:
 
     @property
     def converged(self) -> bool:
-        return self.status == "converged"
+        return self.status in CONVERGED_STATUSES
 
     @property
     def x(self) -> np.ndarray:
@@ -625,8 +645,11 @@ def fit(evaluator: ResponseEvaluator, target, weights, x0, solver: str = "optimi
         # The most recent evaluation is the one the solver just used (no extra rollout).
         recent = next(reversed(evaluator._cache.values()))
         lval = 0.5 * float(np.sum((weights * (recent.y - target)) ** 2))
+        # The loss at the iterate itself when the solver evaluated it (no extra rollout).
+        at_x = evaluator._cache.get(np.asarray(x, np.float64).reshape(-1).tobytes()) if finite else None
+        loss_x = 0.5 * float(np.sum((weights * (at_x.y - target)) ** 2)) if at_x is not None else lval
         history.append({"iteration": k, "ks": float(np.exp(x[0])), "kd": float(np.exp(x[1])),
-                        "last_loss": lval})
+                        "last_loss": lval, "loss": loss_x})
         bar.update(1)
         bar.set_postfix(loss=f"{lval:.4g}", ks=f"{math.exp(x[0]):.4g}" if finite else "nan",
                         kd=f"{math.exp(x[1]):.4g}" if finite else "nan")
@@ -637,6 +660,15 @@ def fit(evaluator: ResponseEvaluator, target, weights, x0, solver: str = "optimi
     finally:
         bar.close()
     status = "converged" if converged else "max_steps"
+    # Converged in the loss: flat at the iterates, and the solver's latest evaluations finite (a
+    # solver stuck because every trial point is NaN also has a flat loss, and has not converged).
+    recent_ok = all(math.isfinite(h["last_loss"]) for h in history[-(LOSS_FLAT_ITERATIONS + 1):])
+    if (status == "max_steps" and iters >= opts.max_steps and recent_ok
+            and loss_is_flat([h["loss"] for h in history])):
+        status = "converged (loss flat)"
+        message = (f"converged (loss flat): the loss changed by less than {LOSS_FLAT_RTOL:g} (relative) in "
+                   f"each of the last {LOSS_FLAT_ITERATIONS} iterations; {solver}'s own step tolerance "
+                   f"was not met in {opts.max_steps} steps")
     if not np.all(np.isfinite(x)):
         status, x = "nonfinite", last_good[0]
         message = (f"the solver produced non-finite parameters; returning the last finite iterate "

@@ -42,6 +42,7 @@ and the field.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import pathlib
@@ -89,7 +90,8 @@ _SKELETON_FIELDS = ("time", "skeleton_points", "skeleton_points_unperturbed", "s
 _PLOT_FIELDS = ("time", "dof_names", "theta", "theta_unperturbed", "theta_desired", "force_vector")
 
 
-_OPTIONAL_FIELDS = ("up_axis", "ball_pos", "ball_radius", "metrics_json", "facing", "skeleton_edge_body")
+_OPTIONAL_FIELDS = ("up_axis", "ball_pos", "ball_radius", "metrics_json", "facing", "skeleton_edge_body",
+                    "contact_force", "provenance_json")
 # Body shapes: all of them, or (an older RUN.npz) none and capsules are drawn instead.
 _SHAPE_FIELDS = ("shape_vertices", "shape_faces", "shape_body", "body_pos", "body_quat",
                  "body_pos_unperturbed", "body_quat_unperturbed")
@@ -615,6 +617,31 @@ class _Scene:
             hb = d["ball_pos"] @ self.up - float(d["ball_radius"])
             self.ground = min(self.ground, float(hb.min()))
         self.has_ball = "ball_pos" in d
+        # What hits the character over time (N): the applied force, or the ball's contact force.
+        hit = fmag.copy()
+        if "contact_force" in d and np.ndim(d["contact_force"]) == 3 and len(d["contact_force"]) == len(fmag):
+            hit = np.maximum(hit, np.linalg.norm(np.asarray(d["contact_force"], float).sum(axis=1), axis=1))
+        self.hit_mag = hit
+        self.hit_on = hit > FORCE_VISIBLE_FRACTION * hit.max() if hit.max() > 0 else np.zeros(len(hit), bool)
+        self.metrics = _json_field(d, "metrics_json")
+        self.provenance = _json_field(d, "provenance_json")
+
+    def force_label(self, k):
+        """Label of the force drawn at sample k: the configured peak magnitude of the pulse acting
+        then (from the run's provenance), else the largest sampled |F| of the hit, not the
+        sampled value at k (a half-sine's samples are below its peak)."""
+        t = float(self.time[k])
+        for p in (self.provenance or {}).get("perturbations", []):
+            try:
+                start, dur, mag = float(p["start"]), float(p["duration"]), float(p["magnitude"])
+            except (KeyError, TypeError, ValueError):
+                continue
+            if start - 1e-9 <= t <= start + max(dur, float(self.time[1] - self.time[0]) if len(self.time) > 1 else dur):
+                unit = "N s" if p.get("kind") == "impulse" else "N"
+                return f"{mag:.0f} {unit}"
+        on = np.flatnonzero(self.force_on)
+        peak = float(self.fmag[on].max()) if len(on) else float(self.fmag[k])
+        return f"{peak:.0f} N"
 
     def points(self, which):
         return self.P if which == "perturbed" else self.U
@@ -678,29 +705,62 @@ class _Scene:
         return float(max(inside.max(), 0.0)) + 0.01
 
     def hit_window(self):
-        """(first, last) index of samples where the force acts, or None."""
-        on = np.flatnonzero(self.force_on)
+        """(first, last) index of samples where the character is hit (an applied force, or a
+        ball's contact force), or None."""
+        on = np.flatnonzero(self.hit_on)
         return (int(on[0]), int(on[-1])) if len(on) else None
 
-    def filmstrip_times(self, n):
+    def filmstrip_key_times(self):
+        """(t_hit, t_peak, t_end) of the strip: the instant of the largest hit force, the peak
+        deviation (the later of the skeleton's point-wise peak and the metrics' joint-angle
+        peak), and the recovery (metrics' recovery time, else the point-wise deviation decayed
+        to 25% of its peak), at least 0.4 s after the hit ends and 0.25 s after the peak, capped
+        by the run's end. None without a hit."""
         t = self.time
         win = self.hit_window()
         if win is None:
-            return np.linspace(t[0], t[-1], n)
-        if n == 1:
-            return t[[int(np.argmax(self.fmag))]]
+            return None
         t_on, t_off = t[win[0]], t[win[1]]
-        # Point-wise deviation; the window runs until it has decayed to 25% of its peak after the
-        # peak (at least 0.4 s after the hit ends), capped by the run's end.
+        t_hit = float(t[win[0] + int(np.argmax(self.hit_mag[win[0]:win[1] + 1]))])
         dev = np.linalg.norm(self.P - self.U, axis=2).max(axis=1)
         after = np.flatnonzero(t >= t_on)
         kpk = after[int(np.argmax(dev[after]))]
-        later = np.flatnonzero((t > t[kpk]) & (dev < 0.25 * dev[kpk]))
-        t_end = t[later[0]] if len(later) else t[-1]
-        t_end = min(t[-1], max(t_end, t_off + 0.4, t[kpk] + 0.2))
+        t_pk = float(t[kpk])
+        m = self.metrics or {}
+        tp = m.get("time_of_peak_s")
+        if isinstance(tp, (int, float)) and np.isfinite(tp) and t_on <= tp <= t[-1]:
+            t_pk = max(t_pk, float(tp))
+        later = np.flatnonzero((t > t_pk) & (dev < 0.25 * dev[kpk]))
+        t_end = float(t[later[0]]) if len(later) else float(t[-1])
+        rec = m.get("recovery_time_s")
+        if isinstance(rec, (int, float)) and np.isfinite(rec):
+            t_end = max(t_end, t_on + float(rec))
+        t_end = float(min(t[-1], max(t_end, t_off + 0.4, t_pk + 0.25)))
+        return t_hit, min(t_pk, t_end), t_end
+
+    def filmstrip_times(self, n):
+        """Instants of an n-panel strip: evenly spaced from one step before the hit to the
+        recovery, with the panels nearest the hit and the peak moved onto them (n = 1: the hit;
+        2: hit and peak; 3: hit, peak, recovery)."""
+        t = self.time
+        keys = self.filmstrip_key_times()
+        if keys is None:
+            return np.linspace(t[0], t[-1], n)
+        t_hit, t_pk, t_end = keys
+        if n <= 3:
+            return np.asarray([t_hit, t_pk, t_end][:n], float)
+        t_on = t[self.hit_window()[0]]
         span = max(t_end - t_on, 1e-9)
-        t_start = max(t[0], t_on - span / max(n - 1, 1))   # one frame before the hit
-        return np.linspace(t_start, t_end, n)
+        t_start = max(t[0], t_on - span / (n - 1))   # one panel before the hit
+        times = np.linspace(t_start, t_end, n)
+        free = list(range(1, n - 1))  # the first (before) and last (recovery) panels stay
+        for key in (t_hit, t_pk):
+            if any(abs(times[i] - key) < 1e-12 for i in range(n)):
+                continue
+            j = min(free, key=lambda i: abs(times[i] - key))
+            times[j] = key
+            free.remove(j)
+        return np.sort(times)
 
     def index_at(self, times):
         """Nearest sample of each time."""
@@ -838,7 +898,7 @@ def _render_filmstrip(scene: _Scene, out_tmp, frames: int, ghost: bool = True):
                         arrow = _ArrowGeometry()
                         arrow.update(*scene.arrow(k))
                         pl.add_mesh(arrow.mesh, color=COLOR_FORCE, smooth_shading=False)
-                        pl.add_text(f"{scene.fmag[k]:.0f} N", position="lower_right", font_size=9,
+                        pl.add_text(scene.force_label(k), position="lower_right", font_size=9,
                                     color=COLOR_FORCE)
                     if scene.has_ball:
                         pl.add_mesh(pv.Sphere(radius=float(scene.d["ball_radius"]),
@@ -868,6 +928,35 @@ def video_sample_times(time, fps):
     """Real-time sampling instants of a video of ``time`` at ``fps``."""
     n = int(np.floor((time[-1] - time[0]) * fps + 1e-9)) + 1
     return time[0] + np.arange(n) / fps
+
+
+def _forking_once(append):
+    """``append`` with its first call (where imageio-ffmpeg starts ffmpeg) warning-silenced."""
+    started = [False]
+
+    def wrapped(img):
+        if started[0]:
+            return append(img)
+        with _fork_exec_warning_silenced():
+            out = append(img)
+        started[0] = True
+        return out
+
+    return wrapped
+
+
+@contextlib.contextmanager
+def _fork_exec_warning_silenced():
+    """Silence JAX's ``os.fork() was called ... JAX is multithreaded`` RuntimeWarning while
+    imageio-ffmpeg starts ffmpeg. That start is subprocess.Popen: on Python < 3.12 its C
+    fork_exec runs the interpreter's at-fork hooks, where JAX warns; but the child only execs
+    ffmpeg (no Python, no JAX runs in it), so the deadlock JAX warns about cannot happen. Only
+    that message is filtered, only here."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        yield
 
 
 def _render_video(scene: _Scene, out_tmp, ext, progress=True, ghost=True):
@@ -933,7 +1022,7 @@ def _render_video(scene: _Scene, out_tmp, ext, progress=True, ghost=True):
         if scene.has_ball:
             ball = pv.Sphere(radius=float(scene.d["ball_radius"]), theta_resolution=24, phi_resolution=16)
             ball_dirs = np.asarray(ball.points).copy()
-            pl.add_mesh(ball, color=COLOR_BALL, smooth_shading=True)
+            ball_actor = pl.add_mesh(ball, color=COLOR_BALL, smooth_shading=True)
         pl.add_text("original", position="upper_left", font_size=10, color=COLOR_ORIGINAL_JOINT)
         pl.add_text("perturbed", position="upper_right", font_size=10, color=COLOR_PERTURBED_JOINT)
         clock = pl.add_text("", position="lower_left", font_size=10, color="black")
@@ -943,6 +1032,7 @@ def _render_video(scene: _Scene, out_tmp, ext, progress=True, ghost=True):
 
             writer = iio2.get_writer(out_tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264",
                                      quality=7, macro_block_size=8, ffmpeg_log_level="error")
+            writer.append_data = _forking_once(writer.append_data)
         for i, k in enumerate(tqdm(ks, desc=f"rendering {ext[1:]}", unit="frame", disable=not progress)):
             g_pert.update(k, "perturbed")
             g_orig.update(k, "original", -shift)
@@ -954,7 +1044,13 @@ def _render_video(scene: _Scene, out_tmp, ext, progress=True, ghost=True):
                 arrow.update(*scene.arrow(k))
             ftext.set_text("lower_right", f"force {scene.fmag[k]:.0f} N" if on else "")
             if ball is not None:
-                ball.points = ball_dirs + scene.d["ball_pos"][k]
+                # The ball belongs to the perturbed run: drawn on its (right) half of the frame
+                # only, never over the original figure beside it.
+                pos = scene.d["ball_pos"][k]
+                boundary = 0.5 * ((scene.extent_points(k, "original") - shift) @ scene.right).max() \
+                    + 0.5 * (scene.extent_points(k, "perturbed") @ scene.right).min()
+                ball_actor.SetVisibility(bool(pos @ scene.right - float(scene.d["ball_radius"]) > boundary))
+                ball.points = ball_dirs + pos
             clock.set_text("lower_left", f"t = {scene.time[k]:.2f} s")
             _set_camera(pl, scene, focals[i], scale)
             pl.render()   # screenshot() only renders by itself the first time
@@ -982,7 +1078,7 @@ def _render_video(scene: _Scene, out_tmp, ext, progress=True, ghost=True):
 # ----------------------------------------------------------------------------------------------
 
 def render_run(run_path, out_path, frames: int = 6, progress: bool = True,
-               ghost: bool = True) -> pathlib.Path:
+               ghost: bool = True, stage=None) -> pathlib.Path:
     """Render a RUN.npz by the extension of ``out_path``.
 
     ``.png``: a Figure-2 filmstrip, ``frames`` panels per row (top: original motion, bottom:
@@ -990,8 +1086,10 @@ def render_run(run_path, out_path, frames: int = 6, progress: bool = True,
     the deviation has mostly decayed; with ``ghost`` the original is also drawn, pale, behind
     the perturbed figure so that small deviations show. ``.mp4`` / ``.gif``: a real-time video (30 / 25 fps) of
     ``VIDEO_SIZE`` pixels with the original (light, on the left) beside the perturbed motion
-    (and, with ``ghost``, pale behind it).
+    (and, with ``ghost``, pale behind it). ``stage``: called with a line of text as each stage
+    begins (the CLI's progress lines).
     """
+    stage = stage or (lambda text: None)
     out = pathlib.Path(out_path)
     ext = out.suffix.lower()
     if ext not in IMAGE_EXTENSIONS + VIDEO_EXTENSIONS:
@@ -999,17 +1097,35 @@ def render_run(run_path, out_path, frames: int = 6, progress: bool = True,
                           f"use one of {', '.join(IMAGE_EXTENSIONS + VIDEO_EXTENSIONS)}")
     if ext == ".png" and (int(frames) != frames or frames < 1):
         raise RenderError(f"{out}: frames must be a positive integer, got {frames!r}")
+    stage(f"loading run {run_path}")
     scene = _Scene(load_run(run_path))
     with atomic_path(out) as tmp:
         if ext == ".png":
+            stage(f"rendering a {int(frames)}-panel filmstrip")
             _render_filmstrip(scene, tmp, int(frames), ghost=ghost)
         else:
+            n = len(video_sample_times(scene.time, VIDEO_FPS[ext]))
+            stage(f"rendering and encoding {n} video frames")
             _render_video(scene, tmp, ext, progress=progress, ghost=ghost)
+        stage(f"writing {out}")
     return out
 
 
 def _wrap(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def _json_field(d, key):
+    """A JSON string array of a run as a dict, or None (absent or unreadable)."""
+    if key not in d:
+        return None
+    try:
+        import json
+
+        value = json.loads(str(d[key]))
+    except ValueError:
+        return None
+    return value if isinstance(value, dict) else None
 
 
 def plot_run(run_path, out_png, n_joints: int = 4) -> pathlib.Path:
