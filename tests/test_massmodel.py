@@ -217,3 +217,21 @@ def test_synthetic_rigs_get_a_plausible_symmetric_body(seed, tmp_path):
                 np.testing.assert_allclose(got[(seg, "left")], got[(seg, "right")], rtol=1e-6)
         masses.append(np.sort(np.asarray(ch.model.mass)))
     np.testing.assert_allclose(masses[0], masses[1], rtol=1e-6)
+
+
+def test_the_default_hit_finds_its_body_on_every_clip(character):
+    """`neuromotor bench CLIP` and `simulate --clip` use the default hit on any rig: its body is
+    the segment keyword `chest`, the trunk body the arms hang from (Chest2 on the embedded clip)."""
+    from neuromotor.config import DEFAULT_HIT
+    from neuromotor.simulate import body_lookup
+
+    b = body_lookup(character.model, "<t>", character)(DEFAULT_HIT["body"])
+    k = character.model.body_joint[b]
+    assert character.anatomy.segment[k] == "trunk"
+    arms = [j for j, s in enumerate(character.anatomy.segment) if s == "upper_arm"]
+    for j in arms:  # an ancestor of both upper arms
+        while j >= 0 and j != k:
+            j = character.model.joint_parent[j]
+        assert j == k
+    if character.clip.joints[0].name == "Hips" and "Chest2" in character.model.body_names:
+        assert character.model.body_names[b] == "Chest2"
