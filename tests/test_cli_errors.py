@@ -61,3 +61,28 @@ def test_every_option_says_what_it_means():
                for name, sp in sub.choices.items() for a in sp._actions
                if not isinstance(a, argparse._HelpAction) and not (a.help and a.help.strip())]
     assert not missing, missing
+
+
+def test_every_command_that_reads_a_clip_takes_the_clip_options():
+    from neuromotor.cli import build_parser
+
+    parser = build_parser()
+    clip_opts = ["--units", "cm", "--up-axis", "1", "--stature", "1.7", "--body-mass", "70", "--sex", "male",
+                 "--simulate-extremities"]
+    for argv in (["inspect"], ["idyn", "-o", "x.npz"], ["simulate", "-o", "x.npz"], ["export-mjcf", "-o", "x.xml"],
+                 ["bench"]):
+        args = parser.parse_args(argv + clip_opts)
+        assert (args.units, args.up_axis, args.stature, args.body_mass, args.sex) == ("cm", 1, 1.7, 70.0, "male")
+        assert args.simulate_extremities
+
+
+def test_bench_runs_on_any_rig_with_the_clip_options():
+    """`neuromotor bench CLIP` once needed a body called Chest2: the default hit now names the
+    chest keyword, and the clip options reach the model."""
+    from conftest import ALL_CLIPS
+    from neuromotor import bench
+
+    setup = bench._setup(ALL_CLIPS["bandai_kick_22joint_6ch"], 0.05, "nullspace", load={"units": "cm", "up_axis": 1})
+    model = setup.model
+    assert model.body_names[int(setup.pulses.body[0])] == "Chest" and model.n_bodies == 19
+    assert setup.character.anatomy.units == "cm" and float(model.gravity[1]) == -9.81

@@ -72,8 +72,10 @@ def machine() -> str:
             f"float64" + ("" if dev.platform == "cpu" else f" ({dev.device_kind})"))
 
 
-def _setup(clip, seconds: float, solver: str):
-    character, traj = load_character(clip)
+def _setup(clip, seconds: float, solver: str, load=None):
+    """The default hit on ``clip``; ``load``: keyword arguments of :func:`load_character`
+    (units, up_axis, stature, options), as the command line's clip options give them."""
+    character, traj = load_character(clip, **(load or {}))
     config = SimulationConfig(clip=None if clip is None else str(clip), duration=seconds,
                               perturbations=[dict(DEFAULT_HIT, start=min(0.3, seconds / 2))])
     setup = prepare(config, character, traj)
@@ -261,11 +263,11 @@ def gain_jacobian(setup, repeats: int) -> dict:
             "ratio": t_jac / t_fwd, "compile_rollout_s": c1, "compile_jacfwd_s": c2}
 
 
-def inverse(clips, repeats: int) -> list[dict]:
+def inverse(clips, repeats: int, load=None) -> list[dict]:
     """Inverse dynamics (Eq. 3) on every frame of whole clips."""
     out = []
     for clip in clips:
-        character, traj = load_character(clip)
+        character, traj = load_character(clip, **(load or {}))
         times = jnp.asarray(np.arange(character.clip.n_frames) * character.clip.frame_time)
         t = time.perf_counter()
         jax.block_until_ready(inverse_dynamics(character.model, traj, times))
@@ -342,18 +344,18 @@ def plot_throughput(rows: list[dict], mujoco_sps: float | None, path) -> None:
 
 
 def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_seconds: float = 0.25,
-            repeats: int = 5, idyn_clips=(), plot=None, log=print, dense_too: bool = True) -> dict:
+            repeats: int = 5, idyn_clips=(), plot=None, log=print, dense_too: bool = True, load=None) -> dict:
     """Run every benchmark and print the figures as they come."""
     log(f"machine: {machine()}")
     res: dict = {"machine": machine()}
-    setup = _setup(clip, 1.0, solver)
+    setup = _setup(clip, 1.0, solver, load)
     log(f"model: {setup.model.n_bodies} bodies, {setup.model.n_dofs} DOFs, h = {setup.sim.h:.6f} s")
     res["single"], ours = single(setup, repeats)
     _log_single(res["single"], log)
     if dense_too:  # the other solvers, for comparison
         for other in ("tree", "dense"):
             if other != solver:
-                res[f"single_{other}"] = single(_setup(clip, 1.0, other), max(2, repeats // 2))[0]
+                res[f"single_{other}"] = single(_setup(clip, 1.0, other, load), max(2, repeats // 2))[0]
                 _log_single(res[f"single_{other}"], log)
     res["compiler_options"] = compiler_options_ab(setup, 2 * repeats)
     ab = res["compiler_options"]
@@ -380,7 +382,7 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
             log(f"interleaved, {il['steps']} steps each: ours {il['ours_us']:.1f} us/step, MuJoCo "
                 f"{il['mujoco_us']:.1f} us/step -> ours/MuJoCo {il['ratio']:.2f}x (real-time factor "
                 f"{H / il['ours_us'] * 1e6:.0f} at that moment)")
-    bsetup = _setup(clip, batch_seconds, solver)
+    bsetup = _setup(clip, batch_seconds, solver, load)
     res["batch"] = batched(bsetup, sizes, max(2, repeats // 2))
     for r in res["batch"]:
         ratio = "" if res["mujoco"] is None else f" ({r['steps_per_s'] / res['mujoco']['steps_per_s']:.2f}x MuJoCo)"
@@ -391,7 +393,7 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
     log(f"batch {bs['batch']} split (us per trajectory-step): Jacobians {bs['jacobians']:.1f}, KKT solve "
         f"{bs['kkt_solve']:.1f}, post-stabilization {bs['post_stabilization']:.1f}, whole step {bs['step']:.1f}{mj_us}")
     if idyn_clips:
-        res["inverse_dynamics"] = inverse(idyn_clips, repeats)
+        res["inverse_dynamics"] = inverse(idyn_clips, repeats, load)
         for r in res["inverse_dynamics"]:
             log(f"inverse dynamics {r['clip']}: {r['frames']} frames in {r['seconds'] * 1e3:.1f} ms "
                 f"({r['us_per_frame']:.1f} us/frame); first call (compile) {r['first_call_s']:.1f} s")
@@ -429,8 +431,15 @@ def add_arguments(ap) -> None:
 
 
 def run_from_args(args) -> int:
+    load = None
+    if hasattr(args, "units"):  # the command line's clip options
+        from .skeleton import MassModelOptions
+
+        load = dict(units=args.units, up_axis=args.up_axis, stature=args.stature,
+                    options=MassModelOptions(body_mass=args.body_mass, sex=args.sex,
+                                             simulate_extremities=args.simulate_extremities))
     res = run_all(args.clip, args.solver, tuple(args.sizes), repeats=args.repeats, idyn_clips=tuple(args.idyn),
-                  plot=args.plot, dense_too=not args.no_dense)
+                  plot=args.plot, dense_too=not args.no_dense, load=load)
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps(res, indent=2, default=float))
     return 0

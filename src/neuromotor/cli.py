@@ -534,6 +534,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("bench", help="speed: steps/s, real-time factor, batch throughput, vs MuJoCo")
     sp.add_argument("clip", nargs="?", default=None, help="BVH clip (default: the embedded 19-joint clip)")
+    body_args(sp)
     sp.add_argument("--solver", choices=("nullspace", "tree", "dense"), default="nullspace",
                     help="KKT solver of Eq. 2 to time")
     sp.add_argument("--sizes", type=_count_arg, nargs="+", default=[1, 8, 64, 256], help="vmap batch sizes")
