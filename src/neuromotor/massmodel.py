@@ -35,7 +35,7 @@ import numpy as np
 
 from . import deleva
 from . import polyhedron as poly
-from .anatomy import DETAIL_SEGMENTS, Anatomy
+from .anatomy import DETAIL_SEGMENTS, Anatomy, euler_to_matrix
 from .bvh import BvhClip
 
 # (overhang past the distal joint, distal/proximal radius) of the limb frustums. A frustum of
@@ -70,19 +70,6 @@ class BodyPlan:
     segment_mass: dict  # (segment, side) -> kg
 
 
-def euler_matrix(angles, order: str) -> np.ndarray:
-    """Numpy twin of :func:`neuromotor.rotations.euler_to_matrix` for one joint (radians)."""
-    out = np.eye(3)
-    for a, axis in zip(angles, order):
-        c, s = np.cos(a), np.sin(a)
-        i = "XYZ".index(axis)
-        r = np.eye(3)
-        j, k = (i + 1) % 3, (i + 2) % 3
-        r[j, j], r[j, k], r[k, j], r[k, k] = c, -s, s, c
-        out = out @ r
-    return out
-
-
 def world_frames(clip: BvhClip, offsets: np.ndarray, frame: int) -> tuple[np.ndarray, np.ndarray]:
     """World origins (J, 3) and rotations (J, 3, 3) of every joint at one frame of the clip,
     with the fixed ``offsets`` (non-root translation channels replaced as in the model)."""
@@ -91,7 +78,7 @@ def world_frames(clip: BvhClip, offsets: np.ndarray, frame: int) -> tuple[np.nda
     row = np.asarray(clip.motion[frame], dtype=np.float64)
     for k, joint in enumerate(clip.joints):
         cols = joint.rotation_columns
-        local = euler_matrix(np.deg2rad(row[list(cols)]), joint.rotation_order) if cols else np.eye(3)
+        local = euler_to_matrix(joint.rotation_order, np.deg2rad(row[list(cols)])) if cols else np.eye(3)
         if joint.parent < 0:
             t = row[list(joint.translation_columns)] if joint.translation_columns else joint.offset
             pos[k], rot[k] = t, local
