@@ -30,14 +30,25 @@ def _extract(rev: str, dest: Path) -> str:
     return "neuromotor_at_rev"
 
 
+def _module(pkg: str, *names: str):
+    """The first of ``names`` that imports from ``pkg`` (commits before the subpackage layout
+    kept every module at the top level)."""
+    for name in names:
+        try:
+            return importlib.import_module(f"{pkg}.{name}")
+        except ModuleNotFoundError:
+            continue
+    raise ModuleNotFoundError(f"none of {names} in {pkg}")
+
+
 def _program(pkg: str, batch: int):
     """(zero-argument compiled call, its joint angles, trajectory-steps per call)."""
     import equinox as eqx
     import jax
     import jax.numpy as jnp
 
-    bench = importlib.import_module(f"{pkg}.bench")
-    dy = importlib.import_module(f"{pkg}.dynamics")
+    bench = _module(pkg, "studies.bench", "bench")
+    dy = _module(pkg, "physics.dynamics", "dynamics")
     compiler = importlib.import_module(f"{pkg}.compiler")
     setup = bench._setup(None, 1.0, "nullspace")
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim

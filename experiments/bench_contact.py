@@ -32,9 +32,9 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from neuromotor import contact as ct  # noqa: E402
+from neuromotor.physics import contact as ct  # noqa: E402
 from neuromotor.config import simulation_config  # noqa: E402
-from neuromotor.simulate import _zero, prepare, simulate_jit  # noqa: E402
+from neuromotor.studies.simulate import _zero, prepare, simulate_jit  # noqa: E402
 
 
 def main(argv=None):

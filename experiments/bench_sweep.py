@@ -4,7 +4,7 @@
 
 Modes, each timed after a warm-up call (compile excluded, printed separately):
 
-* ``map``: the sweep program (neuromotor.sweep.Sweeper): batch sharded over the devices with
+* ``map``: the sweep program (neuromotor.studies.sweep.Sweeper): batch sharded over the devices with
   shard_map, a lax.map loop of rollouts inside each shard;
 * ``vmap``: the same program with ``inner_batch`` = the whole shard, i.e. one vmapped rollout
   per device;
@@ -37,8 +37,8 @@ def main(argv=None) -> int:
     import numpy as np
 
     from neuromotor.config import DEFAULT_HIT, SimulationConfig
-    from neuromotor.simulate import body_lookup, prepare, simulate_jit
-    from neuromotor.sweep import GainSetting, SweepSpec, Sweeper, build_batch
+    from neuromotor.studies.simulate import body_lookup, prepare, simulate_jit
+    from neuromotor.studies.sweep import GainSetting, SweepSpec, Sweeper, build_batch
 
     hit = dict(DEFAULT_HIT, start=0.05)
     setup = prepare(SimulationConfig(duration=args.duration, perturbations=[hit]))

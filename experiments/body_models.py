@@ -13,9 +13,9 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 import numpy as np  # noqa: E402
 import pyvista as pv  # noqa: E402
 
-from neuromotor.massmodel import world_frames  # noqa: E402
-from neuromotor.simulate import load_character  # noqa: E402
-from neuromotor.skeleton import joint_offsets  # noqa: E402
+from neuromotor.model.massmodel import world_frames  # noqa: E402
+from neuromotor.studies.simulate import load_character  # noqa: E402
+from neuromotor.model.skeleton import joint_offsets  # noqa: E402
 
 SHARED = pathlib.Path(__file__).resolve().parents[2] / "shared" / "mocap"
 

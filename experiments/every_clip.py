@@ -12,7 +12,7 @@ import numpy as np
 import _common  # noqa: F401
 
 from neuromotor.config import SimulationConfig
-from neuromotor.simulate import prepare, run
+from neuromotor.studies.simulate import prepare, run
 
 SHARED = _common.REPO.parent / "shared" / "mocap"
 PUSH = dict(kind="force", body="chest", point=None, direction=[1.0, 0.0, 0.0], magnitude=300.0,

@@ -2,7 +2,7 @@
 
     .venv/bin/python experiments/full_body.py [configs/exp_full_body.toml] [-o DIR]
 
-Writes run*.npz, metrics.json and PNG figures into the output folder (see neuromotor.experiments).
+Writes run*.npz, metrics.json and PNG figures into the output folder (see neuromotor.studies.experiments).
 """
 
 import argparse
@@ -12,8 +12,8 @@ import sys
 import _common  # noqa: F401
 
 from neuromotor.config import ConfigError
-from neuromotor.dynamics import SimulationDiverged
-from neuromotor.experiments import run_experiment
+from neuromotor.physics.dynamics import SimulationDiverged
+from neuromotor.studies.experiments import run_experiment
 
 
 def main(argv=None) -> int:

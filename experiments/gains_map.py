@@ -12,7 +12,7 @@ import sys
 import _common  # noqa: F401
 
 from neuromotor.config import ConfigError
-from neuromotor.sweep import sweep_from_config
+from neuromotor.studies.sweep import sweep_from_config
 
 
 def main(argv=None) -> int:

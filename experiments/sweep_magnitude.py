@@ -2,7 +2,7 @@
 
     .venv/bin/python experiments/sweep_magnitude.py configs/sweep_magnitude.toml [-o DIR]
 
-Same as ``neuromotor sweep CONFIG``; see neuromotor.sweep for the [sweep] table.
+Same as ``neuromotor sweep CONFIG``; see neuromotor.studies.sweep for the [sweep] table.
 """
 
 import argparse
@@ -11,7 +11,7 @@ import sys
 import _common  # noqa: F401  (float64, compile cache)
 
 from neuromotor.config import ConfigError
-from neuromotor.sweep import sweep_from_config
+from neuromotor.studies.sweep import sweep_from_config
 
 
 def main(argv=None) -> int:

@@ -56,7 +56,7 @@ def main(argv=None) -> int:
     _persistent_compile_cache()
 
     from neuromotor import compiler
-    from neuromotor import fitting as F
+    from neuromotor.studies import fitting as F
 
     t0 = time.perf_counter()
     cal = F.load_calibration(args.config)

@@ -1,4 +1,4 @@
-"""Random humanoid BVH rigs with known anatomy, for tests of neuromotor.anatomy.
+"""Random humanoid BVH rigs with known anatomy, for tests of neuromotor.model.anatomy.
 
 :func:`make_rig` builds a walking humanoid in a canonical world (Y up, facing +Z, left = +X), then
 writes it as BVH text with the variations found in the wild: random (non-English) names, fingers,

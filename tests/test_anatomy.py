@@ -1,4 +1,4 @@
-"""neuromotor.anatomy: labels, sides, mirrors, up axis, units and the virtual root, on the shipped
+"""neuromotor.model.anatomy: labels, sides, mirrors, up axis, units and the virtual root, on the shipped
 clips (answers checked by eye and written out below) and on random synthetic rigs."""
 
 import dataclasses
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from neuromotor.anatomy import (SEGMENTS, UNIT_CHOICES, analyse, collapse_virtual_root, euler_to_matrix,
+from neuromotor.model.anatomy import (SEGMENTS, UNIT_CHOICES, analyse, collapse_virtual_root, euler_to_matrix,
                                 forward_kinematics, matrix_to_euler, prepare_clip, scale_clip)
-from neuromotor.bvh import parse_bvh, read_bvh
+from neuromotor.model.bvh import parse_bvh, read_bvh
 
 from synthetic_rigs import make_rig
 

@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from conftest import CLIPS
-from neuromotor.bvh import (
+from neuromotor.model.bvh import (
     BvhClip,
     BvhError,
     BvhJoint,

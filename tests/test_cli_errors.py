@@ -80,7 +80,7 @@ def test_bench_runs_on_any_rig_with_the_clip_options():
     """`neuromotor bench CLIP` once needed a body called Chest2: the default hit now names the
     chest keyword, and the clip options reach the model."""
     from conftest import ALL_CLIPS
-    from neuromotor import bench
+    from neuromotor.studies import bench
 
     setup = bench._setup(ALL_CLIPS["bandai_kick_22joint_6ch"], 0.05, "nullspace", load={"units": "cm", "up_axis": 1})
     model = setup.model

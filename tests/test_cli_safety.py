@@ -17,10 +17,12 @@ import time
 import numpy as np
 import pytest
 
-from neuromotor import atomic, cli, outputs
+from neuromotor.io import atomic, outputs
+
+from neuromotor import cli
 from neuromotor.cli import main
 from neuromotor.config import ConfigError, simulation_config
-from neuromotor.simulate import default_clip_path
+from neuromotor.studies.simulate import default_clip_path
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 HIT = """
@@ -323,8 +325,8 @@ def test_bad_mjcf_timestep(tmp_path, clip, capsys, value):
 
 
 def test_mjcf_function_checks_the_timestep(tmp_path):
-    from neuromotor.mjcf import export_mjcf
-    from neuromotor.simulate import load_character
+    from neuromotor.io.mjcf import export_mjcf
+    from neuromotor.studies.simulate import load_character
 
     character, _ = load_character(None)
     for bad in (0.0, float("nan"), -1.0):

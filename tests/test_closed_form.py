@@ -14,13 +14,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from neuromotor.bvh import parse_bvh
+from neuromotor.model.bvh import parse_bvh
 from neuromotor.config import SimulationConfig
-from neuromotor.dynamics import check_rollout, rollout
-from neuromotor.inverse import idyn_arrays, solve_eq3
-from neuromotor.kinematics import trajectory_from_clip
-from neuromotor.simulate import prepare
-from neuromotor.skeleton import build_character
+from neuromotor.physics.dynamics import check_rollout, rollout
+from neuromotor.physics.inverse import idyn_arrays, solve_eq3
+from neuromotor.model.kinematics import trajectory_from_clip
+from neuromotor.studies.simulate import prepare
+from neuromotor.model.skeleton import build_character
 
 G = 9.81
 

@@ -7,8 +7,8 @@ import pytest
 from conftest import CLIPS
 from neuromotor import compiler
 from neuromotor.config import DEFAULT_HIT, SimulationConfig
-from neuromotor.dynamics import rollout
-from neuromotor.simulate import load_character, prepare, simulate_jit
+from neuromotor.physics.dynamics import rollout
+from neuromotor.studies.simulate import load_character, prepare, simulate_jit
 
 
 @pytest.fixture(scope="module")

@@ -48,7 +48,7 @@ def test_body_fields_are_read_checked_and_win_over_the_estimates():
     import numpy as np
 
     from conftest import ALL_CLIPS
-    from neuromotor.simulate import load_character
+    from neuromotor.studies.simulate import load_character
 
     clip = str(ALL_CLIPS["cmu_01_01_jumps_31joint"])
     cfg = simulation_config({"clip": clip, "units": "auto", "up_axis": "auto", "stature": 1.6, "body_mass": 55.0,

@@ -1,4 +1,4 @@
-"""Issue 7: a flying ball, contact as an LCP at the velocity level (neuromotor.contact).
+"""Issue 7: a flying ball, contact as an LCP at the velocity level (neuromotor.physics.contact).
 
 Physics asserted: complementarity of every contact at every step, Newton restitution of a
 dropped ball, resting contact carrying the weight, Coulomb sliding that ends in rolling at 5/7 of
@@ -15,11 +15,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from neuromotor import contact as ct
+from neuromotor.physics import contact as ct
 from neuromotor.config import ConfigError, SimulationConfig, simulation_config
-from neuromotor.dynamics import SimConfig, SimulationDiverged
+from neuromotor.physics.dynamics import SimConfig, SimulationDiverged
 from neuromotor.rotations import quat_to_matrix, rotation_error
-from neuromotor.simulate import body_lookup, load_character, prepare, run, run_arrays
+from neuromotor.studies.simulate import body_lookup, load_character, prepare, run, run_arrays
 
 H = 1.0 / 120.0
 G = 9.81
@@ -293,7 +293,7 @@ def test_aimed_ball_reaches_its_target(tiny):
     setup, _ = tiny
     pos0, speed = np.array([-2.0, 1.5, 0.5]), 7.0
     d = ct.aim_ball(setup.model, setup.traj, pos0, speed, 1, 0.3)
-    from neuromotor.kinematics import body_poses
+    from neuromotor.model.kinematics import body_poses
 
     for t_flight in np.linspace(0.05, 1.0, 400):
         p = pos0 + speed * d * t_flight + 0.5 * np.asarray(setup.model.gravity) * t_flight**2
@@ -384,7 +384,7 @@ def test_tree_stiff_blocks_equal_dense_jacobians(tiny):
 def test_without_contact_the_character_follows_the_plain_step(tiny, batch):
     """A ball that never touches the character leaves Eq. 2 unchanged: the contact step's
     character equals dynamics.rollout (tree solver) to round-off."""
-    from neuromotor.simulate import simulate_jit
+    from neuromotor.studies.simulate import simulate_jit
 
     setup, _ = tiny
     plain = simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from conftest import ALL_CLIPS, CLIPS
-from neuromotor import metrics as mx
+from neuromotor.studies import metrics as mx
 from neuromotor.config import SimulationConfig
-from neuromotor.simulate import prepare, run, step_warnings
+from neuromotor.studies.simulate import prepare, run, step_warnings
 
 PUSH = dict(kind="force", body="chest", point=None, direction=[1.0, 0.0, 0.0], magnitude=300.0,
             start=1.0, duration=0.1, shape="half_sine")

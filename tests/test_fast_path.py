@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from conftest import CLIPS
-from neuromotor import treesolve
+from neuromotor.physics import treesolve
 from neuromotor.config import DEFAULT_HIT, SimulationConfig
-from neuromotor.dynamics import _active_mask, rollout, step, stiff_blocks, stiff_jacobians
-from neuromotor.simulate import load_character, prepare
+from neuromotor.physics.dynamics import _active_mask, rollout, step, stiff_blocks, stiff_jacobians
+from neuromotor.studies.simulate import load_character, prepare
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from neuromotor import render
-from neuromotor.render import render_run
+from neuromotor.viz import render
+from neuromotor.viz.render import render_run
 
 from test_render import HIT_DURATION, HIT_START, _save, synthetic_run
 

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from conftest import CLIPS
-from neuromotor import fitting as F
-from neuromotor import metrics as mx
+from neuromotor.studies import fitting as F
+from neuromotor.studies import metrics as mx
 from neuromotor.config import DEFAULT_HIT, ConfigError, SimulationConfig
-from neuromotor.simulate import load_character, prepare
-from neuromotor.targets import read_target, write_target_csv
+from neuromotor.studies.simulate import load_character, prepare
+from neuromotor.studies.targets import read_target, write_target_csv
 
 START, DURATION = 0.5, 0.3
 TRUE = (300.0, 15.0)  # ks (1/s^2), kd (1/s) that make the synthetic targets

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from conftest import CLIPS
-from neuromotor import metrics as mx
+from neuromotor.studies import metrics as mx
 from neuromotor.config import DEFAULT_HIT, ConfigError, SimulationConfig, simulation_config
-from neuromotor.dynamics import SimulationDiverged, check_rollout, dof_errors, rollout
+from neuromotor.physics.dynamics import SimulationDiverged, check_rollout, dof_errors, rollout
 from neuromotor.rotations import euler_to_matrix, matrix_to_euler
-from neuromotor.simulate import load_character, prepare, run, simulate_jit
+from neuromotor.studies.simulate import load_character, prepare, run, simulate_jit
 
 H = 1.0 / 120.0
 
@@ -188,7 +188,7 @@ def test_dof_errors_near_lock_are_bounded(bank):
     rel_d = jnp.tile(jnp.eye(3), (model.n_bodies, 1, 1)).at[b].set(euler_to_matrix(theta_d[jnp.array(dofs)], order))
     small = euler_to_matrix(jnp.array([0.01, 0.0, 0.0]), "XYZ")
     rot = rot.at[b].set(small @ rel_d[b])
-    from neuromotor.system import dof_axes
+    from neuromotor.physics.system import dof_axes
 
     axes = dof_axes(model, rot, theta_d)
     d_theta, _ = dof_errors(model, rot, jnp.zeros((model.n_bodies, 3)), axes, rel_d, jnp.zeros((model.n_bodies, 3)))
@@ -209,8 +209,8 @@ def test_config_errors_name_the_field():
 
 
 def test_export_bvh_round_trip(tmp_path, hit_setup, hit_result):
-    from neuromotor.export import export_bvh, reread_angles
-    from neuromotor.simulate import run_arrays, save_npz_atomic
+    from neuromotor.io.export import export_bvh, reread_angles
+    from neuromotor.studies.simulate import run_arrays, save_npz_atomic
 
     run_path = save_npz_atomic(tmp_path / "run.npz", run_arrays(hit_setup, hit_result))
     out = export_bvh(run_path, tmp_path / "out.bvh")

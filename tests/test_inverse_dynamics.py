@@ -8,12 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from neuromotor.bvh import parse_bvh
-from neuromotor.inverse import idyn_arrays, inverse_dynamics, mocap_angles, sim_columns
-from neuromotor.kinematics import body_kinematics, trajectory_from_clip
-from neuromotor.simulate import load_character
-from neuromotor.skeleton import build_character
-from neuromotor.system import (
+from neuromotor.model.bvh import parse_bvh
+from neuromotor.physics.inverse import idyn_arrays, inverse_dynamics, mocap_angles, sim_columns
+from neuromotor.model.kinematics import body_kinematics, trajectory_from_clip
+from neuromotor.studies.simulate import load_character
+from neuromotor.model.skeleton import build_character
+from neuromotor.physics.system import (
     constraint_jacobian,
     dof_axes,
     external_forces,

@@ -4,7 +4,7 @@ The setup programs (reference kinematics, inverse dynamics of Eq. 3) work on all
 one quaternion-to-matrix call, one Euler decomposition per rotation order, forward kinematics as
 one loop body differentiated by the product rule, and ``[J^T H^T]`` placed by a static gather.
 Here they are checked against the straightforward per-joint recursion (with ``jax.jvp`` for the
-derivatives) and the dense assembly of :mod:`neuromotor.system`, on both real clips and on a
+derivatives) and the dense assembly of :mod:`neuromotor.physics.system`, on both real clips and on a
 hand-made skeleton with mixed rotation orders and massless joints with and without channels.
 """
 
@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from neuromotor.bvh import parse_bvh
-from neuromotor.inverse import eq3_matrix, sim_columns, solve_eq3
-from neuromotor.kinematics import (
+from neuromotor.model.bvh import parse_bvh
+from neuromotor.physics.inverse import eq3_matrix, sim_columns, solve_eq3
+from neuromotor.model.kinematics import (
     body_kinematics,
     joint_angles_from_q,
     joint_dof_columns,
@@ -25,9 +25,9 @@ from neuromotor.kinematics import (
     trajectory_from_clip,
 )
 from neuromotor.rotations import matrix_to_euler, quat_to_matrix, vee
-from neuromotor.simulate import joint_frames_from_state, load_character
-from neuromotor.skeleton import build_character
-from neuromotor.system import (
+from neuromotor.studies.simulate import joint_frames_from_state, load_character
+from neuromotor.model.skeleton import build_character
+from neuromotor.physics.system import (
     constraint_jacobian,
     dof_axes,
     external_forces,

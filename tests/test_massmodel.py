@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from conftest import ALL_CLIPS
-from neuromotor import deleva
-from neuromotor import polyhedron as poly
-from neuromotor.anatomy import prepare_clip
-from neuromotor.massmodel import LIMB_SHAPE, world_frames
-from neuromotor.skeleton import MassModelOptions, build_character, joint_offsets, scale_masses
+from neuromotor.model import deleva
+from neuromotor.model import polyhedron as poly
+from neuromotor.model.anatomy import prepare_clip
+from neuromotor.model.massmodel import LIMB_SHAPE, world_frames
+from neuromotor.model.skeleton import MassModelOptions, build_character, joint_offsets, scale_masses
 
 CLIPS = list(ALL_CLIPS.values())
 
@@ -125,8 +125,8 @@ def test_shapes_look_human(character):
 def test_z_up_copy_gives_the_same_masses_and_angles(character):
     """Rotate the whole capture to Z-up (root position and rotation): same bodies and masses,
     the joint-angle motion untouched, gravity along -Z."""
-    from neuromotor.bvh import write_bvh
-    from neuromotor.anatomy import euler_to_matrix
+    from neuromotor.model.bvh import write_bvh
+    from neuromotor.model.anatomy import euler_to_matrix
     from neuromotor.rotations import matrix_to_euler
     import jax.numpy as jnp
     import tempfile, pathlib
@@ -147,7 +147,7 @@ def test_z_up_copy_gives_the_same_masses_and_angles(character):
     assert other.anatomy.up_axis == 2 and other.anatomy.up[2] > 0
     assert other.model.body_names == character.model.body_names
     # the joint-angle motion is the same to round-off (only the root's channels were turned)
-    from neuromotor.kinematics import mocap_angles
+    from neuromotor.model.kinematics import mocap_angles
     np.testing.assert_allclose(mocap_angles(other.model, other.clip), mocap_angles(character.model, character.clip),
                                atol=1e-9)
     np.testing.assert_allclose(np.asarray(other.model.mass), np.asarray(character.model.mass), rtol=1e-6)
@@ -223,7 +223,7 @@ def test_the_default_hit_finds_its_body_on_every_clip(character):
     """`neuromotor bench CLIP` and `simulate --clip` use the default hit on any rig: its body is
     the segment keyword `chest`, the trunk body the arms hang from (Chest2 on the embedded clip)."""
     from neuromotor.config import DEFAULT_HIT
-    from neuromotor.simulate import body_lookup
+    from neuromotor.studies.simulate import body_lookup
 
     b = body_lookup(character.model, "<t>", character)(DEFAULT_HIT["body"])
     k = character.model.body_joint[b]

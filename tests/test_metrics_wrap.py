@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from neuromotor import metrics as mx
-from neuromotor.fitting import acceleration_deg, deviation_deg
+from neuromotor.studies import metrics as mx
+from neuromotor.studies.fitting import acceleration_deg, deviation_deg
 
 
 def _crossing(T=200, n=3, offset=0.05):
@@ -103,7 +103,7 @@ def test_continuous_angles():
 
 # --- Fit convergence in the loss (issue 16, item 6) --------------------------------------------
 
-from neuromotor import fitting
+from neuromotor.studies import fitting
 
 
 def test_loss_is_flat_rule():

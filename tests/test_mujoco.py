@@ -1,6 +1,6 @@
 """Cross-check against MuJoCo: the MJCF export and our inverse dynamics (Eq. 3) vs ``mj_inverse``.
 
-Conventions (see ``neuromotor.mjcf``):
+Conventions (see ``neuromotor.io.mjcf``):
 
 * free joint: qpos = [root joint origin (world), root quaternion w x y z]; qvel = [origin velocity
   (world), angular velocity in the root body's frame]; qacc = [origin acceleration (world),
@@ -22,10 +22,10 @@ import pytest
 mujoco = pytest.importorskip("mujoco")
 
 from conftest import ALL_CLIPS  # noqa: E402
-from neuromotor.inverse import mocap_angles, sim_columns, solve_eq3  # noqa: E402
-from neuromotor.kinematics import body_kinematics  # noqa: E402
-from neuromotor.mjcf import export_mjcf, model_to_mjcf  # noqa: E402
-from neuromotor.simulate import load_character  # noqa: E402
+from neuromotor.physics.inverse import mocap_angles, sim_columns, solve_eq3  # noqa: E402
+from neuromotor.model.kinematics import body_kinematics  # noqa: E402
+from neuromotor.io.mjcf import export_mjcf, model_to_mjcf  # noqa: E402
+from neuromotor.studies.simulate import load_character  # noqa: E402
 
 N_FRAMES = 20
 RTOL = 1e-6

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from neuromotor import nullspace
+from neuromotor.physics import nullspace
 from neuromotor.rotations import quat_normalize, quat_to_matrix
 
 PARENT = (-1, 0, 1, 2, 0, 4, 4, 1, 7, 8)  # branching, depth 4

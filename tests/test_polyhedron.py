@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy import integrate
 from scipy.spatial.transform import Rotation
 
-from neuromotor import polyhedron as P
+from neuromotor.model import polyhedron as P
 
 RTOL = 1e-12
 

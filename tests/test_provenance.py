@@ -10,8 +10,8 @@ import pytest
 
 from neuromotor import cli
 from neuromotor.config import SimulationConfig
-from neuromotor.export import export_bvh, reread_angles
-from neuromotor.simulate import prepare, run, run_arrays, save_npz_atomic
+from neuromotor.io.export import export_bvh, reread_angles
+from neuromotor.studies.simulate import prepare, run, run_arrays, save_npz_atomic
 
 from synthetic_rigs import make_rig
 
@@ -79,7 +79,7 @@ def test_simulate_and_export_round_trip_dotted(dotted):
 def test_export_is_continuous_when_run_theta_jumps(dotted):
     """An older RUN.npz whose theta jumps by 2 pi mid-run: the written channel stays continuous
     (and equals the continuous theta), and the metrics do not see the jump."""
-    from neuromotor import metrics as mx
+    from neuromotor.studies import metrics as mx
 
     arrays = dict(np.load(dotted["npz"], allow_pickle=False))
     theta = arrays["theta"].copy()

@@ -8,8 +8,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from neuromotor import render
-from neuromotor.render import RenderError, plot_run, render_run
+from neuromotor.viz import render
+from neuromotor.viz.render import RenderError, plot_run, render_run
 
 HIT_START, HIT_DURATION = 0.3, 0.1
 
@@ -203,7 +203,7 @@ def synth(tmp_path_factory):
 @pytest.fixture(scope="module")
 def real_run(tmp_path_factory):
     from neuromotor.config import DEFAULT_HIT, SimulationConfig
-    from neuromotor.simulate import prepare, run, run_arrays, save_npz_atomic
+    from neuromotor.studies.simulate import prepare, run, run_arrays, save_npz_atomic
 
     hit = dict(DEFAULT_HIT, start=0.1)
     setup = prepare(SimulationConfig(duration=0.6, perturbations=[hit]))

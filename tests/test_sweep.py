@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from conftest import CLIPS
-from neuromotor import sweep as sw
+from neuromotor.studies import sweep as sw
 from neuromotor.config import DEFAULT_HIT, ConfigError, SimulationConfig, simulation_config
-from neuromotor.simulate import body_lookup, load_character, prepare
+from neuromotor.studies.simulate import body_lookup, load_character, prepare
 
 TESTS = pathlib.Path(__file__).resolve().parent
 
@@ -70,9 +70,9 @@ SHARDED_SCRIPT = textwrap.dedent("""\
     import jax
     jax.config.update("jax_enable_x64", True)
     import numpy as np
-    from neuromotor import sweep as sw, metrics as mx
+    from neuromotor.studies import sweep as sw, metrics as mx
     from neuromotor.config import DEFAULT_HIT, SimulationConfig
-    from neuromotor.simulate import body_lookup, load_character, prepare, run
+    from neuromotor.studies.simulate import body_lookup, load_character, prepare, run
 
     character, traj = load_character(sys.argv[1])
     hit = dict(DEFAULT_HIT, body="Forearm", point=[0.1, 0.0, 0.0], magnitude=20.0, start=0.2)
@@ -299,7 +299,7 @@ def test_cli_sweep_writes_table_and_plot(bank_sweep, tmp_path):
 
 
 def test_experiment_configs_parse_and_errors_name_the_field(tmp_path):
-    from neuromotor.experiments import experiment_spec, load_experiment
+    from neuromotor.studies.experiments import experiment_spec, load_experiment
 
     repo = TESTS.parent
     for name, kind in (("exp_arm", "arm"), ("exp_full_body", "full_body"), ("exp_high_gain", "contrast")):

@@ -14,9 +14,9 @@ import pathlib
 import numpy as np
 import pytest
 
-from neuromotor import sweep as sw
+from neuromotor.studies import sweep as sw
 from neuromotor.config import ConfigError, simulation_config
-from neuromotor.simulate import prepare, run
+from neuromotor.studies.simulate import prepare, run
 
 SPEEDS = [5.0, 8.0, 11.0]
 CONFIG = """

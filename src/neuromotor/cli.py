@@ -95,8 +95,8 @@ def model_json(character) -> dict:
 
 def _load(args):
     """The character of a command's clip with its --units, --up-axis and body options."""
-    from .simulate import load_character
-    from .skeleton import MassModelOptions
+    from neuromotor.studies.simulate import load_character
+    from neuromotor.model.skeleton import MassModelOptions
 
     options = MassModelOptions(body_mass=args.body_mass, sex=args.sex,
                                simulate_extremities=args.simulate_extremities)
@@ -168,8 +168,8 @@ class _Stages:
 
 
 def cmd_idyn(args) -> int:
-    from .inverse import idyn_arrays
-    from .simulate import save_npz_atomic
+    from neuromotor.physics.inverse import idyn_arrays
+    from neuromotor.studies.simulate import save_npz_atomic
 
     stage = _Stages("idyn", getattr(args, "quiet", False))
     stage(f"loading clip {args.clip or '(embedded default)'}")
@@ -189,7 +189,7 @@ def cmd_idyn(args) -> int:
 
 
 def _sim_config(args):
-    from .config import SimulationConfig, DEFAULT_HIT, load_simulation_config
+    from neuromotor.config import SimulationConfig, DEFAULT_HIT, load_simulation_config
 
     if args.config:
         cfg = load_simulation_config(args.config)
@@ -211,7 +211,7 @@ def _sim_config(args):
 
 
 def cmd_simulate(args) -> int:
-    from .simulate import load_character, prepare, run, run_arrays, save_npz_atomic
+    from neuromotor.studies.simulate import load_character, prepare, run, run_arrays, save_npz_atomic
 
     stage = _Stages("simulate", getattr(args, "quiet", False))
     cfg = _sim_config(args)
@@ -237,7 +237,7 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_render(args) -> int:
-    from .render import render_run
+    from neuromotor.viz.render import render_run
 
     quiet = getattr(args, "quiet", False)
     render_run(args.run, args.output, frames=args.frames, progress=not quiet,
@@ -247,7 +247,7 @@ def cmd_render(args) -> int:
 
 
 def cmd_plot(args) -> int:
-    from .render import plot_run
+    from neuromotor.viz.render import plot_run
 
     plot_run(args.run, args.output)
     print(f"wrote {args.output}")
@@ -255,7 +255,7 @@ def cmd_plot(args) -> int:
 
 
 def cmd_sweep(args) -> int:
-    from .sweep import sweep_from_config
+    from neuromotor.studies.sweep import sweep_from_config
 
     fitted = tuple(args.fitted) if args.fitted else args.fitted_json
     result, files = sweep_from_config(args.config, args.output, chunk=args.chunk, inner_batch=args.inner_batch,
@@ -266,7 +266,7 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_fit(args) -> int:
-    from .fitting import FitError, calibrate, load_calibration, write_synthetic_target
+    from neuromotor.studies.fitting import FitError, calibrate, load_calibration, write_synthetic_target
 
     if args.write_synthetic:
         path = write_synthetic_target(args.config, *args.write_synthetic, noise_deg=args.noise_deg, seed=args.seed)
@@ -290,7 +290,7 @@ def cmd_fit(args) -> int:
 
 
 def cmd_export_bvh(args) -> int:
-    from .export import export_bvh
+    from neuromotor.io.export import export_bvh
 
     export_bvh(args.run, args.output)
     print(f"wrote {args.output}")
@@ -302,7 +302,7 @@ def cmd_demo(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     ns = argparse.Namespace(config=None, ks=None, kd=None, json=False, output=out / "run.npz")
     cmd_simulate(ns)
-    from .render import plot_run, render_run
+    from neuromotor.viz.render import plot_run, render_run
 
     for name in ("filmstrip.png", "video.mp4"):
         render_run(out / "run.npz", out / name)
@@ -313,7 +313,7 @@ def cmd_demo(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import run_from_args
+    from neuromotor.studies.bench import run_from_args
 
     return run_from_args(args)
 
@@ -349,7 +349,7 @@ def _strict_json(value):
 
 
 def cmd_info(args) -> int:
-    from .simulate import read_run_info
+    from neuromotor.studies.simulate import read_run_info
 
     info = read_run_info(args.run)
     if args.json:
@@ -374,7 +374,7 @@ def cmd_info(args) -> int:
 
 
 def cmd_export_mjcf(args) -> int:
-    from .mjcf import export_mjcf
+    from neuromotor.io.mjcf import export_mjcf
 
     character, _ = _load(args)
     export_mjcf(character, args.output, timestep=args.timestep)
@@ -383,7 +383,7 @@ def cmd_export_mjcf(args) -> int:
 
 
 def _units_arg(text: str):
-    from .anatomy import UNIT_CHOICES
+    from neuromotor.model.anatomy import UNIT_CHOICES
 
     if text == "auto" or text in UNIT_CHOICES:
         return text
@@ -445,7 +445,7 @@ def _count_arg(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
+    from neuromotor import __version__
 
     p = _Parser(prog="neuromotor", description=__doc__.split("\n")[0])
     p.add_argument("--version", action="version", version=f"neuromotor {__version__}")
@@ -565,7 +565,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _io_paths(args) -> tuple[list, list, list]:
     """(inputs, output files, output folders) of a command, for :func:`outputs.check_outputs`.
     Reads config files (cheap) but computes nothing."""
-    from .outputs import inputs_of_run
+    from neuromotor.io.outputs import inputs_of_run
 
     cmd, out = args.command, getattr(args, "output", None)
     clip = getattr(args, "clip", None)
@@ -583,14 +583,14 @@ def _io_paths(args) -> tuple[list, list, list]:
         d = pathlib.Path(out)
         return [], [d / n for n in ("run.npz", "filmstrip.png", "video.mp4", "deviation.png")], [d]
     if cmd == "sweep":
-        from .sweep import load_sweep_config
+        from neuromotor.studies.sweep import load_sweep_config
 
         cfg, spec = load_sweep_config(args.config)
         d = pathlib.Path(out or spec.output or pathlib.Path("out") / "sweep" / pathlib.Path(args.config).stem)
         files = [d / n for n in ("sweep.csv", "sweep.png", "gains_map.png")]
         return [args.config, cfg.clip, args.fitted_json], files, [d]
     if cmd == "fit":
-        from .config import read_toml, simulation_config
+        from neuromotor.config import read_toml, simulation_config
 
         path = pathlib.Path(args.config)
         data = read_toml(path)
@@ -607,7 +607,7 @@ def _io_paths(args) -> tuple[list, list, list]:
 
 def _preflight(args) -> None:
     """Before any computation: every output can be written and overwrites no input."""
-    from .outputs import check_outputs
+    from neuromotor.io.outputs import check_outputs
 
     inputs, files, folders = _io_paths(args)
     check_outputs(files=files, folders=folders, inputs=inputs)
@@ -615,13 +615,13 @@ def _preflight(args) -> None:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from .compiler import enable_compile_cache
+    from neuromotor.compiler import enable_compile_cache
 
     if args.command != "bench":  # bench reports compile times: it compiles for real
         enable_compile_cache()  # persistent XLA cache: a second `simulate` loads instead of compiling
-    from .bvh import BvhError
-    from .config import ConfigError
-    from .dynamics import SimulationDiverged
+    from neuromotor.model.bvh import BvhError
+    from neuromotor.config import ConfigError
+    from neuromotor.physics.dynamics import SimulationDiverged
 
     try:
         _preflight(args)  # SIGINT/SIGTERM while an output is being written: atomic.atomic_path

@@ -21,7 +21,7 @@ Simulation config (every table and key optional)::
                                    # and leaves up to ~4e-8 m at the joints
 
     [gains]
-    ks = 400.0                     # 1/s^2 (see neuromotor.control for the scaling)
+    ks = 400.0                     # 1/s^2 (see neuromotor.physics.control for the scaling)
     kd = 20.0                      # 1/s
     tau_floor = 0.5                # fraction of each DOF's RMS feedforward torque
 
@@ -35,7 +35,7 @@ Simulation config (every table and key optional)::
     duration = 0.1                 # s (force only)
     shape = "half_sine"            # square | half_sine | triangle
 
-    [ball]                         # a flying ball (see neuromotor.contact); optional
+    [ball]                         # a flying ball (see neuromotor.physics.contact); optional
     radius = 0.11                  # m
     mass = 0.45                    # kg
     position = [1.5, 1.3, 2.3]     # world centre at launch (m)
@@ -60,8 +60,8 @@ import pathlib
 import tomllib
 from typing import Any
 
-from .anatomy import UNIT_CHOICES
-from .control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
+from neuromotor.model.anatomy import UNIT_CHOICES
+from neuromotor.physics.control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
 
 
 class ConfigError(ValueError):
@@ -91,7 +91,7 @@ class SimulationConfig:
     source: str = "<defaults>"
 
     def mass_options(self):
-        from .skeleton import MassModelOptions
+        from neuromotor.model.skeleton import MassModelOptions
 
         return MassModelOptions(body_mass=self.body_mass, sex=self.sex,
                                 simulate_extremities=self.simulate_extremities)

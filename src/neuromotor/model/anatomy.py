@@ -22,7 +22,7 @@ pose's orientation and only as a last resort from names:
 :func:`collapse_virtual_root` removes a ROOT that is only a ground marker (its link to the body
 changes length every frame) and :func:`prepare_clip` chains reading, collapsing and analysis.
 
-Conventions are those of :mod:`neuromotor.bvh`: rotation channels are intrinsic Euler angles in
+Conventions are those of :mod:`neuromotor.model.bvh`: rotation channels are intrinsic Euler angles in
 file order, ``p_parent = R @ p_joint + translation``, position channels replace the OFFSET.
 """
 
@@ -35,7 +35,7 @@ import re
 
 import numpy as np
 
-from .bvh import UNIT_SCALES, BvhClip, _auto_scale, _resolve_units_arg, read_bvh
+from neuromotor.model.bvh import UNIT_SCALES, BvhClip, _auto_scale, _resolve_units_arg, read_bvh
 
 __all__ = [
     "SEGMENTS",

@@ -16,19 +16,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import compiler, contact
-from . import metrics as mx
-from .atomic import atomic_path
-from .bvh import BvhClip
-from .config import ConfigError, SimulationConfig
-from .control import Gains, make_gains
-from .dynamics import Reference, Rollout, SimConfig, check_rollout, make_reference, rollout
-from .kinematics import (Trajectory, local_rotations, skeleton_edges, skeleton_points, structure,
+from neuromotor import compiler
+
+from neuromotor.physics import contact
+from neuromotor.studies import metrics as mx
+from neuromotor.io.atomic import atomic_path
+from neuromotor.model.bvh import BvhClip
+from neuromotor.config import ConfigError, SimulationConfig
+from neuromotor.physics.control import Gains, make_gains
+from neuromotor.physics.dynamics import Reference, Rollout, SimConfig, check_rollout, make_reference, rollout
+from neuromotor.model.kinematics import (Trajectory, local_rotations, skeleton_edges, skeleton_points, structure,
                          trajectory_from_clip)
-from .perturbation import ForcePulses, pulses
-from .rotations import quat_to_matrix
-from .anatomy import prepare_clip
-from .skeleton import BODY_KEYWORDS, Character, MassModelOptions, Model, build_character, keyword_body
+from neuromotor.physics.perturbation import ForcePulses, pulses
+from neuromotor.rotations import quat_to_matrix
+from neuromotor.model.anatomy import prepare_clip
+from neuromotor.model.skeleton import BODY_KEYWORDS, Character, MassModelOptions, Model, build_character, keyword_body
 
 DEFAULT_CLIP_NAME = "mocapbank_19joint.bvh"
 
@@ -306,12 +308,12 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
     # Horizontal facing direction: the anatomy's forward (a world direction at the clip's
     # reference frame), carried with the root body to the simulated window; else estimated from
     # the skeleton.
-    from .render import facing_direction
+    from neuromotor.viz.render import facing_direction
 
     forward = getattr(getattr(setup.character, "anatomy", None), "forward", None)
     if forward is not None:
         try:
-            from .kinematics import body_poses
+            from neuromotor.model.kinematics import body_poses
 
             forward = np.asarray(forward, dtype=np.float64).reshape(3)
             ref_frame = getattr(setup.character.anatomy, "reference_frame", None)
@@ -360,7 +362,7 @@ def provenance(setup: Setup) -> dict:
     version, the clip file and its SHA-256, and the fully resolved configuration (gains, step,
     window, perturbations with their resolved body and point, units, up axis, stature, mass
     options, ball)."""
-    from . import __version__
+    from neuromotor import __version__
 
     cfg, model, character = setup.config, setup.model, setup.character
     clip = character.source

@@ -24,9 +24,9 @@ Three solvers give the same step (``SimConfig.solver``; tests check agreement to
   body tree (:func:`stiff_blocks`); Eq. 2 solved by the null-space method -- v = S u over a
   basis of the ball joints' null space, one 54x54 LU, multipliers recovered from
   ``J^T lam = A v - r`` -- and each post-stabilization Newton step likewise with one Cholesky
-  (:mod:`neuromotor.nullspace`). Fewest XLA kernels per step, hence the fastest on a CPU.
+  (:mod:`neuromotor.physics.nullspace`). Fewest XLA kernels per step, hence the fastest on a CPU.
 * ``"tree"``: the same blocks; Eq. 2 and each Newton step by block elimination along the tree
-  in linear time (:mod:`neuromotor.treesolve`, Baraff 1996).
+  in linear time (:mod:`neuromotor.physics.treesolve`, Baraff 1996).
 * ``"dense"``: one dense ``jacfwd`` over all bodies (:func:`stiff_jacobians`) and one dense
   LU of the (6B + nc) square matrix -- the reference path, and the assembly functions that
   other solvers (ball contact) build on.
@@ -50,11 +50,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .control import Gains, feedback_multipliers, joint_torque_magnitude, rate_feedback_gains
-from .inverse import inverse_dynamics, sim_columns
-from .kinematics import Trajectory, body_kinematics, joint_angles_from_q
-from .perturbation import ForcePulses, generalized_forces, no_pulses
-from .rotations import (
+from neuromotor.physics.control import Gains, feedback_multipliers, joint_torque_magnitude, rate_feedback_gains
+from neuromotor.physics.inverse import inverse_dynamics, sim_columns
+from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angles_from_q
+from neuromotor.physics.perturbation import ForcePulses, generalized_forces, no_pulses
+from neuromotor.rotations import (
     AXIS,
     axis_rotation,
     matrix_to_quat,
@@ -65,9 +65,10 @@ from .rotations import (
     rotation_error,
     skew,
 )
-from . import nullspace, treesolve, vec3
-from .skeleton import Model
-from .system import (
+from neuromotor import vec3
+from neuromotor.physics import nullspace, treesolve
+from neuromotor.model.skeleton import Model
+from neuromotor.physics.system import (
     State,
     dofs_to_per_joint,
     euler_axes_batched,
@@ -590,7 +591,7 @@ def _tree_matvec(model: Model, diag: Float[Array, "B 3 3"], up: Float[Array, "C 
 
 
 def _step_tree(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, ref: Reference, k, state: State):
-    """Eq. 2 with the block structure of the tree (see :mod:`neuromotor.treesolve`)."""
+    """Eq. 2 with the block structure of the tree (see :mod:`neuromotor.physics.treesolve`)."""
     h = cfg.h
     n = model.n_bodies
     rot = state.rot
@@ -663,7 +664,7 @@ def post_stabilize_nullspace(model: Model, driven, pos, quat, targets, iters: in
 
 def _step_nullspace(model: Model, gains: Gains, pulses: ForcePulses, cfg: SimConfig, ref: Reference, k,
                     state: State):
-    """Eq. 2 by the null-space method (see :mod:`neuromotor.nullspace`), K and D as tree blocks."""
+    """Eq. 2 by the null-space method (see :mod:`neuromotor.physics.nullspace`), K and D as tree blocks."""
     h = cfg.h
     n = model.n_bodies
     rot = state.rot

@@ -21,7 +21,7 @@ Lengths (OFFSETs, End Sites, position channels) are stored in metres: file value
 ``length_scale``. Rotation channels stay in degrees, as in the file. ``units`` is a key of
 :data:`UNIT_SCALES` (m, cm, mm, in, cmu = CMU's 1/0.45 inch, ft, dm), a positive float (metres per
 file unit) or ``"auto"``. Humanoid clips get their unit from the stature their long bones give
-(:func:`neuromotor.anatomy.prepare_clip`, which reads files with ``units=1.0``); this module's own
+(:func:`neuromotor.model.anatomy.prepare_clip`, which reads files with ``units=1.0``); this module's own
 ``"auto"`` rule, used for skeletons that are not humanoid: place the skeleton in its rest pose (all rotations zero, the root at
 the origin, i.e. the root OFFSET is ignored), take the diagonal of the bounding box of all joint and
 End Site positions as its size in file units, and choose among m, cm and mm the scale whose size in
@@ -710,9 +710,9 @@ def _format_bvh(clip: BvhClip, motion: np.ndarray, precision: int) -> str:
 
 def _atomic_write(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to a temp file beside ``path`` and rename it over ``path`` (see
-    :func:`neuromotor.atomic.atomic_path`: an existing file's mode is kept, signals clean up;
+    :func:`neuromotor.io.atomic.atomic_path`: an existing file's mode is kept, signals clean up;
     the folder must exist)."""
-    from .atomic import atomic_path
+    from neuromotor.io.atomic import atomic_path
 
     with atomic_path(path, make_parents=False) as tmp:
         tmp.write_bytes(data)

@@ -78,10 +78,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from . import compiler
-from . import dynamics as _dyn
-from .control import Gains
-from .dynamics import (
+from neuromotor import compiler
+from neuromotor.physics import dynamics as _dyn
+from neuromotor.physics.control import Gains
+from neuromotor.physics.dynamics import (
     Reference,
     Rollout,
     SimConfig,
@@ -93,10 +93,10 @@ from .dynamics import (
     post_stabilize,
     stiff_jacobians,
 )
-from .perturbation import ForcePulses, generalized_forces, no_pulses
-from .rotations import quat_to_matrix, quat_turn
-from .skeleton import Character, Model
-from .system import State, gravity_forces, mass_matrix
+from neuromotor.physics.perturbation import ForcePulses, generalized_forces, no_pulses
+from neuromotor.rotations import quat_to_matrix, quat_turn
+from neuromotor.model.skeleton import Character, Model
+from neuromotor.physics.system import State, gravity_forces, mass_matrix
 
 _TINY = 1e-12
 
@@ -655,7 +655,7 @@ def never_launched(ball: Ball) -> Ball:
 
 @eqx.filter_jit
 def _com_at(model: Model, traj, body, t):
-    from .kinematics import body_poses
+    from neuromotor.model.kinematics import body_poses
 
     return body_poses(model, traj.q(t))[0][body]
 
@@ -689,7 +689,7 @@ def aim_ball(model: Model, traj, position, speed: float, target_body: int, launc
 
 
 class BallSetup(eqx.Module):
-    """What :func:`neuromotor.simulate.prepare` keeps for a ``[ball]`` config."""
+    """What :func:`neuromotor.studies.simulate.prepare` keeps for a ``[ball]`` config."""
 
     ball: Ball
     capsules: Capsules
@@ -698,7 +698,7 @@ class BallSetup(eqx.Module):
 
 def ball_setup(spec: dict, character: Character, traj, body_index, source: str = "config") -> BallSetup:
     """Build the ball from a parsed ``[ball]`` table (see :func:`neuromotor.config.parse_ball`)."""
-    from .config import ConfigError
+    from neuromotor.config import ConfigError
 
     model = character.model
     try:
@@ -737,8 +737,8 @@ def balls_at_speeds(setup, speeds) -> Ball:
     aimed at a ``target`` is re-aimed per speed (a slower ball needs a higher arc); a
     ``direction`` or ``velocity`` keeps its direction. Raises ValueError for a speed that
     cannot reach the target."""
-    from .config import ConfigError
-    from .simulate import body_lookup
+    from neuromotor.config import ConfigError
+    from neuromotor.studies.simulate import body_lookup
 
     spec = dict(setup.config.ball)
     if "velocity" in spec:  # speed + direction of the given velocity
@@ -758,8 +758,8 @@ def balls_at_speeds(setup, speeds) -> Ball:
 
 def run_ball(setup, check: bool = True):
     """Perturbed (ball flies) and unperturbed (ball never launched, pulses off) rollouts, with
-    the same compiled function; returns :class:`neuromotor.simulate.RunResult` with ``ball``."""
-    from .simulate import RunResult, _zero, run_metrics
+    the same compiled function; returns :class:`neuromotor.studies.simulate.RunResult` with ``ball``."""
+    from neuromotor.studies.simulate import RunResult, _zero, run_metrics
 
     bs = setup.ball
     model = setup.model
@@ -820,7 +820,7 @@ def sweep_ball_speed(setup, speeds) -> dict[str, np.ndarray]:
     The batch holds one run per speed plus the unperturbed run (the ball never launched), so a
     single compiled function serves them all. Returns per speed the peak joint-angle deviation
     from the unperturbed run (RMS over DOFs, degrees), its time, and the peak contact impulse."""
-    from . import metrics as mx
+    from neuromotor.studies import metrics as mx
 
     bs = setup.ball
     speeds = jnp.asarray(speeds, jnp.float64)

@@ -7,9 +7,9 @@ centre of mass and inertia are integrated exactly from that polyhedron at the de
 of water").
 
 Which joints are bodies, and the shapes, come from the clip's anatomy
-(:mod:`neuromotor.anatomy`: every joint labelled trunk, head, upper arm, forearm, hand, thigh,
+(:mod:`neuromotor.model.anatomy`: every joint labelled trunk, head, upper arm, forearm, hand, thigh,
 shank, foot or extremity detail from the skeleton's topology and bone lengths) and the
-anthropometric mass model (:mod:`neuromotor.massmodel`: de Leva's segment masses, shapes a
+anthropometric mass model (:mod:`neuromotor.model.massmodel`: de Leva's segment masses, shapes a
 person would recognise):
 
 * Every joint that is not extremity detail and carries a bone, and every hand, foot and skull
@@ -21,7 +21,7 @@ person would recognise):
 * Translation channels on non-root joints are replaced by their mean over the clip (joints are
   ball joints with fixed offsets); the root keeps its full 6-DOF path. A virtual root (a ground
   marker whose child carries the translation) has been removed before (see
-  :func:`neuromotor.anatomy.prepare_clip`).
+  :func:`neuromotor.model.anatomy.prepare_clip`).
 """
 
 from __future__ import annotations
@@ -33,15 +33,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from . import polyhedron as poly
-from .anatomy import Anatomy, analyse
-from .bvh import BvhClip
-from .massmodel import plan_bodies, plan_generic
+from neuromotor.model import polyhedron as poly
+from neuromotor.model.anatomy import Anatomy, analyse
+from neuromotor.model.bvh import BvhClip
+from neuromotor.model.massmodel import plan_bodies, plan_generic
 
 
 @dataclasses.dataclass(frozen=True)
 class MassModelOptions:
-    """Parameters of the anthropometric mass model (see :mod:`neuromotor.massmodel`).
+    """Parameters of the anthropometric mass model (see :mod:`neuromotor.model.massmodel`).
 
     ``body_mass`` (kg) defaults to a BMI of 22 at the clip's stature; ``sex`` picks de Leva's
     column (male, female or average); ``simulate_extremities`` makes fingers, toes and face
@@ -152,7 +152,7 @@ def build_character(
 ) -> Character:
     """Build the maximal-coordinate model of a clip in metres (bodies, masses, joints, DOFs).
 
-    ``anatomy`` labels the joints (default: :func:`neuromotor.anatomy.analyse` of ``clip``
+    ``anatomy`` labels the joints (default: :func:`neuromotor.model.anatomy.analyse` of ``clip``
     taken as metres); ``up_axis`` (0, 1, 2) overrides the up axis found from the motion."""
     options = options or MassModelOptions()
     if anatomy is None:

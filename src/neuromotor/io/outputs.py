@@ -26,7 +26,7 @@ import stat
 import tempfile
 from collections.abc import Iterable
 
-from .atomic import TAG
+from neuromotor.io.atomic import TAG
 
 
 class OutputError(ValueError):

@@ -14,10 +14,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .bvh import read_bvh, write_bvh
-from .metrics import continuous_angles
-from .rotations import matrix_to_euler, quat_to_matrix
-from .simulate import load_character
+from neuromotor.model.bvh import read_bvh, write_bvh
+from neuromotor.studies.metrics import continuous_angles
+from neuromotor.rotations import matrix_to_euler, quat_to_matrix
+from neuromotor.studies.simulate import load_character
 
 REQUIRED = ("time", "theta", "dof_names", "source_clip", "source_units", "up_axis")
 

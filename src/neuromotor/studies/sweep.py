@@ -1,7 +1,7 @@
 """Batch sweeps: many perturbed rollouts as one jitted computation, sharded over all devices.
 
-A sweep is a flat list of runs. Each run is a :class:`~neuromotor.control.Gains` and a
-:class:`~neuromotor.perturbation.ForcePulses` (same static layout for all runs; the first pulse
+A sweep is a flat list of runs. Each run is a :class:`~neuromotor.physics.control.Gains` and a
+:class:`~neuromotor.physics.perturbation.ForcePulses` (same static layout for all runs; the first pulse
 is the one a grid varies). Runs go through the device(s) in chunks:
 
 * the batch axis of a chunk is sharded over ``jax.devices()`` with a 1-D
@@ -11,7 +11,7 @@ is the one a grid varies). Runs go through the device(s) in chunks:
   groups of that size inside the loop). A batched ``jnp.linalg.solve`` under a plain vmap
   spread over two host CPU devices deadlocks in XLA:CPU; a loop of rollouts per shard does not;
 * only a deviation curve d(t) (S+1 floats) and four diagnostics come back per run; the exact
-  recovery metrics (:func:`neuromotor.metrics.recovery_metrics`) are computed on the host per
+  recovery metrics (:func:`neuromotor.studies.metrics.recovery_metrics`) are computed on the host per
   chunk, so memory stays bounded by the chunk size whatever the grid size.
 
 The deviation of a run is measured against its unperturbed twin: the same gains without any
@@ -40,7 +40,7 @@ Config (``[sweep]`` table of a simulation config; the grid is the Cartesian prod
     fitted = "fit.json"               # optional: fitted (ks, kd) to mark on the gains map, or [ks, kd]
 
 Ball-speed sweeps (issue 7): when the config has a ``[ball]`` table, ``magnitudes`` are ball
-speeds (m/s) and every run is a contact rollout (:mod:`neuromotor.contact`) of that ball at that
+speeds (m/s) and every run is a contact rollout (:mod:`neuromotor.physics.contact`) of that ball at that
 speed; its twin is the same gains with the ball never launched. A ball aimed at ``ball.target``
 is re-aimed for every speed, so each row equals ``neuromotor simulate`` of the config with
 ``ball.speed`` set to the row's magnitude. ``bodies``, ``directions`` and ``starts`` do not
@@ -67,15 +67,15 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from jaxtyping import Array, Float, Int
 
-from .atomic import atomic_path
-from . import metrics as mx
-from .config import ConfigError, SimulationConfig, _Fields, read_toml, simulation_config
-from .control import Gains, pd_tracking_gains
-from .dynamics import Reference, SimConfig, rollout
-from .perturbation import ForcePulses
-from .skeleton import Model
-from . import compiler
-from . import contact as ct
+from neuromotor.io.atomic import atomic_path
+from neuromotor.studies import metrics as mx
+from neuromotor.config import ConfigError, SimulationConfig, _Fields, read_toml, simulation_config
+from neuromotor.physics.control import Gains, pd_tracking_gains
+from neuromotor.physics.dynamics import Reference, SimConfig, rollout
+from neuromotor.physics.perturbation import ForcePulses
+from neuromotor.model.skeleton import Model
+from neuromotor import compiler
+from neuromotor.physics import contact as ct
 
 AXIS = "runs"
 CONTROLLERS = ("neuromotor", "pd")
@@ -395,7 +395,7 @@ def run_ball_sweep(sweeper: BallSweeper, setup, speeds: Sequence[float], gain_se
                    balls: ct.Ball | None = None, keep_curves: bool = False, progress: bool = True) -> SweepResult:
     """Contact rollouts of the config's ball at every speed x gain setting (gain setting
     outermost), chunked like :func:`run_sweep`, measured against the ball never launched.
-    ``balls``: :func:`neuromotor.contact.balls_at_speeds` of ``speeds``, if already built."""
+    ``balls``: :func:`neuromotor.physics.contact.balls_at_speeds` of ``speeds``, if already built."""
     from tqdm.auto import tqdm
 
     spec, model = setup.config.ball, setup.model
@@ -783,7 +783,7 @@ def sweep_from_config(path, output=None, *, devices=None, chunk=None, inner_batc
     """Run the sweep of a config file; write ``sweep.csv``, ``sweep.png`` and, when ks and kd
     both vary, ``gains_map.png`` into ``output`` (default: the config's ``sweep.output``).
     A config with a ``[ball]`` table sweeps the ball speed (see the module docstring)."""
-    from .simulate import body_lookup, prepare
+    from neuromotor.studies.simulate import body_lookup, prepare
 
     cfg, spec = load_sweep_config(path)
     out = pathlib.Path(output or spec.output or pathlib.Path("out") / "sweep" / pathlib.Path(path).stem)

@@ -5,7 +5,7 @@ The paper approximates the character "with polyhedra ... assuming the density of
 (Section 5.1). We keep that, and make the polyhedra look like a person of the clip's size:
 
 * **Body mass** ``M``: given, or ``DEFAULT_BMI * stature^2`` (BMI 22).
-* **Segment targets**: ``M`` times de Leva's Table 4 fraction (see :mod:`neuromotor.deleva`).
+* **Segment targets**: ``M`` times de Leva's Table 4 fraction (see :mod:`neuromotor.model.deleva`).
   A segment may be several bodies (a trunk of pelvis, spine, chest and clavicle bodies; a head of
   neck and skull); extremity detail without a body of its own (fingers, toes, face) counts in
   its hand, foot or head. A segment the rig lacks passes its mass to its parent segment (a hand
@@ -19,10 +19,10 @@ The paper approximates the character "with polyhedra ... assuming the density of
   has zero length gets its anthropometric length along its parent bone's direction.
 * **Mass match**: the cross-sections of a segment's bodies are scaled by one factor, found by a
   few fixed-point steps, until their volume at ``density`` gives the segment's target; the mass,
-  COM and inertia are then integrated exactly from the polyhedra (:mod:`neuromotor.polyhedron`).
+  COM and inertia are then integrated exactly from the polyhedra (:mod:`neuromotor.model.polyhedron`).
 
 Directions that the zero pose cannot give (which way is up, forward, left for a body) come from
-the clip's reference frame (:class:`neuromotor.anatomy.Anatomy`), a frame of the motion where
+the clip's reference frame (:class:`neuromotor.model.anatomy.Anatomy`), a frame of the motion where
 the character stands upright, so a rig whose zero pose is not a standing pose still gets
 flat feet on the floor.
 """
@@ -33,10 +33,10 @@ import dataclasses
 
 import numpy as np
 
-from . import deleva
-from . import polyhedron as poly
-from .anatomy import DETAIL_SEGMENTS, Anatomy, euler_to_matrix
-from .bvh import BvhClip
+from neuromotor.model import deleva
+from neuromotor.model import polyhedron as poly
+from neuromotor.model.anatomy import DETAIL_SEGMENTS, Anatomy, euler_to_matrix
+from neuromotor.model.bvh import BvhClip
 
 # (overhang past the distal joint, distal/proximal radius) of the limb frustums. A frustum of
 # taper t has its COM at (1 + 2t + 3t^2) / (4 (1 + t + t^2)) of its length: these put the COM

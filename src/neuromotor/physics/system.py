@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .rotations import (
+from neuromotor.rotations import (
     AXIS,
     axis_rotation,
     matrix_to_euler,
@@ -29,7 +29,7 @@ from .rotations import (
     rotation_error,
     skew,
 )
-from .skeleton import Model
+from neuromotor.model.skeleton import Model
 
 
 # ---------------------------------------------------------------- static topology (numpy)

@@ -27,10 +27,10 @@ import numpy as np
 from jaxtyping import Array, Float
 from scipy.interpolate import CubicSpline
 
-from . import vec3
-from .bvh import BvhClip
-from .rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, quat_to_matrix, vee
-from .skeleton import Model
+from neuromotor import vec3
+from neuromotor.model.bvh import BvhClip
+from neuromotor.rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, quat_to_matrix, vee
+from neuromotor.model.skeleton import Model
 
 
 class Spline(eqx.Module):

@@ -48,9 +48,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .kinematics import body_kinematics
-from .skeleton import Model
-from .system import dof_axes, dofs_to_per_joint, per_joint_to_dofs
+from neuromotor.model.kinematics import body_kinematics
+from neuromotor.model.skeleton import Model
+from neuromotor.physics.system import dof_axes, dofs_to_per_joint, per_joint_to_dofs
 
 DEFAULT_KS = 400.0  # 1/s^2: natural frequency 20 rad/s (3.2 Hz) at typical load
 DEFAULT_KD = 20.0  # 1/s: damping ratio 0.5

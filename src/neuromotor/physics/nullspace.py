@@ -49,7 +49,7 @@ import jax.scipy.linalg  # noqa: F401  (cho_factor, cho_solve)
 import numpy as np
 from jaxtyping import Array, Float
 
-from .rotations import quat_turn
+from neuromotor.rotations import quat_turn
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

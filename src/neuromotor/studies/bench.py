@@ -8,7 +8,7 @@ Prints, after compilation, for the 19-joint default clip at h = 1/120 s:
   and at the largest size, the same split of a step per trajectory (:func:`batch_split`);
 * ``jax.jacfwd`` over (ks, kd) through a 1 s rollout, relative to the rollout itself;
 * inverse dynamics of whole clips (Eq. 3) after compile and its compile time;
-* MuJoCo (optional) on the exported MJCF (:func:`neuromotor.mjcf.model_to_mjcf`): one thread,
+* MuJoCo (optional) on the exported MJCF (:func:`neuromotor.io.mjcf.model_to_mjcf`): one thread,
   implicitfast, PD servos on every hinge, same skeleton, masses and time step; and the ratio.
 
 Every time is the best of several repeats (the figures are meant for a shared machine).
@@ -28,12 +28,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import dynamics as dy
-from . import compiler, nullspace, treesolve
-from .config import DEFAULT_HIT, SimulationConfig
-from .inverse import inverse_dynamics
-from .system import joint_levers, root_lever, world_inertia
-from .simulate import load_character, prepare
+from neuromotor.physics import dynamics as dy
+from neuromotor import compiler
+from neuromotor.physics import nullspace, treesolve
+from neuromotor.config import DEFAULT_HIT, SimulationConfig
+from neuromotor.physics.inverse import inverse_dynamics
+from neuromotor.physics.system import joint_levers, root_lever, world_inertia
+from neuromotor.studies.simulate import load_character, prepare
 
 H = 1.0 / 120.0
 
@@ -289,7 +290,7 @@ def mujoco_reference(setup, steps: int, repeats: int, ours=None) -> dict | None:
         import mujoco
     except ImportError:
         return None
-    from .mjcf import model_to_mjcf
+    from neuromotor.io.mjcf import model_to_mjcf
 
     mj = mujoco.MjModel.from_xml_string(model_to_mjcf(setup.character, timestep=setup.sim.h))
     data = mujoco.MjData(mj)
@@ -433,7 +434,7 @@ def add_arguments(ap) -> None:
 def run_from_args(args) -> int:
     load = None
     if hasattr(args, "units"):  # the command line's clip options
-        from .skeleton import MassModelOptions
+        from neuromotor.model.skeleton import MassModelOptions
 
         load = dict(units=args.units, up_axis=args.up_axis, stature=args.stature,
                     options=MassModelOptions(body_mass=args.body_mass, sex=args.sex,

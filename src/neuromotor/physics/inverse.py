@@ -19,10 +19,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .kinematics import Trajectory, body_kinematics, joint_angles_from_q
-from .rotations import matrix_to_quat, skew
-from .skeleton import Model
-from .system import dof_axes, external_forces, joint_jacobian_blocks, root_lever, world_inertia
+from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angles_from_q
+from neuromotor.rotations import matrix_to_quat, skew
+from neuromotor.model.skeleton import Model
+from neuromotor.physics.system import dof_axes, external_forces, joint_jacobian_blocks, root_lever, world_inertia
 
 
 class InverseDynamics(eqx.Module):

@@ -4,7 +4,7 @@
     render_run("run.npz", "video.mp4")                 # or .gif: both characters side by side
     plot_run("run.npz", "plots.png")                   # deviation and joint angles vs time
 
-Everything reads the RUN.npz contract written by :func:`neuromotor.simulate.run_arrays`
+Everything reads the RUN.npz contract written by :func:`neuromotor.studies.simulate.run_arrays`
 (``skeleton_points``, ``skeleton_points_unperturbed``, ``skeleton_edges``, ``skeleton_radii``,
 ``force_origin``, ``force_vector``, ``time``, ``up_axis``; ``theta*`` and ``dof_names`` for the
 plots; optionally ``ball_pos`` (T,3) and ``ball_radius``, drawn as a sphere; optionally the body
@@ -51,7 +51,7 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 import numpy as np
 
-from .atomic import atomic_path
+from neuromotor.io.atomic import atomic_path
 FORCE_SCALE_N_PER_M = 500.0   # arrow length: 1 m per 500 N
 FORCE_VISIBLE_FRACTION = 0.01  # draw the arrow while |F| > 1% of its peak
 CAMERA_ELEVATION_DEG = 12.0  # camera raised above the horizontal

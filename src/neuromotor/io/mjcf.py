@@ -3,7 +3,7 @@
     xml = model_to_mjcf(character)
     export_mjcf(character, "character.xml")
 
-The MJCF describes the same skeleton and mass model as :class:`neuromotor.skeleton.Model`:
+The MJCF describes the same skeleton and mass model as :class:`neuromotor.model.skeleton.Model`:
 
 * one MuJoCo body per model body, nested as the tree (joints without a body, the massless
   leaves, are skipped); the body frame is the BVH joint frame, so a body's ``pos`` is its
@@ -35,8 +35,8 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from .atomic import atomic_path
-from .skeleton import Character
+from neuromotor.io.atomic import atomic_path
+from neuromotor.model.skeleton import Character
 
 AXIS_VEC = {"X": "1 0 0", "Y": "0 1 0", "Z": "0 0 1"}
 

@@ -5,7 +5,7 @@
   captured motion while the rest of the body stays exactly on it.
 * **Full body** (:func:`full_body`): the whole body is simulated and hit at the chest or head;
   Figure 2 as a filmstrip (original above, perturbed below) and a video, via
-  :func:`neuromotor.render.render_run`.
+  :func:`neuromotor.viz.render.render_run`.
 * **High-gain contrast** (:func:`contrast`): the same hit under several controllers, by default
   the paper's feedforward + low-gain feedback, a high-gain PD tracker without feedforward
   (Zordan & Hodgins 2002) and, to show why the tracker needs its high gains, the same PD tracker
@@ -38,9 +38,9 @@ from typing import Any
 
 import numpy as np
 
-from . import metrics as mx
-from .config import ConfigError, SimulationConfig, _Fields, read_toml, simulation_config
-from .sweep import CONTROLLERS, GainSetting, _atomic_write, _number_list, gains_for, save_figure
+from neuromotor.studies import metrics as mx
+from neuromotor.config import ConfigError, SimulationConfig, _Fields, read_toml, simulation_config
+from neuromotor.studies.sweep import CONTROLLERS, GainSetting, _atomic_write, _number_list, gains_for, save_figure
 
 KINDS = ("arm", "full_body", "contrast")
 DEFAULT_CONTRAST = (
@@ -124,7 +124,7 @@ def _hit_span(cfg: SimulationConfig):
 def _simulate(cfg: SimulationConfig, out: pathlib.Path, name: str = "run.npz", setting: GainSetting | None = None,
               setup=None):
     """One perturbed + unperturbed pair, saved as RUN.npz; returns (setup, result, npz path)."""
-    from .simulate import prepare, run, run_arrays, save_npz_atomic
+    from neuromotor.studies.simulate import prepare, run, run_arrays, save_npz_atomic
 
     if setup is None:
         setup = prepare(cfg)
@@ -139,7 +139,7 @@ def _render(npz, out: pathlib.Path, exp: Experiment, video: bool) -> dict[str, s
     """Filmstrip (and video) when the renderer is available; never fails the experiment."""
     files = {}
     try:
-        from .render import render_run
+        from neuromotor.viz.render import render_run
     except ImportError as e:  # renderer not installed in this environment
         return {"render_skipped": str(e)}
     try:
@@ -230,7 +230,7 @@ def full_body(cfg: SimulationConfig, exp: Experiment) -> dict:
 
 def contrast(cfg: SimulationConfig, exp: Experiment, progress: bool = True) -> dict:
     """The same hit under each controller of ``exp.controllers``."""
-    from .simulate import prepare
+    from neuromotor.studies.simulate import prepare
 
     out = exp.output
     base_setup = prepare(cfg)
@@ -263,8 +263,8 @@ def contrast(cfg: SimulationConfig, exp: Experiment, progress: bool = True) -> d
     fig.tight_layout()
     numbers["files"] = {"plot": str(save_figure(fig, out / "contrast.png"))}
     if exp.magnitudes:
-        from .simulate import body_lookup
-        from .sweep import SweepSpec, Sweeper, plot_sweep, run_sweep, write_csv
+        from neuromotor.studies.simulate import body_lookup
+        from neuromotor.studies.sweep import SweepSpec, Sweeper, plot_sweep, run_sweep, write_csv
 
         spec = SweepSpec(exp.magnitudes, list(exp.controllers))
         sweeper = Sweeper(base_setup.model, base_setup.ref, base_setup.sim, chunk=len(spec.magnitudes) * len(spec.gains))

@@ -28,7 +28,7 @@ Feature targets
 Numbers such as the peak deviation after a push, given per perturbation case with a standard
 deviation; see :data:`FEATURES`. Features are computed from the deviation signal
 ``d(t) = rms_i (theta_i - theta_unperturbed_i)`` in degrees over a set of DOFs (see
-:mod:`neuromotor.metrics`), and the peak acceleration from ``a(t)``, the RMS over the same
+:mod:`neuromotor.studies.metrics`), and the peak acceleration from ``a(t)``, the RMS over the same
 DOFs of the second time derivative of that difference in deg/s^2 (a central difference of the
 simulated joint rates), with smooth surrogates so the fit can differentiate them.
 """
@@ -41,8 +41,8 @@ import pathlib
 
 import numpy as np
 
-from .atomic import atomic_path
-from .config import ConfigError
+from neuromotor.io.atomic import atomic_path
+from neuromotor.config import ConfigError
 
 FEATURES = {
     "peak_deviation_deg": "largest deviation d(t) (deg)",

@@ -4,7 +4,7 @@ Parameters. ``x = (log ks, log kd)``: the gains stay positive and both are fitte
 on which they matter (a factor, not an increment).
 
 Residuals. Given C perturbation cases (magnitudes, directions, bodies, start times), simulated
-jointly by one ``vmap`` over the case axis of a :class:`~neuromotor.perturbation.ForcePulses`,
+jointly by one ``vmap`` over the case axis of a :class:`~neuromotor.physics.perturbation.ForcePulses`,
 the model output y(x) stacks over cases either
 
 * the simulated trajectory inside the fit window (joint angles of all or named DOFs, or body
@@ -61,13 +61,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .atomic import atomic_path
-from . import compiler
-from . import metrics as mx
-from .control import Gains
-from .dynamics import Reference, Rollout, SimConfig, rollout
-from .perturbation import ForcePulses
-from .skeleton import Model
+from neuromotor.io.atomic import atomic_path
+from neuromotor import compiler
+from neuromotor.studies import metrics as mx
+from neuromotor.physics.control import Gains
+from neuromotor.physics.dynamics import Reference, Rollout, SimConfig, rollout
+from neuromotor.physics.perturbation import ForcePulses
+from neuromotor.model.skeleton import Model
 
 SOLVERS = ("optimistix_lm", "optimistix_gn", "optimistix_bfgs", "jaxopt_lm", "jaxopt_lbfgs")
 KINDS = ("joint_angles", "body_positions", "features")
@@ -173,7 +173,7 @@ class FitProblem(eqx.Module):
 
 
 def deviation_deg(theta, theta_ref, dofs=None) -> Float[Array, " T"]:
-    """:func:`neuromotor.metrics.deviation` (wrapped differences) with a derivative at zero deviation.
+    """:func:`neuromotor.studies.metrics.deviation` (wrapped differences) with a derivative at zero deviation.
 
     Before the hit the perturbed and unperturbed runs are identical; d sqrt(u) = du / 2 sqrt(u)
     is then 0/0 and would put NaN in the Jacobian. Where u = 0 the derivative is taken as 0
@@ -211,7 +211,7 @@ def soft_max_weighted(signal, beta: float):
     """Smooth peak of a signal: the softmax(beta * signal)-weighted mean of the signal.
 
     Below the exact maximum by about ``1 / (2 beta)`` near a rounded peak, whatever the
-    signal's length (the log-sum-exp :func:`neuromotor.metrics.soft_peak` is low by up to
+    signal's length (the log-sum-exp :func:`neuromotor.studies.metrics.soft_peak` is low by up to
     ``log(T) / beta``, too much at the smoothing scale an acceleration in deg/s^2 needs).
     """
     w = jax.nn.softmax(beta * signal)
@@ -235,7 +235,7 @@ def soft_recovery(time, dev, start, threshold, width: float):
     A sample counts while d is still above threshold at that sample *or any later one*:
     ``1 - prod_{s >= t} (1 - above(s))`` with a sigmoid ``above`` (a reverse cumulative
     product, summed in log space). Summed over the samples after ``start`` this is the time
-    to the last crossing. The surrogate of :mod:`neuromotor.metrics` integrates the time spent
+    to the last crossing. The surrogate of :mod:`neuromotor.studies.metrics` integrates the time spent
     above threshold instead, which leaves out the rise before the first crossing and any dip
     below threshold before the last one.
     """
@@ -252,7 +252,7 @@ def response_features(time, dev, start, spec: ResponseSpec, acc=None) -> dict:
     and (given the acceleration signal ``acc`` of :func:`acceleration_deg`) its peak angular
     acceleration.
 
-    Exact counterparts: :func:`neuromotor.metrics.recovery_metrics` (time to peak there is
+    Exact counterparts: :func:`neuromotor.studies.metrics.recovery_metrics` (time to peak there is
     absolute; here it is measured from ``start``) and :func:`exact_peak_acceleration`.
     """
     peak = mx.soft_peak(dev, spec.beta)
@@ -734,10 +734,10 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
     shape (a static field: one shape per vmapped batch). ``window`` = (t0, t1) in clip
     seconds (default: the whole simulation).
     """
-    from .perturbation import pulses as make_pulses
-    from .simulate import body_lookup
-    from .targets import window_indices
-    from .config import ConfigError
+    from neuromotor.physics.perturbation import pulses as make_pulses
+    from neuromotor.studies.simulate import body_lookup
+    from neuromotor.studies.targets import window_indices
+    from neuromotor.config import ConfigError
 
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -769,7 +769,7 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
 class Calibration:
     """A calibration ready to run: problem, target, weights, start and solver settings."""
 
-    setup: object  # neuromotor.simulate.Setup
+    setup: object  # neuromotor.studies.simulate.Setup
     problem: FitProblem
     target: np.ndarray  # (m,) flat, as y(x)
     weights: np.ndarray  # (m,)
@@ -795,13 +795,13 @@ class Calibration:
 
 def trajectory_calibration(setup, table, quantity: str, names=None, weights=None, window=None,
                            angle_unit: str = "rad", source: str | None = None) -> tuple:
-    """Target and weights for a trajectory table (see :mod:`neuromotor.targets`).
+    """Target and weights for a trajectory table (see :mod:`neuromotor.studies.targets`).
 
     Returns (problem, target, weights, labels). ``names``: the DOFs or bodies to fit (default:
     every column of the file); ``weights``: name -> weight (default 1).
     """
-    from .config import ConfigError
-    from .targets import resample
+    from neuromotor.config import ConfigError
+    from neuromotor.studies.targets import resample
 
     model = setup.model
     src = source or setup.config.source
@@ -848,7 +848,7 @@ def trajectory_calibration(setup, table, quantity: str, names=None, weights=None
 
 def load_calibration(path, solver: str | None = None, character=None, traj=None) -> Calibration:
     """Read a fit config (TOML; layout in docs/fitting.md) into a :class:`Calibration`."""
-    from .config import read_toml
+    from neuromotor.config import read_toml
 
     path = pathlib.Path(path)
     return calibration_from_dict(read_toml(path), str(path), path.parent, solver, character, traj)
@@ -856,9 +856,9 @@ def load_calibration(path, solver: str | None = None, character=None, traj=None)
 
 def calibration_from_dict(data: dict, source: str = "<dict>", base_dir=None, solver: str | None = None,
                           character=None, traj=None) -> Calibration:
-    from .config import ConfigError, _Fields, simulation_config
-    from .simulate import prepare
-    from .targets import read_target
+    from neuromotor.config import ConfigError, _Fields, simulation_config
+    from neuromotor.studies.simulate import prepare
+    from neuromotor.studies.targets import read_target
 
     cfg = simulation_config(data, source, base_dir)
     if "fit" not in data:
@@ -1087,9 +1087,9 @@ def write_synthetic_target(config_path, ks: float, kd: float, noise_deg: float =
     the CSV covers the fit window on the simulation grid, in the config's ``angle_unit``, with
     seeded Gaussian noise of ``noise_deg`` degrees added.
     """
-    from .config import ConfigError, _Fields, read_toml, simulation_config
-    from .simulate import prepare
-    from .targets import write_target_csv
+    from neuromotor.config import ConfigError, _Fields, read_toml, simulation_config
+    from neuromotor.studies.simulate import prepare
+    from neuromotor.studies.targets import write_target_csv
 
     config_path = pathlib.Path(config_path)
     data = read_toml(config_path)

@@ -241,7 +241,7 @@ def box(half_extents) -> Polyhedron:
 def ellipse_ring(center, u, v, a: float, b: float, sides: int = 10) -> np.ndarray:
     """Vertices (sides, 3) of a polygon inscribed in the ellipse ``center + a cos(t) u + b sin(t) v``
     (``u``, ``v`` orthonormal). Convex hulls of such rings make the tapered and flattened body
-    shapes of :mod:`neuromotor.massmodel`."""
+    shapes of :mod:`neuromotor.model.massmodel`."""
     angle = 2.0 * np.pi * np.arange(int(sides)) / int(sides)
     return (np.asarray(center, np.float64) + a * np.cos(angle)[:, None] * np.asarray(u, np.float64)
             + b * np.sin(angle)[:, None] * np.asarray(v, np.float64))
