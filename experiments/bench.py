@@ -1,4 +1,4 @@
-"""Speed benchmark of issue 6 (thin wrapper of ``neuromotor bench``; see neuromotor.studies.bench).
+"""Speed benchmark (thin wrapper of ``neuromotor bench``; see neuromotor.studies.bench).
 
     .venv/bin/python experiments/bench.py --idyn ../shared/mocap/mocapbank_19joint.bvh \
         ../shared/mocap/walk_22joint_zyx.bvh --plot docs/bench_throughput.png --json out/bench.json

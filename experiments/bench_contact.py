@@ -1,4 +1,4 @@
-"""Benchmark: the step with and without an active ball contact (issue 7).
+"""Benchmark: the step with and without an active ball contact.
 
     .venv/bin/python experiments/bench_contact.py [--steps 120] [--repeats 3]
 
@@ -6,14 +6,16 @@ On the embedded clip (19 bodies), it times whole jitted rollouts (one lax.scan) 
 milliseconds per step after compilation (the best of the interleaved repeats) and the time of
 the first call (compilation included):
 
-* ``step`` tree / dense: the contact-free step of dynamics (no ball), for reference;
+* the contact-free step of dynamics (no ball), null-space and dense solvers, for reference;
 * contact step, ball never launched (no contact is ever active);
 * contact step, ball resting on the ground (an active contact at every step);
-* contact step, ball thrown at the chest (an impact and a bounce on the ground).
+* contact step, ball thrown at the chest (an impact and a bounce on the ground), with the
+  null-space solver (the default) and with the dense one.
 
-The contact step always runs the whole LCP path (fixed PGS sweeps, masked contacts), so it costs
-the same with and without an active contact; what it adds over the dense step is the extra
-right-hand sides of the KKT solve, the candidate search and the PGS sweeps.
+The contact step is the ordinary step's stages plus the contact rows: it always runs the whole
+LCP path (fixed PGS sweeps, masked contacts), so it costs the same with and without an active
+contact; what it adds over the ordinary step is the solver's responses to unit contact
+impulses (extra right-hand sides, one factorization), the candidate search and the PGS sweeps.
 """
 
 from __future__ import annotations
@@ -49,20 +51,23 @@ def main(argv=None):
     setup = prepare(simulation_config(data, "<bench>"))
     model, bs = setup.model, setup.ball
     nopulse = _zero(setup.pulses)
+    dense = dataclasses.replace(setup.sim, solver="dense")
     # Same dtypes and weak types as the thrown ball, so all contact cases share one compile.
     resting = eqx.tree_at(lambda b: (b.position, b.speed, b.launch), bs.ball,
                           (bs.ball.position.at[:].set(jnp.array([2.0, float(bs.ball.radius), 0.0])),
                            jnp.zeros_like(bs.ball.speed), jnp.zeros_like(bs.ball.launch)))
     cases = {
-        "dynamics step, tree solver (no ball)": lambda: simulate_jit(model, setup.gains, nopulse, setup.ref, setup.sim),
-        "dynamics step, dense solver (no ball)": lambda: simulate_jit(
-            model, setup.gains, nopulse, setup.ref, dataclasses.replace(setup.sim, solver="dense")),
+        "dynamics step, null-space solver (no ball)": lambda: simulate_jit(model, setup.gains, nopulse, setup.ref,
+                                                                           setup.sim),
+        "dynamics step, dense solver (no ball)": lambda: simulate_jit(model, setup.gains, nopulse, setup.ref, dense),
         "contact step, no active contact": lambda: ct.contact_rollout_jit(
             model, setup.gains, nopulse, setup.ref, setup.sim, ct.never_launched(bs.ball), bs.capsules, bs.settings),
         "contact step, active contact every step": lambda: ct.contact_rollout_jit(
             model, setup.gains, nopulse, setup.ref, setup.sim, resting, bs.capsules, bs.settings),
         "contact step, ball hits the chest": lambda: ct.contact_rollout_jit(
             model, setup.gains, nopulse, setup.ref, setup.sim, bs.ball, bs.capsules, bs.settings),
+        "contact step, ball hits the chest, dense": lambda: ct.contact_rollout_jit(
+            model, setup.gains, nopulse, setup.ref, dense, bs.ball, bs.capsules, bs.settings),
     }
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, "
           f"jax {jax.__version__} on {jax.default_backend()}, float64")

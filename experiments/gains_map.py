@@ -11,7 +11,7 @@ import sys
 
 import _common  # noqa: F401
 
-from neuromotor.config import ConfigError
+from neuromotor.errors import UserError
 from neuromotor.studies.sweep import sweep_from_config
 
 
@@ -28,7 +28,7 @@ def main(argv=None) -> int:
     fitted = tuple(args.fitted) if args.fitted else args.fitted_json
     try:
         result, files = sweep_from_config(args.config, args.output, chunk=args.chunk, fitted=fitted)
-    except (ConfigError, FileNotFoundError, ValueError) as e:
+    except (UserError, OSError) as e:
         print(f"gains_map: error: {e}", file=sys.stderr)
         return 2
     if "gains_map" not in files:

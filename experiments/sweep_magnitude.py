@@ -10,7 +10,7 @@ import sys
 
 import _common  # noqa: F401  (float64, compile cache)
 
-from neuromotor.config import ConfigError
+from neuromotor.errors import UserError
 from neuromotor.studies.sweep import sweep_from_config
 
 
@@ -25,7 +25,7 @@ def main(argv=None) -> int:
     _common.init_distributed(args)
     try:
         result, files = sweep_from_config(args.config, args.output, chunk=args.chunk, inner_batch=args.inner_batch)
-    except (ConfigError, FileNotFoundError, ValueError) as e:
+    except (UserError, OSError) as e:
         print(f"sweep_magnitude: error: {e}", file=sys.stderr)
         return 2
     for r in result.rows:

@@ -56,7 +56,8 @@ def main(argv=None) -> int:
     _persistent_compile_cache()
 
     from neuromotor import compiler
-    from neuromotor.studies import fitting as F
+    from neuromotor.studies import fit as F
+    from neuromotor.io.tables import json_safe, write_json
 
     t0 = time.perf_counter()
     cal = F.load_calibration(args.config)
@@ -74,7 +75,7 @@ def main(argv=None) -> int:
     x0 = jnp.asarray(cal.x0)
     c_fwd, _ = _timed(forward, prob, x0)
     ev = F.ResponseEvaluator(prob, "forward")
-    jac_fn = F._compiled_response("forward")
+    jac_fn = F.compiled_response("forward")
     c_jac, _ = _timed(jac_fn, prob, x0)
     xs = [x0 + 1e-3 * (i + 1) for i in range(args.repeats)]
     # Interleaved, so that load from other processes hits both alike; the ratio is the median
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
         print(f"reverse mode skipped: {cal.target.size} residuals = {cal.target.size} backward passes "
               f"(use it with feature targets, e.g. configs/fit_literature.toml)")
     elif args.reverse:
-        rev_fn = F._compiled_response("reverse")
+        rev_fn = F.compiled_response("reverse")
         c_rev, _ = _timed(rev_fn, prob, x0)
         rpairs = [(_timed(forward, prob, x)[0], _timed(rev_fn, prob, x)[0]) for x in xs]
         t_rev = statistics.median(p[1] for p in rpairs)
@@ -123,7 +124,7 @@ def main(argv=None) -> int:
           f"(+ {c_jac:.1f} s response compile = {res_cold.wall_time_s + c_jac:.1f} s in a fresh process)")
     print(f"fitted ks = {res_warm.ks:.5g} +- {res_warm.se_ks:.2g} 1/s^2, kd = {res_warm.kd:.5g} +- {res_warm.se_kd:.2g} 1/s")
     if args.json:
-        F.save_json_atomic(args.json, F._json_safe(figures))
+        write_json(args.json, json_safe(figures))
         print(f"wrote {args.json}")
     return 0 if res_warm.converged else 1
 

@@ -6,7 +6,7 @@
 
 Writes OUTDIR/fit.json (gains, standard errors, residual, solver, iterations, wall time) and
 OUTDIR/fit.png (target, fitted response, response at the starting gains). The same as
-``neuromotor fit CONFIG.toml``; this script is a thin wrapper over neuromotor.studies.fitting.
+``neuromotor fit CONFIG.toml``; this script is a thin wrapper over neuromotor.studies.fit.
 """
 
 import os

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from neuromotor.physics import contact as ct
+from neuromotor.studies import ball as sb
 from neuromotor.config import ConfigError, SimulationConfig, simulation_config
 from neuromotor.physics.dynamics import SimConfig, SimulationDiverged
 from neuromotor.rotations import quat_to_matrix, rotation_error
@@ -64,7 +65,7 @@ BATCH = {  # name -> ball; all share one compiled, vmapped rollout on the tiny m
 @pytest.fixture(scope="module")
 def batch(tiny):
     setup, caps = tiny
-    out = ct._batched_rollout(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim,
+    out = ct.batched_contact_rollout(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim,
                               _stack(list(BATCH.values())), caps, ct.ContactSettings())
     return {name: jax.tree_util.tree_map(lambda x, i=i: x[i], out) for i, name in enumerate(BATCH)}
 
@@ -255,7 +256,7 @@ def test_capsules_cover_every_polyhedron_vertex():
     assert sorted(set(body.tolist())) == list(range(character.model.n_bodies))
     for b, shape in enumerate(character.shapes):
         mine = np.nonzero(body == b)[0]
-        dist = np.stack([ct._segment_distance_np(shape.vertices, np.asarray(caps.a[i]), np.asarray(caps.b[i]))
+        dist = np.stack([ct.segment_distances(shape.vertices, np.asarray(caps.a[i]), np.asarray(caps.b[i]))
                          - float(caps.radius[i]) for i in mine])
         assert dist.min(0).max() <= 1e-9  # every vertex inside a capsule of its body
         assert dist.min(0).min() >= -float(caps.radius[mine].max()) - 1e-9
@@ -285,14 +286,14 @@ def test_ball_config_errors_name_the_field(tiny):
     setup, _ = tiny
     spec = simulation_config({"ball": {"position": [0, 1, 2], "speed": 5.0, "target": "Elbow"}}, "x.toml").ball
     with pytest.raises(ConfigError, match="unknown body 'Elbow'"):
-        ct.ball_setup(spec, setup.character, setup.traj, body_lookup(setup.model, "x.toml"))
+        sb.ball_setup(spec, setup.character, setup.traj, body_lookup(setup.model, "x.toml"))
 
 
 def test_aimed_ball_reaches_its_target(tiny):
     """Aiming with gravity compensation: the ballistic path passes through the target's COM."""
     setup, _ = tiny
     pos0, speed = np.array([-2.0, 1.5, 0.5]), 7.0
-    d = ct.aim_ball(setup.model, setup.traj, pos0, speed, 1, 0.3)
+    d = sb.aim_ball(setup.model, setup.traj, pos0, speed, 1, 0.3)
     from neuromotor.model.kinematics import body_poses
 
     for t_flight in np.linspace(0.05, 1.0, 400):
@@ -357,28 +358,66 @@ def test_ball_speed_sweep_from_config(tiny):
                      "direction": [1.0, 0.0, 0.0], "launch": 0.2, "restitution": 0.5}}
     s = prepare(simulation_config(data, "<test>"), setup.character, setup.traj)
     assert s.ball.settings == ct.ContactSettings()
-    out = ct.sweep_ball_speed(s, [4.0, 6.0, 8.0, 10.0])  # + the base run: the batch fixture's shape
+    out = sb.sweep_ball_speed(s, [4.0, 6.0, 8.0, 10.0])  # + the base run: the batch fixture's shape
     assert np.all(np.diff(out["peak_impulse_Ns"]) > 0) and out["peak_impulse_Ns"][0] > 0
     assert np.all(np.diff(out["peak_deviation_deg"]) > 0) and out["peak_deviation_deg"][0] > 0.1
     assert np.all(out["time_of_peak_s"] > 0.2)
 
 
+def _dense_stiff_terms(model, blocks):
+    """k_stiff (6B,), K and D (6B, 6B) of tree blocks, scattered into the dense layout."""
+    n = model.n_bodies
+    c, p, b = jnp.arange(1, n), jnp.array(model.body_parent[1:]), jnp.arange(n)
+
+    def dense(diag, up, down):
+        out = jnp.zeros((n, 3, n, 3)).at[b, :, b, :].set(diag).at[c, :, p, :].add(up).at[p, :, c, :].add(down)
+        return jnp.zeros((n, 6, n, 6)).at[:, 3:, :, 3:].set(out).reshape(6 * n, 6 * n)
+
+    k_stiff = jnp.concatenate([jnp.zeros_like(blocks.k), blocks.k], -1).reshape(-1)
+    return k_stiff, dense(blocks.k_diag, blocks.k_up, blocks.k_down), dense(blocks.d_diag, blocks.d_up, blocks.d_down)
+
+
 def test_tree_stiff_blocks_equal_dense_jacobians(tiny):
-    """The contact step's K, D from the per-joint blocks equal the dense jacfwd (same Eq. 2)."""
+    """K, D from the per-joint blocks (tree and null-space solvers, with or without contact)
+    equal the dense jacfwd (dense solver): the same Eq. 2."""
+    from neuromotor.physics.dynamics import SimModel, reference_inputs
+    from neuromotor.physics.stiffness import stiff_blocks, stiff_jacobians
+    from neuromotor.physics.system import State
+
     setup, _ = tiny
     model, ref, k = setup.model, setup.ref, 10
-    ref_k = ref.controller_inputs(k)
+    inputs = reference_inputs(SimModel(model, ref, setup.sim), setup.gains, k)
     rng = np.random.default_rng(0)
     from neuromotor.rotations import quat_exp, quat_mul
 
     quat = quat_mul(quat_exp(jnp.asarray(0.3 * rng.normal(size=(2, 3)))), ref.init.quat)
     omega = ref.init.omega + jnp.asarray(rng.normal(size=(2, 3)))
-    args = (model, setup.gains, ref_k, jnp.ones(model.n_dofs), quat_to_matrix(quat), omega)
-    terms = eqx.filter_jit(ct.stiff_terms)  # eager jacfwd would dispatch op by op
-    tree_terms, dense_terms = terms(*args, "tree"), terms(*args, "dense")
+    state = State(ref.init.pos, quat, ref.init.vel, omega)
+    # eager jacfwd would dispatch op by op
+    tree_terms = jax.jit(lambda: _dense_stiff_terms(model, stiff_blocks(model, setup.gains, inputs, state)))()
+    dense = jax.jit(lambda: stiff_jacobians(model, setup.gains, inputs, quat_to_matrix(quat), omega))()
+    dense_terms = (dense.k, dense.kmat, dense.dmat)
     for tree, dense in zip(tree_terms, dense_terms):
         np.testing.assert_allclose(np.asarray(tree), np.asarray(dense), atol=1e-12 * float(jnp.abs(dense).max()))
     assert float(jnp.abs(tree_terms[1]).max()) > 1.0  # K is not trivially zero
+
+
+@pytest.mark.parametrize("solver", ["dense", "tree"])
+def test_contact_step_is_the_same_with_every_solver(tiny, batch, solver):
+    """Contact adds its rows to whichever solver of Eq. 2 the run chose: the ball hitting the arm
+    with the dense or the tree solver equals the default (null-space) to round-off."""
+    import dataclasses
+
+    setup, caps = tiny
+    cfg = dataclasses.replace(setup.sim, solver=solver)
+    out = ct.contact_rollout_jit(setup.model, setup.gains, setup.pulses, setup.ref, cfg, BATCH["hit"], caps,
+                                 ct.ContactSettings())
+    ref = batch["hit"]
+    assert np.asarray(ref.contact.normal_impulse).max() > 0.01
+    for got, want in ((out.run.states.pos, ref.run.states.pos), (out.run.states.omega, ref.run.states.omega),
+                      (out.ball.pos, ref.ball.pos), (out.ball.vel, ref.ball.vel),
+                      (out.contact.impulse, ref.contact.impulse)):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-8)
 
 
 def test_without_contact_the_character_follows_the_plain_step(tiny, batch):

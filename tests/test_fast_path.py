@@ -1,4 +1,4 @@
-"""Issue 6: the fast paths (null-space and tree) solve the same equations as the dense reference path."""
+"""The fast solvers (null-space and tree) solve the same equations as the dense reference path."""
 
 import dataclasses
 
@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 
 from conftest import CLIPS
-from neuromotor.physics import treesolve
 from neuromotor.config import DEFAULT_HIT, SimulationConfig
-from neuromotor.physics.dynamics import _active_mask, rollout, step, stiff_blocks, stiff_jacobians
+from neuromotor.model.topology import of_tree
+from neuromotor.physics.dynamics import Params, SimModel, data_at, reference_inputs, rollout, step
+from neuromotor.physics.solvers import tree as treesolve
+from neuromotor.physics.stiffness import stiff_blocks, stiff_jacobians
 from neuromotor.studies.simulate import load_character, prepare
 
 
@@ -56,7 +58,7 @@ def test_tree_elimination_matches_dense_solve_on_a_random_tree():
         sys = treesolve.TreeKKT(*map(jnp.asarray, (a_diag, cpl[0], cpl[1], rng.normal(size=(m0, 6)), j_own,
                                                    j_par, pad)))
         r, s_root, s = rng.normal(size=(n, 6)), rng.normal(size=m0), rng.normal(size=(n - 1, m)) * (1 - pad)
-        v, lam_root, lam = jax.jit(treesolve.solve, static_argnums=1)(sys, parent, r, s_root, s)
+        v, lam_root, lam = jax.jit(treesolve.solve, static_argnums=1)(sys, of_tree(parent), r, s_root, s)
         dense = _dense(n, parent, jax.tree_util.tree_map(np.asarray, sys))
         x = np.linalg.solve(dense, np.concatenate([r.reshape(-1), s_root, s.reshape(-1)]))
         got = np.concatenate([np.asarray(v).reshape(-1), lam_root, np.asarray(lam).reshape(-1)])
@@ -64,7 +66,7 @@ def test_tree_elimination_matches_dense_solve_on_a_random_tree():
         tol = 1e-14 * np.linalg.cond(dense) * np.abs(x).max()
         np.testing.assert_allclose(got, x, rtol=0, atol=tol)
         assert np.all(np.asarray(lam)[pad > 0] == 0.0)  # padding rows carry no force
-        top, bot_root, bot = treesolve.matvec(sys, parent, v, lam_root, lam)
+        top, bot_root, bot = treesolve.matvec(sys, of_tree(parent), v, lam_root, lam)
         np.testing.assert_allclose(np.concatenate([np.asarray(top).reshape(-1), bot_root, np.asarray(bot).reshape(-1)]),
                                    dense @ got, atol=1e-14 * np.abs(dense).max() * np.abs(got).max() * len(got))
 
@@ -72,13 +74,15 @@ def test_tree_elimination_matches_dense_solve_on_a_random_tree():
 def test_per_joint_jacobians_equal_dense_jacfwd(hit_setup):
     s = hit_setup
     m, ref = s.model, s.ref
-    rot, omega = ref.init.rot, ref.init.omega + 0.5  # spinning bodies: gyroscopic K and D too
-    ref_k = ref.controller_inputs(3)
-    active = _active_mask(m, (), rot.dtype)
-    k, kmat, dmat = jax.jit(lambda: stiff_jacobians(m, s.gains, ref_k, active, rot, omega))()
-    sb = jax.jit(lambda: stiff_blocks(m, s.gains, ref_k, active, rot, omega))()
+    state = dataclasses.replace(ref.init, omega=ref.init.omega + 0.5)  # spinning bodies: gyroscopic K and D too
+    rot, omega = state.rot, state.omega
+    inputs = reference_inputs(SimModel(m, ref, dataclasses.replace(s.sim, driven=())), s.gains, 3)
+    dense_k = jax.jit(lambda: stiff_jacobians(m, s.gains, inputs, rot, omega))()
+    k, kmat, dmat = dense_k.k, dense_k.kmat, dense_k.dmat
+    sb = jax.jit(lambda: stiff_blocks(m, s.gains, inputs, state))()
     n = m.n_bodies
-    dense = {"k": np.asarray(kmat).reshape(n, 6, n, 3), "d": np.asarray(dmat).reshape(n, 6, n, 3)}
+    assert np.all(np.asarray(kmat).reshape(n, 6, n, 6)[..., :3] == 0)  # angular columns only
+    dense = {"k": np.asarray(kmat).reshape(n, 6, n, 6)[..., 3:], "d": np.asarray(dmat).reshape(n, 6, n, 6)[..., 3:]}
     for name, diag, up, down in (("k", sb.k_diag, sb.k_up, sb.k_down), ("d", sb.d_diag, sb.d_up, sb.d_down)):
         tree = np.zeros((n, 6, n, 3))
         for b in range(n):
@@ -124,8 +128,13 @@ def test_fast_step_equals_dense_step_with_constraint_forces(hit_setup, driven_fr
     ks = jnp.arange(8, 20, 4)
 
     def one(solver):
-        c = dataclasses.replace(cfg, solver=solver)
-        return jax.jit(jax.vmap(lambda k, st: step(s.model, s.gains, s.pulses, c, s.ref, k, st)))(ks, states)
+        sim, params = SimModel(s.model, s.ref, dataclasses.replace(cfg, solver=solver)), Params(s.gains, s.pulses)
+
+        def from_state(k, st):
+            out = step(sim, params, data_at(sim, params, k, st))
+            return out.state, out.info
+
+        return jax.jit(jax.vmap(from_state))(ks, states)
 
     (st_t, info_t), (st_d, info_d) = one(solver), one("dense")
     np.testing.assert_allclose(st_t.vel, st_d.vel, atol=1e-10)

@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 
 from neuromotor.viz import render
+from neuromotor.viz.scene import Scene
 from neuromotor.viz.render import render_run
 
 from test_render import HIT_DURATION, HIT_START, _save, synthetic_run
 
 
 def _scene(arrays, tmp_path, name="run.npz"):
-    return render._Scene(render.load_run(_save(tmp_path / name, arrays)))
+    return Scene(render.load_run(_save(tmp_path / name, arrays)))
 
 
 def _yellow(img):

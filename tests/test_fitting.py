@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import CLIPS
-from neuromotor.studies import fitting as F
+from neuromotor.studies import fit as F
 from neuromotor.studies import metrics as mx
 from neuromotor.config import DEFAULT_HIT, ConfigError, SimulationConfig
 from neuromotor.studies.simulate import load_character, prepare

@@ -10,7 +10,8 @@ import pytest
 from conftest import CLIPS
 from neuromotor.studies import metrics as mx
 from neuromotor.config import DEFAULT_HIT, ConfigError, SimulationConfig, simulation_config
-from neuromotor.physics.dynamics import SimulationDiverged, check_rollout, dof_errors, rollout
+from neuromotor.physics.control import dof_errors
+from neuromotor.physics.dynamics import SimulationDiverged, check_rollout, rollout
 from neuromotor.rotations import euler_to_matrix, matrix_to_euler
 from neuromotor.studies.simulate import load_character, prepare, run, simulate_jit
 

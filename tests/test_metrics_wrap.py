@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from neuromotor.studies import metrics as mx
-from neuromotor.studies.fitting import acceleration_deg, deviation_deg
+from neuromotor.studies.fit import acceleration_deg, deviation_deg
 
 
 def _crossing(T=200, n=3, offset=0.05):
@@ -103,7 +103,7 @@ def test_continuous_angles():
 
 # --- Fit convergence in the loss (issue 16, item 6) --------------------------------------------
 
-from neuromotor.studies import fitting
+from neuromotor.studies.fit import driver as fitting
 
 
 def test_loss_is_flat_rule():

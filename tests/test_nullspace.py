@@ -5,7 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from neuromotor.physics import nullspace
+from neuromotor.model.topology import of_tree
+from neuromotor.physics.solvers import nullspace
 from neuromotor.rotations import quat_normalize, quat_to_matrix
 
 PARENT = (-1, 0, 1, 2, 0, 4, 4, 1, 7, 8)  # branching, depth 4
@@ -25,7 +26,7 @@ def _random_tree(seed):
 
 
 def _dense_j(n, r_parent, r_child, r0, driven, free_root):
-    """Rows of J as dynamics.full_constraints lays them out: root (6), ball joints, driven."""
+    """Rows of J as constraints.full_constraints lays them out: root (6), ball joints, driven."""
     def skew(a):
         return np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
 
@@ -65,7 +66,7 @@ def _basis(st, geo, n):
 @pytest.mark.parametrize("driven, free_root", [((), False), ((3, 6), False), ((), True)])
 def test_basis_spans_the_null_space_and_reduced_matrices_are_exact(driven, free_root):
     rng, n, mass, inertia, r_parent, r_child, r0 = _random_tree(1)
-    st = nullspace.structure(PARENT, driven, free_root)
+    st = nullspace.structure(of_tree(PARENT), driven, free_root)
     geo = nullspace.geometry(st, jnp.asarray(r_parent), jnp.asarray(r_child), jnp.asarray(r0))
     s = _basis(st, geo, n)
     j = _dense_j(n, r_parent, r_child, r0, (), True)  # ball-joint rows only
@@ -97,7 +98,7 @@ def test_basis_spans_the_null_space_and_reduced_matrices_are_exact(driven, free_
 @pytest.mark.parametrize("driven, free_root", [((), False), ((3, 6), False), ((), True)])
 def test_kkt_solve_and_projection_match_dense_saddle_point_solves(driven, free_root):
     rng, n, mass, inertia, r_parent, r_child, r0 = _random_tree(2)
-    st = nullspace.structure(PARENT, driven, free_root)
+    st = nullspace.structure(of_tree(PARENT), driven, free_root)
     geo = nullspace.geometry(st, jnp.asarray(r_parent), jnp.asarray(r_child), jnp.asarray(r0))
     m = _dense_m(mass, inertia)
     j = _dense_j(n, r_parent, r_child, r0, driven, free_root)

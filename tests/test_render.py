@@ -9,6 +9,9 @@ import numpy as np
 import pytest
 
 from neuromotor.viz import render
+from neuromotor.viz.camera import set_camera
+from neuromotor.viz.geometry import FigureGeometry
+from neuromotor.viz.scene import Scene
 from neuromotor.viz.render import RenderError, plot_run, render_run
 
 HIT_START, HIT_DURATION = 0.3, 0.1
@@ -252,7 +255,7 @@ def _check_filmstrip(png, frames, times, hit_start):
 def test_filmstrip_synthetic(synth, tmp_path):
     out = tmp_path / "film.png"
     render_run(synth, out, frames=5)
-    scene = render._Scene(render.load_run(synth))
+    scene = Scene(render.load_run(synth))
     times = scene.time[scene.index_at(scene.filmstrip_times(5))]
     assert times[0] < HIT_START < times[1] and times[-1] > HIT_START + 0.3
     _check_filmstrip(out, 5, times, HIT_START)
@@ -263,7 +266,7 @@ def test_filmstrip_draws_force_arrow(synth, tmp_path):
     """A panel while the force acts has red arrow pixels; the same instant without force has none."""
     d = synthetic_run()
     on = np.flatnonzero(np.linalg.norm(d["force_vector"], axis=1) > 0)
-    scene = render._Scene(d)
+    scene = Scene(d)
     k = on[len(on) // 2]
     assert scene.force_on[k]
     tail, tip = scene.arrow(k)
@@ -392,7 +395,7 @@ def test_real_run_filmstrip_video_plot(real_run, tmp_path):
     assert on.size and abs(on[0] - 0.1) < 0.02
     png = tmp_path / "film.png"
     render_run(real_run, png, frames=4)
-    scene = render._Scene(render.load_run(real_run))
+    scene = Scene(render.load_run(real_run))
     times = scene.time[scene.index_at(scene.filmstrip_times(4))]
     _check_filmstrip(png, 4, times, on[0])
     mp4 = tmp_path / "video.mp4"
@@ -430,7 +433,7 @@ def test_camera_looks_at_the_front_whatever_up_axis_and_heading(name, R, up_axis
         d = _variant_run(name, R, up_axis)
         if stored:
             d["facing"] = true_facing + 0.3 * up      # not horizontal: the renderer projects it
-        scene = render._Scene(d)
+        scene = Scene(d)
         assert _horizontal_angle_deg(scene.facing, true_facing, up) < 1.0
         assert abs(scene.facing @ up) < 1e-9
         assert 0.0 <= _horizontal_angle_deg(scene.view, true_facing, up) <= 50.0
@@ -441,7 +444,7 @@ def test_camera_looks_at_the_front_whatever_up_axis_and_heading(name, R, up_axis
         pl = pv.Plotter(off_screen=True, window_size=(64, 64))
         try:
             focal = d["skeleton_points"][0, 0]
-            render._set_camera(pl, scene, focal, 1.0)
+            set_camera(pl, scene, focal, 1.0)
             eye = np.asarray(pl.camera.position) - np.asarray(pl.camera.focal_point)
             assert 0.0 <= _horizontal_angle_deg(eye, true_facing, up) <= 50.0
             assert np.asarray(pl.camera.up) @ up > 0.9
@@ -517,11 +520,11 @@ def _world_vertices(d, k, tag=""):
 
 
 def _check_drawn_shapes(d):
-    scene = render._Scene(d)
+    scene = Scene(d)
     assert scene.has_shapes
     for which, tag in (("perturbed", ""), ("original", "_unperturbed")):
         for k in (0, len(d["time"]) // 2):
-            geom = render._FigureGeometry(scene).update(k, which)
+            geom = FigureGeometry(scene).update(k, which)
             mesh = geom.bodies.mesh
             assert mesh.n_cells == len(d["shape_faces"])
             w = _world_vertices(d, k, tag)
@@ -542,12 +545,12 @@ def test_shapes_drawn_from_the_polyhedra_synthetic():
     # Only the bones without a body (the toes) are drawn as capsules, thin ones.
     assert sorted(map(tuple, scene.capsule_edges)) == sorted(map(tuple, _EDGES[_TOE_EDGES]))
     assert np.all(scene.capsule_radii <= render.DETAIL_RADIUS_M)
-    geom = render._FigureGeometry(scene).update(0, "perturbed")
+    geom = FigureGeometry(scene).update(0, "perturbed")
     assert geom.capsules is not None and len(geom.meshes()) == 3
     # Without skeleton_edge_body the same bones are found: their midpoints lie in no body.
     d2 = dict(d)
     del d2["skeleton_edge_body"]
-    assert sorted(map(tuple, render._Scene(d2).capsule_edges)) == sorted(map(tuple, _EDGES[_TOE_EDGES]))
+    assert sorted(map(tuple, Scene(d2).capsule_edges)) == sorted(map(tuple, _EDGES[_TOE_EDGES]))
     # The ground touches the lowest box corner of the whole run.
     lowest = min(_world_vertices(d, k, tag)[:, 1].min() for k in range(len(d["time"]))
                  for tag in ("", "_unperturbed"))
@@ -558,7 +561,7 @@ def test_arrow_tip_on_the_body_surface():
     """With body shapes the arrow's tip sits just outside the body at the point of application:
     1 cm beyond the surface where the line back along the force leaves the shapes."""
     d = synthetic_run(with_bodies=True)
-    scene = render._Scene(d)
+    scene = Scene(d)
     k = int(np.argmax(np.linalg.norm(d["force_vector"], axis=1)))
     tail, tip = scene.arrow(k)
     u = d["force_vector"][k] / np.linalg.norm(d["force_vector"][k])
@@ -579,10 +582,10 @@ def test_arrow_tip_on_the_body_surface():
 
 
 def test_old_run_without_shapes_draws_capsules(synth):
-    scene = render._Scene(render.load_run(synth))
+    scene = Scene(render.load_run(synth))
     assert not scene.has_shapes
     assert len(scene.capsule_edges) == len(_EDGES)
-    geom = render._FigureGeometry(scene).update(0, "perturbed")
+    geom = FigureGeometry(scene).update(0, "perturbed")
     assert geom.bodies is None and geom.capsules is not None
 
 
@@ -624,11 +627,11 @@ def test_real_run_shapes_and_facing(real_run):
     for f in feet:
         toe = pts[f] - pts[parent[f]]
         assert _horizontal_angle_deg(toe, facing, up) < 60
-    scene = render._Scene(render.load_run(real_run))
+    scene = Scene(render.load_run(real_run))
     assert scene.has_shapes
     assert _horizontal_angle_deg(scene.view, facing, up) <= 50
     # Turned Z-up, the stored facing turns with it and the camera follows.
     dz = rotate_run(d, Y_TO_Z)
     dz["up_axis"] = np.asarray(2)
-    sz = render._Scene(dz)
+    sz = Scene(dz)
     assert np.allclose(sz.view, Y_TO_Z @ scene.view, atol=1e-9)

@@ -219,13 +219,15 @@ def test_gains_map_marks_fitted_pair_and_bad_cells(tmp_path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from neuromotor.viz import sweep_plots
+
     captured = {}
-    orig = sw.save_figure
+    orig = sweep_plots.save_figure
     try:
-        sw.save_figure = lambda fig, path: captured.setdefault("fig", fig) and orig(fig, path)
-        sw.plot_gains_map(rows, tmp_path / "map.png", fitted=(400.0, 20.0))
+        sweep_plots.save_figure = lambda fig, path: captured.setdefault("fig", fig) and orig(fig, path)
+        sweep_plots.plot_gains_map(rows, tmp_path / "map.png", fitted=(400.0, 20.0))
     finally:
-        sw.save_figure = orig
+        sweep_plots.save_figure = orig
     ax = captured["fig"].axes[0]
     star = [ln for ln in ax.lines if ln.get_marker() == "*"]
     cross = [ln for ln in ax.lines if ln.get_marker() == "x"]

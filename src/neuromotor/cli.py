@@ -8,6 +8,7 @@
     neuromotor export-bvh RUN.npz -o OUT.bvh
     neuromotor sweep CONFIG.toml [-o DIR] [--fitted KS KD | --fitted-json FIT.json]  # batch grid -> CSV + plots
     neuromotor fit CONFIG.toml [-o DIR] [--solver NAME]   # calibrate (ks, kd) -> fit.json + fit.png
+    neuromotor experiment CONFIG.toml [-o DIR]   # one of the paper's experiments ([experiment] kind)
     neuromotor demo [-o DIR]        # the main job: simulate the default hit, render it
     neuromotor bench [CLIP.bvh] [--plot PNG] [--json OUT]   # speed figures (docs/benchmarks.md)
     neuromotor export-mjcf [CLIP.bvh] -o MODEL.xml          # the same model for MuJoCo
@@ -189,25 +190,21 @@ def cmd_idyn(args) -> int:
 
 
 def _sim_config(args):
-    from neuromotor.config import SimulationConfig, DEFAULT_HIT, load_simulation_config
+    """The config of ``simulate``: the file's (or the default hit), with the command line's
+    gains, clip and body options over it."""
+    import dataclasses
+
+    from neuromotor.config import DEFAULT_HIT, SimulationConfig, load_simulation_config
 
     if args.config:
         cfg = load_simulation_config(args.config)
     else:
-        cfg = SimulationConfig(perturbations=[dict(DEFAULT_HIT)], duration=3.0, source="<default>")
-    if args.ks is not None:
-        cfg.ks = args.ks
-    if args.kd is not None:
-        cfg.kd = args.kd
-    if getattr(args, "clip", None) is not None:
-        cfg.clip = args.clip
-    for key in ("units", "up_axis", "stature", "body_mass", "sex"):
-        value = getattr(args, key, None)
-        if value is not None:
-            setattr(cfg, key, value)
+        cfg = SimulationConfig(perturbations=[DEFAULT_HIT], duration=3.0, source="<default>")
+    given = {key: getattr(args, key, None) for key in ("clip", "units", "up_axis", "stature", "body_mass", "sex")}
     if getattr(args, "simulate_extremities", None):
-        cfg.simulate_extremities = True
-    return cfg
+        given["simulate_extremities"] = True
+    cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
+    return cfg.with_gains(args.ks, args.kd)
 
 
 def cmd_simulate(args) -> int:
@@ -236,22 +233,25 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def _wrote(path) -> int:
+    print(f"wrote {path}")
+    return 0
+
+
 def cmd_render(args) -> int:
     from neuromotor.viz.render import render_run
 
     quiet = getattr(args, "quiet", False)
     render_run(args.run, args.output, frames=args.frames, progress=not quiet,
                stage=_Stages("render", quiet))
-    print(f"wrote {args.output}")
-    return 0
+    return _wrote(args.output)
 
 
 def cmd_plot(args) -> int:
     from neuromotor.viz.render import plot_run
 
     plot_run(args.run, args.output)
-    print(f"wrote {args.output}")
-    return 0
+    return _wrote(args.output)
 
 
 def cmd_sweep(args) -> int:
@@ -266,16 +266,17 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_fit(args) -> int:
-    from neuromotor.studies.fitting import FitError, calibrate, load_calibration, write_synthetic_target
+    from neuromotor.studies.fit import FitError, calibrate, load_calibration, write_synthetic_target
 
-    if args.write_synthetic:
-        path = write_synthetic_target(args.config, *args.write_synthetic, noise_deg=args.noise_deg, seed=args.seed)
-        print(f"wrote {path}")
-        return 0
-    cal = load_calibration(args.config, solver=args.solver)
     try:
-        res, _ = calibrate(cal, args.output, progress=not args.no_progress)
-    except FitError as e:
+        if args.write_synthetic:
+            path = write_synthetic_target(args.config, *args.write_synthetic, noise_deg=args.noise_deg,
+                                          seed=args.seed)
+            print(f"wrote {path}")
+            return 0
+        res, _ = calibrate(load_calibration(args.config, solver=args.solver), args.output,
+                           progress=not args.no_progress)
+    except FitError as e:  # the fit ran and failed: not bad input, a status of its own
         print(f"neuromotor fit: error: {e}", file=sys.stderr)
         return 3
     print(f"{res.solver}: ks = {res.ks:.6g} +- {res.se_ks:.3g} 1/s^2, kd = {res.kd:.6g} +- {res.se_kd:.3g} 1/s "
@@ -289,12 +290,19 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def cmd_experiment(args) -> int:
+    from neuromotor.studies.experiments import run_experiment
+
+    numbers = run_experiment(args.config, output=args.output, progress=not args.no_progress)
+    print(json.dumps(_strict_json(numbers), indent=2, default=float))
+    return 0
+
+
 def cmd_export_bvh(args) -> int:
     from neuromotor.io.export import export_bvh
 
     export_bvh(args.run, args.output)
-    print(f"wrote {args.output}")
-    return 0
+    return _wrote(args.output)
 
 
 def cmd_demo(args) -> int:
@@ -378,8 +386,7 @@ def cmd_export_mjcf(args) -> int:
 
     character, _ = _load(args)
     export_mjcf(character, args.output, timestep=args.timestep)
-    print(f"wrote {args.output}")
-    return 0
+    return _wrote(args.output)
 
 
 def _units_arg(text: str):
@@ -444,97 +451,106 @@ def _count_arg(text: str) -> int:
     return value
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from neuromotor import __version__
+RUN_HELP = "RUN.npz written by simulate"
+PROGRESS_HELP = "no progress bar"
 
-    p = _Parser(prog="neuromotor", description=__doc__.split("\n")[0])
-    p.add_argument("--version", action="version", version=f"neuromotor {__version__}")
-    sub = p.add_subparsers(dest="command", required=True)
 
-    def body_args(sp, defaults=True):
-        d = (lambda v: v) if defaults else (lambda v: None)
-        sp.add_argument("--units", default=d("auto"), type=_units_arg,
-                        help="length unit of the file: auto (from the stature the long bones give), m, cm, mm, "
-                             "in, cmu (CMU's 1/0.45 inch), ft, dm, or metres per file unit")
-        sp.add_argument("--up-axis", default=d("auto"), type=_up_arg,
-                        help="world up axis: auto (from the motion), 0 (X), 1 (Y) or 2 (Z); gravity along -up")
-        sp.add_argument("--stature", type=_positive_arg, default=None, help="stature in metres (default: estimated)")
-        sp.add_argument("--body-mass", type=_positive_arg, default=None, help="body mass in kg (default: BMI 22)")
-        sp.add_argument("--sex", choices=("average", "male", "female"), default=d("average"),
-                        help="column of de Leva's segment table")
-        sp.add_argument("--simulate-extremities", action="store_true", default=d(False),
-                        help="simulate fingers, toes and face joints as bodies")
+def _body_args(sp, defaults=True) -> None:
+    """The clip options: units, up axis and the body model (``defaults=False``: None unless given)."""
+    d = (lambda v: v) if defaults else (lambda v: None)
+    sp.add_argument("--units", default=d("auto"), type=_units_arg,
+                    help="length unit of the file: auto (from the stature the long bones give), m, cm, mm, "
+                         "in, cmu (CMU's 1/0.45 inch), ft, dm, or metres per file unit")
+    sp.add_argument("--up-axis", default=d("auto"), type=_up_arg,
+                    help="world up axis: auto (from the motion), 0 (X), 1 (Y) or 2 (Z); gravity along -up")
+    sp.add_argument("--stature", type=_positive_arg, default=None, help="stature in metres (default: estimated)")
+    sp.add_argument("--body-mass", type=_positive_arg, default=None, help="body mass in kg (default: BMI 22)")
+    sp.add_argument("--sex", choices=("average", "male", "female"), default=d("average"),
+                    help="column of de Leva's segment table")
+    sp.add_argument("--simulate-extremities", action="store_true", default=d(False),
+                    help="simulate fingers, toes and face joints as bodies")
 
-    def clip_args(sp):
-        sp.add_argument("clip", nargs="?", default=None, help="BVH file (default: embedded clip)")
-        body_args(sp)
 
-    sp = sub.add_parser("inspect", help="bodies, masses, DOFs of a clip")
-    clip_args(sp)
+def _command(sub, name: str, func, help: str, first=None, output=None, **output_kw):
+    """A subcommand: its positional argument ``first`` = (name, help, nargs) and ``-o`` (help text)."""
+    sp = sub.add_parser(name, help=help)
+    if first is not None:
+        arg, text, nargs = first
+        sp.add_argument(arg, help=text, **({"nargs": nargs, "default": None} if nargs else {}))
+    if output is not None:
+        sp.add_argument("-o", "--output", help=output, **(output_kw or {"required": True}))
+    sp.set_defaults(func=func)
+    return sp
+
+
+def _clip_command(sub, name, func, help, output=None):
+    sp = _command(sub, name, func, help, ("clip", "BVH file (default: embedded clip)", "?"), output)
+    _body_args(sp)
+    return sp
+
+
+def _add_clip_commands(sub) -> None:
+    sp = _clip_command(sub, "inspect", cmd_inspect, "bodies, masses, DOFs of a clip")
     sp.add_argument("--json", action="store_true", help="print the model as JSON (README: file contracts)")
-    sp.set_defaults(func=cmd_inspect)
-
-    sp = sub.add_parser("idyn", help="inverse dynamics (Eq. 3) on every frame")
-    clip_args(sp)
-    sp.add_argument("-o", "--output", required=True, help="NPZ file of joint angles, torques (N m), root wrench")
+    sp = _clip_command(sub, "idyn", cmd_idyn, "inverse dynamics (Eq. 3) on every frame",
+                       "NPZ file of joint angles, torques (N m), root wrench")
     sp.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
-    sp.set_defaults(func=cmd_idyn)
-
-    sp = sub.add_parser("simulate", help="perturbed forward simulation (Eq. 2)")
-    sp.add_argument("config", nargs="?", default=None,
-                    help="TOML config (default: the embedded clip and a 400 N chest push)")
-    sp.add_argument("-o", "--output", required=True, help="RUN.npz: the perturbed and unperturbed runs")
+    sp = _command(sub, "simulate", cmd_simulate, "perturbed forward simulation (Eq. 2)",
+                  ("config", "TOML config (default: the embedded clip and a 400 N chest push)", "?"),
+                  "RUN.npz: the perturbed and unperturbed runs")
     sp.add_argument("--ks", type=_gain_arg, help="stiffness gain, 1/s^2 (>= 0)")
     sp.add_argument("--kd", type=_gain_arg, help="damping gain, 1/s (>= 0)")
     sp.add_argument("--clip", default=None, help="BVH file (overrides the config's clip)")
-    body_args(sp, defaults=False)
+    _body_args(sp, defaults=False)
     sp.add_argument("--json", action="store_true", help="print the recovery metrics as JSON (deg, s)")
     sp.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
-    sp.set_defaults(func=cmd_simulate)
 
-    sp = sub.add_parser("render", help="filmstrip PNG or MP4/GIF of a run")
-    sp.add_argument("run", help="RUN.npz written by simulate")
-    sp.add_argument("-o", "--output", required=True, help="PNG (filmstrip), MP4 or GIF (side-by-side video)")
+
+def _add_run_commands(sub) -> None:
+    sp = _command(sub, "render", cmd_render, "filmstrip PNG or MP4/GIF of a run", ("run", RUN_HELP, None),
+                  "PNG (filmstrip), MP4 or GIF (side-by-side video)")
     sp.add_argument("--frames", type=_count_arg, default=6, help="panels of the filmstrip per row")
     sp.add_argument("--quiet", action="store_true", help="no progress lines or bar on stderr")
-    sp.set_defaults(func=cmd_render)
+    _command(sub, "plot", cmd_plot, "PNG plots of a run: deviation and joint angles vs time", ("run", RUN_HELP, None),
+             "PNG of the deviation (deg) and joint angles against time (s)")
 
-    sp = sub.add_parser("plot", help="PNG plots of a run: deviation and joint angles vs time")
-    sp.add_argument("run", help="RUN.npz written by simulate")
-    sp.add_argument("-o", "--output", required=True, help="PNG of the deviation (deg) and joint angles against time (s)")
-    sp.set_defaults(func=cmd_plot)
 
-    sp = sub.add_parser("sweep", help="batch grid of perturbed runs (sharded over devices) -> CSV + plots")
-    sp.add_argument("config", help="TOML config with a [sweep] table")
-    sp.add_argument("-o", "--output", help="folder (default: the config's sweep.output)")
+def _add_sweep_command(sub) -> None:
+    sp = _command(sub, "sweep", cmd_sweep, "batch grid of perturbed runs (sharded over devices) -> CSV + plots",
+                  ("config", "TOML config with a [sweep] table", None), "folder (default: the config's sweep.output)",
+                  default=None)
     sp.add_argument("--chunk", type=_count_arg, help="runs per device call")
     sp.add_argument("--inner-batch", type=_count_arg, help="rollouts vmapped together inside each shard")
     sp.add_argument("--fitted", type=_gain_arg, nargs=2, metavar=("KS", "KD"), help="fitted pair to mark on the gains map")
     sp.add_argument("--fitted-json", help="JSON file with the fitted ks and kd")
-    sp.add_argument("--no-progress", action="store_true", help="no progress bar")
-    sp.set_defaults(func=cmd_sweep)
+    sp.add_argument("--no-progress", action="store_true", help=PROGRESS_HELP)
+    _command(sub, "export-bvh", cmd_export_bvh, "write the perturbed motion as BVH", ("run", RUN_HELP, None),
+             "BVH in the source clip's skeleton, channel orders and units")
 
-    sp = sub.add_parser("export-bvh", help="write the perturbed motion as BVH")
-    sp.add_argument("run", help="RUN.npz written by simulate")
-    sp.add_argument("-o", "--output", required=True, help="BVH in the source clip's skeleton, channel orders and units")
-    sp.set_defaults(func=cmd_export_bvh)
 
-    sp = sub.add_parser("fit", help="calibrate the gain pair (ks, kd) to a target response -> fit.json + fit.png")
-    sp.add_argument("config", help="TOML config with a [fit] table")
-    sp.add_argument("-o", "--output", default="out/fit", help="folder for fit.json and fit.png")
+def _add_study_commands(sub) -> None:
+    sp = _command(sub, "fit", cmd_fit, "calibrate the gain pair (ks, kd) to a target response -> fit.json + fit.png",
+                  ("config", "TOML config with a [fit] table", None), "folder for fit.json and fit.png",
+                  default="out/fit")
     sp.add_argument("--solver", default=None, help="override fit.solver (optimistix_lm, optimistix_gn, "
                     "optimistix_bfgs, jaxopt_lm, jaxopt_lbfgs)")
-    sp.add_argument("--no-progress", action="store_true", help="no progress bar")
+    sp.add_argument("--no-progress", action="store_true", help=PROGRESS_HELP)
     sp.add_argument("--write-synthetic", nargs=2, type=_gain_arg, metavar=("KS", "KD"),
                     help="instead of fitting, simulate the config's target file at these gains")
     sp.add_argument("--noise-deg", type=_nonneg_arg, default=0.0,
                     help="with --write-synthetic: Gaussian noise added to the target angles (deg)")
     sp.add_argument("--seed", type=int, default=0, help="with --write-synthetic: random seed of the noise")
-    sp.set_defaults(func=cmd_fit)
+    sp = _command(sub, "experiment", cmd_experiment, "run one of the paper's experiments (arm, full_body, contrast)",
+                  ("config", "TOML config with an [experiment] table whose kind picks the experiment", None),
+                  "folder for run*.npz, metrics.json and the figures (default: the config's experiment.output)",
+                  default=None)
+    sp.add_argument("--no-progress", action="store_true", help=PROGRESS_HELP)
 
-    sp = sub.add_parser("bench", help="speed: steps/s, real-time factor, batch throughput, vs MuJoCo")
-    sp.add_argument("clip", nargs="?", default=None, help="BVH clip (default: the embedded 19-joint clip)")
-    body_args(sp)
+
+def _add_other_commands(sub) -> None:
+    sp = _command(sub, "bench", cmd_bench, "speed: steps/s, real-time factor, batch throughput, vs MuJoCo",
+                  ("clip", "BVH clip (default: the embedded 19-joint clip)", "?"))
+    _body_args(sp)
     sp.add_argument("--solver", choices=("nullspace", "tree", "dense"), default="nullspace",
                     help="KKT solver of Eq. 2 to time")
     sp.add_argument("--sizes", type=_count_arg, nargs="+", default=[1, 8, 64, 256], help="vmap batch sizes")
@@ -543,22 +559,24 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--plot", default=None, help="PNG of throughput against batch size")
     sp.add_argument("--json", default=None, help="write all figures as JSON")
     sp.add_argument("--no-dense", action="store_true", help="skip the dense reference path")
-    sp.set_defaults(func=cmd_bench)
-
-    sp = sub.add_parser("export-mjcf", help="write the character as MuJoCo MJCF (hinges, position servos)")
-    clip_args(sp)
-    sp.add_argument("-o", "--output", required=True, help="MJCF XML file")
+    sp = _clip_command(sub, "export-mjcf", cmd_export_mjcf,
+                       "write the character as MuJoCo MJCF (hinges, position servos)", "MJCF XML file")
     sp.add_argument("--timestep", type=_positive_arg, default=1.0 / 120.0, help="MuJoCo time step (s, > 0)")
-    sp.set_defaults(func=cmd_export_mjcf)
-
-    sp = sub.add_parser("info", help="what made a run: version, clip and its SHA-256, resolved config, metrics")
-    sp.add_argument("run", help="RUN.npz written by simulate")
+    sp = _command(sub, "info", cmd_info, "what made a run: version, clip and its SHA-256, resolved config, metrics",
+                  ("run", RUN_HELP, None))
     sp.add_argument("--json", action="store_true", help="print it as JSON")
-    sp.set_defaults(func=cmd_info)
+    _command(sub, "demo", cmd_demo, "main job: simulate the default hit on the embedded clip and render it",
+             output="folder for run.npz, filmstrip.png, video.mp4, deviation.png", default="out/demo")
 
-    sp = sub.add_parser("demo", help="main job: simulate the default hit on the embedded clip and render it")
-    sp.add_argument("-o", "--output", default="out/demo", help="folder for run.npz, filmstrip.png, video.mp4, deviation.png")
-    sp.set_defaults(func=cmd_demo)
+
+def build_parser() -> argparse.ArgumentParser:
+    from neuromotor import __version__
+
+    p = _Parser(prog="neuromotor", description=__doc__.split("\n")[0])
+    p.add_argument("--version", action="version", version=f"neuromotor {__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+    for add in (_add_clip_commands, _add_run_commands, _add_sweep_command, _add_study_commands, _add_other_commands):
+        add(sub)
     return p
 
 
@@ -582,27 +600,37 @@ def _io_paths(args) -> tuple[list, list, list]:
     if cmd == "demo":
         d = pathlib.Path(out)
         return [], [d / n for n in ("run.npz", "filmstrip.png", "video.mp4", "deviation.png")], [d]
+    if cmd == "experiment":
+        from neuromotor.config import load_experiment
+
+        cfg, exp = load_experiment(args.config)
+        return [args.config, cfg.clip], [], [pathlib.Path(out) if out else exp.output]
     if cmd == "sweep":
-        from neuromotor.studies.sweep import load_sweep_config
+        from neuromotor.config import load_sweep_config
 
         cfg, spec = load_sweep_config(args.config)
         d = pathlib.Path(out or spec.output or pathlib.Path("out") / "sweep" / pathlib.Path(args.config).stem)
         files = [d / n for n in ("sweep.csv", "sweep.png", "gains_map.png")]
         return [args.config, cfg.clip, args.fitted_json], files, [d]
     if cmd == "fit":
-        from neuromotor.config import read_toml, simulation_config
+        return _fit_paths(args)
+    return [], [], []
 
-        path = pathlib.Path(args.config)
-        data = read_toml(path)
-        cfg = simulation_config(data, str(path), path.parent)
+
+def _fit_paths(args) -> tuple[list, list, list]:
+    """The fit's config, clip and target file; it writes fit.json and fit.png, or (with
+    --write-synthetic) the target file."""
+    from neuromotor.config import fit_spec, read_toml, simulation_config
+
+    path = pathlib.Path(args.config)
+    data = read_toml(path)
+    cfg = simulation_config(data, str(path), path.parent)
+    if args.write_synthetic:  # the target table is checked by the writer
         target = data.get("fit", {}).get("target", {}) if isinstance(data.get("fit"), dict) else {}
         file = target.get("file") if isinstance(target, dict) else None
-        file = path.parent / file if isinstance(file, str) else None
-        if args.write_synthetic:
-            return [args.config, cfg.clip], [file], []
-        d = pathlib.Path(out)
-        return [args.config, cfg.clip, file], [d / "fit.json", d / "fit.png"], [d]
-    return [], [], []
+        return [args.config, cfg.clip], [path.parent / file if isinstance(file, str) else None], []
+    d = pathlib.Path(args.output)
+    return [args.config, cfg.clip, fit_spec(data, cfg, path.parent).target.file], [d / "fit.json", d / "fit.png"], [d]
 
 
 def _preflight(args) -> None:
@@ -619,9 +647,7 @@ def main(argv=None) -> int:
 
     if args.command != "bench":  # bench reports compile times: it compiles for real
         enable_compile_cache()  # persistent XLA cache: a second `simulate` loads instead of compiling
-    from neuromotor.model.bvh import BvhError
-    from neuromotor.config import ConfigError
-    from neuromotor.physics.dynamics import SimulationDiverged
+    from neuromotor.errors import UserError
 
     try:
         _preflight(args)  # SIGINT/SIGTERM while an output is being written: atomic.atomic_path
@@ -638,9 +664,8 @@ def main(argv=None) -> int:
         where = f"{e.filename}: " if e.filename else ""
         print(f"neuromotor {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
-    except (BvhError, ConfigError, SimulationDiverged, ValueError, KeyError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
-        print(f"neuromotor {args.command}: error: {msg}", file=sys.stderr)
+    except UserError as e:  # bad input; anything else is a bug and shows its traceback
+        print(f"neuromotor {args.command}: error: {e}", file=sys.stderr)
         return 2
 
 

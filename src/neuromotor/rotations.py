@@ -101,35 +101,76 @@ def wrap_angle(x: Float[Array, "..."]) -> Float[Array, "..."]:
     return x - 2.0 * jnp.pi * jnp.ceil((x - jnp.pi) / (2.0 * jnp.pi))
 
 
-def euler_axes(
-    parent_rot: Float[Array, "3 3"], angles: Float[Array, "3"], order: str
-) -> Float[Array, "3 3"]:
-    """World-frame Euler axes h_1, h_2, h_3 (rows) of a joint (the rows of H, Eq. 4).
+def euler_axes(parent_rot: Float[Array, "... 3 3"], angles: Float[Array, "... 3"], order: str) -> Float[Array, "... 3 3"]:
+    """World-frame Euler axes h_1, h_2, h_3 (rows) of joints (the rows of H, Eq. 4), batched.
 
     The relative angular velocity of the child is ``sum_i h_i thetadot_i``:
     h_1 = R_p e_a1, h_2 = R_p R_a1(t1) e_a2, h_3 = R_p R_a1(t1) R_a2(t2) e_a3.
     """
-    e = jnp.eye(3, dtype=angles.dtype)
-    r1 = parent_rot @ axis_rotation(AXIS[order[0]], angles[0])
-    r2 = r1 @ axis_rotation(AXIS[order[1]], angles[1])
-    return jnp.stack(
-        [parent_rot @ e[AXIS[order[0]]], r1 @ e[AXIS[order[1]]], r2 @ e[AXIS[order[2]]]]
-    )
+    a0, a1, a2 = (AXIS[c] for c in order)
+    r1 = parent_rot @ axis_rotation(a0, angles[..., 0])
+    r2 = r1 @ axis_rotation(a1, angles[..., 1])
+    return jnp.stack([parent_rot[..., :, a0], r1[..., :, a1], r2[..., :, a2]], -2)
+
+
+# ---------------------------------------------------------------- 3-vectors and 3x3 matrices
+# Written out component by component. On a CPU a simulation step of this size is bound by the
+# number of XLA kernels, not by flops: ``a @ b`` on 3x3 matrices becomes a ``dot`` kernel of its
+# own and ``jnp.sum(.., -1)`` a reduction, each breaking the fusion of the elementwise work around
+# it. Slices, products and sums of components fuse into a few loop kernels, tangents included.
+
+
+def dot(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def cross(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    return jnp.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                      a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
+
+
+def mv(m: Float[Array, "... 3 3"], x: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """m x."""
+    return m[..., :, 0] * x[..., 0, None] + m[..., :, 1] * x[..., 1, None] + m[..., :, 2] * x[..., 2, None]
+
+
+def mtv(m: Float[Array, "... 3 3"], x: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """m^T x."""
+    return m[..., 0, :] * x[..., 0, None] + m[..., 1, :] * x[..., 1, None] + m[..., 2, :] * x[..., 2, None]
+
+
+def mm(a: Float[Array, "... 3 3"], b: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
+    """a b."""
+    return (a[..., :, 0, None] * b[..., None, 0, :] + a[..., :, 1, None] * b[..., None, 1, :]
+            + a[..., :, 2, None] * b[..., None, 2, :])
+
+
+def mmt(a: Float[Array, "... 3 3"], b: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
+    """a b^T."""
+    return (a[..., :, 0, None] * b[..., None, :, 0] + a[..., :, 1, None] * b[..., None, :, 1]
+            + a[..., :, 2, None] * b[..., None, :, 2])
+
+
+def inv3(a: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
+    """a^-1 as adjugate over determinant (rows of the adjugate are cross products of columns)."""
+    c0, c1, c2 = a[..., :, 0], a[..., :, 1], a[..., :, 2]
+    r0, r1, r2 = cross(c1, c2), cross(c2, c0), cross(c0, c1)
+    return jnp.stack([r0, r1, r2], -2) / dot(c0, r0)[..., None, None]
 
 
 # ---------------------------------------------------------------- quaternions (w, x, y, z)
 
 
 def quat_mul(p: Float[Array, "... 4"], q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
-    pw, pv = p[..., :1], p[..., 1:]
-    qw, qv = q[..., :1], q[..., 1:]
-    w = pw * qw - jnp.sum(pv * qv, -1, keepdims=True)
-    v = pw * qv + qw * pv + jnp.cross(pv, qv)
-    return jnp.concatenate([w, v], -1)
+    pw, pv, qw, qv = p[..., 0], p[..., 1:], q[..., 0], q[..., 1:]
+    w = pw * qw - dot(pv, qv)
+    v = pw[..., None] * qv + qw[..., None] * pv + cross(pv, qv)
+    return jnp.concatenate([w[..., None], v], -1)
 
 
 def quat_conj(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
-    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+    return jnp.concatenate([q[..., :1], -q[..., 1:]], -1)
 
 
 def quat_normalize(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
@@ -173,12 +214,12 @@ def matrix_to_quat(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4"]:
 
 def quat_exp(w: Float[Array, "... 3"]) -> Float[Array, "... 4"]:
     """Unit quaternion of the rotation vector w (angle |w| about w / |w|), smooth at 0."""
-    theta2 = jnp.sum(w * w, -1, keepdims=True)
+    theta2 = dot(w, w)
     theta = jnp.sqrt(jnp.where(theta2 > 1e-24, theta2, 1.0))
     small = theta2 < 1e-12
     half_sinc = jnp.where(small, 0.5 - theta2 / 48.0, jnp.sin(0.5 * theta) / theta)
     cos_half = jnp.where(small, 1.0 - theta2 / 8.0, jnp.cos(0.5 * theta))
-    return jnp.concatenate([cos_half, half_sinc * w], -1)
+    return jnp.concatenate([cos_half[..., None], half_sinc[..., None] * w], -1)
 
 
 def quat_turn(q: Float[Array, "... 4"], w: Float[Array, "... 3"]) -> Float[Array, "... 4"]:
@@ -189,13 +230,13 @@ def quat_turn(q: Float[Array, "... 4"], w: Float[Array, "... 3"]) -> Float[Array
 
 def quat_log(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
     """Rotation vector of a unit quaternion (shortest rotation: q and -q give the same)."""
-    q = q * jnp.where(q[..., :1] < 0, -1.0, 1.0)
-    v = q[..., 1:]
-    s2 = jnp.sum(v * v, -1, keepdims=True)
+    sign = jnp.where(q[..., 0] < 0, -1.0, 1.0)
+    w, v = sign * q[..., 0], sign[..., None] * q[..., 1:]
+    s2 = dot(v, v)
     s = jnp.sqrt(jnp.where(s2 > 1e-24, s2, 1.0))
-    angle = 2.0 * jnp.arctan2(s, q[..., :1])
-    scale = jnp.where(s2 > 1e-24, angle / s, 2.0 / q[..., :1])
-    return scale * v
+    angle = 2.0 * jnp.arctan2(s, w)
+    scale = jnp.where(s2 > 1e-24, angle / s, 2.0 / w)
+    return scale[..., None] * v
 
 
 def rotation_error(r_a: Float[Array, "... 3 3"], r_b: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:

@@ -14,28 +14,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from neuromotor.io.runfile import EXPORT_FIELDS, read_run
 from neuromotor.model.bvh import read_bvh, write_bvh
 from neuromotor.studies.metrics import continuous_angles
 from neuromotor.rotations import matrix_to_euler, quat_to_matrix
 from neuromotor.studies.simulate import load_character
-
-REQUIRED = ("time", "theta", "dof_names", "source_clip", "source_units", "up_axis")
-
-
-def _load_run(path) -> dict:
-    path = pathlib.Path(path)
-    try:
-        data = dict(np.load(path, allow_pickle=False))
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{path}: cannot read run file: {e}") from None
-    for key in REQUIRED:
-        if key not in data:
-            raise ValueError(f"{path}: run file lacks the array {key!r}")
-    return data
+from neuromotor.errors import UserError
 
 
 def export_bvh(run_path, out_path) -> pathlib.Path:
-    run = _load_run(run_path)
+    run = read_run(run_path, EXPORT_FIELDS)
     units = str(run["source_units"])
     try:
         units = float(units)
@@ -45,7 +33,7 @@ def export_bvh(run_path, out_path) -> pathlib.Path:
     # Written in the file's own skeleton: a virtual root removed for the model is put back.
     clip, model = character.source, character.model
     if tuple(str(n) for n in run["dof_names"]) != model.dof_names:
-        raise ValueError(f"{run_path}: its DOFs do not match the clip {clip.path}")
+        raise UserError(f"{run_path}: its DOFs do not match the clip {clip.path}")
     times = np.asarray(run["time"])
     motion = np.zeros((len(times), clip.n_channels))
     # Every channel from the mocap first (file convention: degrees, metres)...

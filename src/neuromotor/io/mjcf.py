@@ -37,12 +37,86 @@ import numpy as np
 
 from neuromotor.io.atomic import atomic_path
 from neuromotor.model.skeleton import Character
+from neuromotor.errors import UserError
 
 AXIS_VEC = {"X": "1 0 0", "Y": "0 1 0", "Z": "0 0 1"}
 
 
 def _fmt(values) -> str:
     return " ".join(repr(float(v)) for v in np.ravel(values))
+
+
+def _check_params(timestep, kp, kv) -> None:
+    for key, value, low in (("timestep", timestep, None), ("kp", kp, 0.0), ("kv", kv, 0.0)):
+        ok = (not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+              and np.isfinite(value) and (value > 0 if low is None else value >= low))
+        if not ok:
+            raise UserError(f"MJCF {key} must be a finite number {'> 0' if low is None else '>= 0'}, got {value!r}")
+
+
+def _header(root, model, timestep: float) -> None:
+    """Compiler, option (gravity, step, integrator) and defaults."""
+    ET.SubElement(root, "compiler", angle="radian", inertiafromgeom="false", autolimits="true")
+    ET.SubElement(root, "option", gravity=_fmt(model.gravity), timestep=repr(float(timestep)),
+                  integrator="implicitfast")
+    default = ET.SubElement(root, "default")
+    ET.SubElement(default, "joint", damping="0", armature="0", limited="false")
+    ET.SubElement(default, "geom", contype="0", conaffinity="0", mass="0", rgba="0.7 0.6 0.5 1")
+
+
+class _BodyTree:
+    """Writes the character's bodies as nested MJCF bodies, collecting the hinge names."""
+
+    def __init__(self, character: Character):
+        model = character.model
+        self.model = model
+        self.mass = np.asarray(model.mass, dtype=np.float64)
+        self.com = np.asarray(model.com, dtype=np.float64)
+        self.inertia = np.asarray(model.inertia, dtype=np.float64)
+        self.offsets = np.asarray(model.joint_offset, dtype=np.float64)
+        self.end_offsets = np.asarray(model.end_site_offset, dtype=np.float64).reshape(-1, 3)
+        self.radii = np.asarray(character.radii, dtype=np.float64)
+        self.children: dict[int, list[int]] = {}
+        for k, p in enumerate(model.joint_parent):
+            self.children.setdefault(p, []).append(k)
+        self.ends: dict[int, list[int]] = {}
+        for e, k in enumerate(model.end_site_joint):
+            self.ends.setdefault(k, []).append(e)
+        self.hinges: list[str] = []
+
+    def add_body(self, parent_el, b: int) -> None:
+        model, names = self.model, self.model.joint_names
+        k = model.body_joint[b]
+        body = ET.SubElement(parent_el, "body", name=names[k], pos=_fmt(self.offsets[k]))
+        i = self.inertia[b]
+        ET.SubElement(body, "inertial", pos=_fmt(self.com[b]), mass=repr(float(self.mass[b])),
+                      fullinertia=_fmt([i[0, 0], i[1, 1], i[2, 2], i[0, 1], i[0, 2], i[1, 2]]))
+        if model.body_parent[b] < 0:
+            ET.SubElement(body, "freejoint", name=names[k])
+        else:
+            for axis in model.joint_order[k]:
+                hinge = f"{names[k]}.{axis}rotation"
+                ET.SubElement(body, "joint", name=hinge, type="hinge", axis=AXIS_VEC[axis], pos="0 0 0")
+                self.hinges.append(hinge)
+        self.add_geoms(body, k)
+        for c in self.children.get(k, []):
+            cb = model.joint_body[c]
+            if cb >= 0:
+                self.add_body(body, cb)
+
+    def add_geoms(self, body, k: int) -> None:
+        """Viewing geoms: one capsule per bone (to each child joint and End Site), else a sphere."""
+        r = float(max(self.radii[k], 1e-3))
+        bone_ends = ([self.offsets[c] for c in self.children.get(k, [])]
+                     + [self.end_offsets[e] for e in self.ends.get(k, [])])
+        drawn = False
+        for end in bone_ends:
+            if np.linalg.norm(end) > 1e-6:
+                ET.SubElement(body, "geom", type="capsule", size=repr(r),
+                              fromto=_fmt(np.concatenate([np.zeros(3), end])))
+                drawn = True
+        if not drawn:
+            ET.SubElement(body, "geom", type="sphere", size=repr(r))
 
 
 def model_to_mjcf(
@@ -54,72 +128,13 @@ def model_to_mjcf(
 ) -> str:
     """MJCF XML text of the character (see the module docstring for the conventions).
     ``timestep`` must be a finite number of seconds > 0, ``kp`` and ``kv`` finite and >= 0."""
-    for key, value, low in (("timestep", timestep, None), ("kp", kp, 0.0), ("kv", kv, 0.0)):
-        ok = (not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
-              and np.isfinite(value) and (value > 0 if low is None else value >= low))
-        if not ok:
-            raise ValueError(f"MJCF {key} must be a finite number {'> 0' if low is None else '>= 0'}, got {value!r}")
-    model = character.model
-    joint_names = model.joint_names
-    mass = np.asarray(model.mass, dtype=np.float64)
-    com = np.asarray(model.com, dtype=np.float64)
-    inertia = np.asarray(model.inertia, dtype=np.float64)
-    offsets = np.asarray(model.joint_offset, dtype=np.float64)
-    end_offsets = np.asarray(model.end_site_offset, dtype=np.float64).reshape(-1, 3)
-    radii = np.asarray(character.radii, dtype=np.float64)
-
+    _check_params(timestep, kp, kv)
     root = ET.Element("mujoco", model=name or pathlib.Path(str(character.clip.path)).stem)
-    ET.SubElement(root, "compiler", angle="radian", inertiafromgeom="false", autolimits="true")
-    ET.SubElement(root, "option", gravity=_fmt(model.gravity), timestep=repr(float(timestep)),
-                  integrator="implicitfast")
-    default = ET.SubElement(root, "default")
-    ET.SubElement(default, "joint", damping="0", armature="0", limited="false")
-    ET.SubElement(default, "geom", contype="0", conaffinity="0", mass="0", rgba="0.7 0.6 0.5 1")
-    world = ET.SubElement(root, "worldbody")
-
-    children: dict[int, list[int]] = {}
-    for k, p in enumerate(model.joint_parent):
-        children.setdefault(p, []).append(k)
-    ends: dict[int, list[int]] = {}
-    for e, k in enumerate(model.end_site_joint):
-        ends.setdefault(k, []).append(e)
-
-    hinges: list[str] = []
-
-    def add_body(parent_el, b: int) -> None:
-        k = model.body_joint[b]
-        pos = offsets[k]
-        body = ET.SubElement(parent_el, "body", name=joint_names[k], pos=_fmt(pos))
-        i = inertia[b]
-        ET.SubElement(body, "inertial", pos=_fmt(com[b]), mass=repr(float(mass[b])),
-                      fullinertia=_fmt([i[0, 0], i[1, 1], i[2, 2], i[0, 1], i[0, 2], i[1, 2]]))
-        if model.body_parent[b] < 0:
-            ET.SubElement(body, "freejoint", name=joint_names[k])
-        else:
-            for axis in model.joint_order[k]:
-                hinge = f"{joint_names[k]}.{axis}rotation"
-                ET.SubElement(body, "joint", name=hinge, type="hinge", axis=AXIS_VEC[axis],
-                              pos="0 0 0")
-                hinges.append(hinge)
-        # Viewing geoms: one capsule per bone (to each child joint and End Site).
-        r = float(max(radii[k], 1e-3))
-        bone_ends = [offsets[c] for c in children.get(k, [])] + [end_offsets[e] for e in ends.get(k, [])]
-        drawn = False
-        for end in bone_ends:
-            if np.linalg.norm(end) > 1e-6:
-                ET.SubElement(body, "geom", type="capsule", size=repr(r),
-                              fromto=_fmt(np.concatenate([np.zeros(3), end])))
-                drawn = True
-        if not drawn:
-            ET.SubElement(body, "geom", type="sphere", size=repr(r))
-        for c in children.get(k, []):
-            cb = model.joint_body[c]
-            if cb >= 0:
-                add_body(body, cb)
-
-    add_body(world, 0)
+    _header(root, character.model, timestep)
+    tree = _BodyTree(character)
+    tree.add_body(ET.SubElement(root, "worldbody"), 0)
     actuator = ET.SubElement(root, "actuator")
-    for hinge in hinges:
+    for hinge in tree.hinges:
         ET.SubElement(actuator, "position", name=hinge, joint=hinge, kp=repr(float(kp)),
                       kv=repr(float(kv)))
     ET.indent(root)

@@ -21,15 +21,15 @@ Missing parent folders are not an error: the writers create them (``-o out/new/r
 from __future__ import annotations
 
 import os
-import pathlib
 import stat
 import tempfile
 from collections.abc import Iterable
 
+from neuromotor.errors import UserError
 from neuromotor.io.atomic import TAG
 
 
-class OutputError(ValueError):
+class OutputError(UserError):
     """An output that must not or cannot be written; the message names it."""
 
 
@@ -122,12 +122,7 @@ def check_outputs(files: Iterable = (), folders: Iterable = (), inputs: Iterable
 
 def inputs_of_run(run_path) -> list[str]:
     """The clip a RUN.npz was made from (``source_clip``), when it can be read cheaply."""
-    try:
-        import numpy as np
+    from neuromotor.io.runfile import source_clip
 
-        with np.load(run_path, allow_pickle=False) as data:
-            if "source_clip" in data.files:
-                return [str(data["source_clip"])]
-    except Exception:  # not a readable run: the command itself says so
-        pass
-    return []
+    clip = source_clip(run_path)
+    return [] if clip is None else [clip]

@@ -36,6 +36,7 @@ import re
 import numpy as np
 
 from neuromotor.model.bvh import UNIT_SCALES, BvhClip, _auto_scale, _resolve_units_arg, read_bvh
+from neuromotor.errors import UserError
 
 __all__ = [
     "SEGMENTS",
@@ -577,30 +578,16 @@ def _frame_rows(n_frames: int) -> np.ndarray:
     return np.unique(np.linspace(0, n_frames - 1, min(n_frames, _MAX_FK_FRAMES)).round().astype(int))
 
 
-def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatomy:
-    """Anatomy of ``clip``, whose lengths are taken as file units (read it with ``units=1.0``).
-
-    ``units``: "auto", a key of :data:`UNIT_CHOICES` or a positive number of metres per file unit.
-    ``stature`` (metres): with "auto", sets the scale (units "given"); with explicit units, is
-    reported as the stature.
-    """
-    fixed = _resolve_units_arg(units)
+def _check_stature(stature: float | None) -> float | None:
     if stature is not None:
         stature = float(stature)
         if not (math.isfinite(stature) and stature > 0):
-            raise ValueError(f"stature must be a positive number of metres, got {stature!r}")
-    tree = _Tree(clip)
-    J = tree.J
-    rows = _frame_rows(clip.n_frames)
-    pos, rot, ends = forward_kinematics(clip, rows)
-    warnings: list[str] = []
-    names = [j.name for j in clip.joints]
+            raise UserError(f"stature must be a positive number of metres, got {stature!r}")
+    return stature
 
-    segment = ["detail"] * J
-    side = [""] * J
-    mirror = [-1] * J
 
-    pairs = tree.sibling_pairs()
+def _limb_pairs(tree: _Tree, pairs) -> list:
+    """The first two sibling pairs (best matched first) that are disjoint: the limbs."""
     limbs_pairs = []
     for entry in pairs:
         _, a, b, _ = entry
@@ -610,37 +597,48 @@ def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatom
         limbs_pairs.append(entry)
         if len(limbs_pairs) == 2:
             break
-    if len(limbs_pairs) < 2:
-        warnings.append("no two symmetric limb pairs found: every joint is labelled trunk")
-        up = np.array([0.0, 1.0, 0.0])
-        extent = pos[:, :, 1].max(1) - pos[:, :, 1].min(1)
-        ref = int(rows[int(np.argmax(extent))])
-        height = float(extent.max()) or 1.0
-        if fixed is None and stature is None:  # not a person: no stature to go by
-            fixed = _auto_scale(np.array([j.offset for j in clip.joints]), [j.parent for j in clip.joints],
-                                [j.end_site for j in clip.joints])
-        scale, unit_name, stat = _choose_units(height, fixed, stature, warnings)
-        return Anatomy(("trunk",) * J, ("",) * J, (-1,) * J, up, np.array([0.0, 0.0, 1.0]), ref, stat,
-                       scale, unit_name, tuple(warnings), {})
+    return limbs_pairs
 
-    limbs = [[_limb(tree, pos, rot, ends, e[1]), _limb(tree, pos, rot, ends, e[2])] for e in limbs_pairs]
-    for (x, y), e in zip(limbs, limbs_pairs):
-        _choose_windows(x, y, e[3], pos)
-    windows = [0.5 * (x.window + y.window) for x, y in limbs]
-    legs_i = _pick_legs(tree, limbs_pairs, windows, names)
-    arms_i = 1 - legs_i
-    legs_pair, arms_pair = limbs_pairs[legs_i], limbs_pairs[arms_i]
-    legs, arms = limbs[legs_i], limbs[arms_i]
 
-    def ankle_points():  # (T, 2, 3)
-        return np.stack([ends[:, l.end_point] if l.end_is_site else pos[:, l.end_point] for l in legs], axis=1)
+def _no_limbs_anatomy(clip: BvhClip, pos, rows, fixed, stature, warnings: list[str]) -> Anatomy:
+    """Every joint trunk, up +y, forward +z: a skeleton without two limb pairs (not a person)."""
+    J = len(clip.joints)
+    warnings.append("no two symmetric limb pairs found: every joint is labelled trunk")
+    up = np.array([0.0, 1.0, 0.0])
+    extent = pos[:, :, 1].max(1) - pos[:, :, 1].min(1)
+    ref = int(rows[int(np.argmax(extent))])
+    height = float(extent.max()) or 1.0
+    if fixed is None and stature is None:  # not a person: no stature to go by
+        fixed = _auto_scale(np.array([j.offset for j in clip.joints]), [j.parent for j in clip.joints],
+                            [j.end_site for j in clip.joints])
+    scale, unit_name, stat = _choose_units(height, fixed, stature, warnings)
+    return Anatomy(("trunk",) * J, ("",) * J, (-1,) * J, up, np.array([0.0, 0.0, 1.0]), ref, stat,
+                   scale, unit_name, tuple(warnings), {})
 
-    ankles = ankle_points().mean(axis=1)
-    arm_branch = tree.parents[arms_pair[1]]
-    up0 = _nearest_axis((pos[:, arm_branch] - ankles).mean(axis=0))
 
-    # Head: largest other branch at the arms' branch joint, else nearest above it.
-    limb_members = {legs_pair[1], legs_pair[2], arms_pair[1], arms_pair[2]}
+def _upward_children(tree: _Tree, pos, ends, cur: int, paired: set, up0) -> list[int]:
+    """Children of head joint ``cur`` that continue the head chain upwards."""
+    kids = [c for c in tree.children[cur] if c not in paired]
+    upward = []
+    lone = len(tree.children[cur]) == 1
+    for c in kids:
+        last = tree.main_chain(c)[-1]
+        v = ends[:, last] - pos[:, cur]  # to the far end of c's branch
+        length = np.linalg.norm(v, axis=1)
+        if float(length.mean()) <= tree.tiny:
+            rise = 1.0 if lone else -1.0
+        else:
+            rise = float(np.mean(v @ up0 / np.maximum(length, 1e-300)))
+        # A lone child continues the chain unless its branch hangs down (a jaw); among
+        # several, only a branch climbing steeply (the skull top, not a jaw).
+        if rise > (-0.1 if lone else 0.5):
+            upward.append(c)
+    return upward
+
+
+def _head_chain(tree: _Tree, pos, ends, arm_branch: int, limb_members: set, pairs, up0) -> list[int]:
+    """Head joints from the neck up: the largest other branch at the arms' branch joint (else
+    nearest above it), followed upwards; empty when there is none."""
     head0 = None
     for anc in tree.path_to_root(arm_branch):
         cands = [c for c in tree.children[anc]
@@ -648,121 +646,127 @@ def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatom
         if cands:
             head0 = max(cands, key=lambda c: (tree.L[c] + tree.reach[c], -c))
             break
+    if head0 is None:
+        return []
     paired = set()
     for _, a, b, _ in pairs:
         paired.update((a, b))
-    head_chain: list[int] = []
-    if head0 is not None:
-        head_chain = [head0]
-        while True:
-            cur = head_chain[-1]
-            kids = [c for c in tree.children[cur] if c not in paired]
-            upward = []
-            lone = len(tree.children[cur]) == 1
-            for c in kids:
-                last = tree.main_chain(c)[-1]
-                v = ends[:, last] - pos[:, cur]  # to the far end of c's branch
-                length = np.linalg.norm(v, axis=1)
-                if float(length.mean()) <= tree.tiny:
-                    rise = 1.0 if lone else -1.0
-                else:
-                    rise = float(np.mean(v @ up0 / np.maximum(length, 1e-300)))
-                # A lone child continues the chain unless its branch hangs down (a jaw); among
-                # several, only a branch climbing steeply (the skull top, not a jaw).
-                if rise > (-0.1 if lone else 0.5):
-                    upward.append(c)
-            if not upward:
-                break
-            head_chain.append(max(upward, key=lambda c: (tree.L[c] + tree.reach[c], -c)))
-        skull = head_chain[-1]
-        head_top = ends[:, skull]
-    else:
-        warnings.append("no head branch found: up is taken from the arms' branch joint")
-        head_top = pos[:, arm_branch]
+    head_chain = [head0]
+    while True:
+        upward = _upward_children(tree, pos, ends, head_chain[-1], paired, up0)
+        if not upward:
+            return head_chain
+        head_chain.append(max(upward, key=lambda c: (tree.L[c] + tree.reach[c], -c)))
 
-    up = _nearest_axis((head_top - ankles).mean(axis=0))
-    ref_i = int(np.argmax((head_top - ankles) @ up))
-    reference_frame = int(rows[ref_i])
 
-    # Facing per frame, unnormalised: feet (ankle to toe), else knees.
-    def horiz(v):
-        return v - np.outer(v @ up, up)
+def _horizontal(v, up):
+    return v - np.outer(v @ up, up)
 
+
+def _facing_per_frame(tree: _Tree, pos, ends, legs, up, n_rows: int):
+    """Facing per frame, unnormalised, from the feet (ankle to toe), else the knees; and which
+    ("feet", "knees" or "" when neither tells)."""
     leg_len = float(np.mean([l.window for l in legs]))
-    fwd_t = np.zeros((len(rows), 3))
+    fwd_t = np.zeros((n_rows, 3))
     for l in legs:
         if l.hand is not None:
             foot_chain = tree.main_chain(l.hand)
             last = foot_chain[-1]
             toe = ends[:, last] if tree.end_len[last] > tree.tiny else pos[:, last]
             if np.linalg.norm(toe - pos[:, l.hand], axis=1).mean() > 0.05 * leg_len:
-                fwd_t += horiz(toe - pos[:, l.hand])
-    facing_from = "feet"
-    if np.linalg.norm(fwd_t, axis=1).mean() < 0.02 * leg_len:
-        fwd_t = np.zeros((len(rows), 3))
-        for l in legs:
-            hip = pos[:, l.groups[l.upper][0]]
-            knee = pos[:, l.groups[l.upper + 1][0]] if l.groups[l.upper + 1] else hip
-            ank = ends[:, l.end_point] if l.end_is_site else pos[:, l.end_point]
-            fwd_t += horiz(knee - 0.5 * (hip + ank))
-        facing_from = "knees"
-        if np.linalg.norm(fwd_t, axis=1).mean() < 0.01 * leg_len:
-            facing_from = ""
-    left_t = np.cross(up, fwd_t)
+                fwd_t += _horizontal(toe - pos[:, l.hand], up)
+    if not np.linalg.norm(fwd_t, axis=1).mean() < 0.02 * leg_len:
+        return fwd_t, "feet"
+    fwd_t = np.zeros((n_rows, 3))
+    for l in legs:
+        hip = pos[:, l.groups[l.upper][0]]
+        knee = pos[:, l.groups[l.upper + 1][0]] if l.groups[l.upper + 1] else hip
+        ank = ends[:, l.end_point] if l.end_is_site else pos[:, l.end_point]
+        fwd_t += _horizontal(knee - 0.5 * (hip + ank), up)
+    return fwd_t, ("" if np.linalg.norm(fwd_t, axis=1).mean() < 0.01 * leg_len else "knees")
 
-    def mean_points(k: int) -> np.ndarray:
-        sub = list(tree.subtree(k))
-        return pos[:, sub].mean(axis=1)
 
-    def decide(a: int, b: int) -> tuple[str, str] | None:
+@dataclasses.dataclass
+class _Labels:
+    """The per-joint labels and limb chains while :func:`analyse` fills them in."""
+
+    segment: list[str]
+    side: list[str]
+    mirror: list[int]
+    chains: dict = dataclasses.field(default_factory=dict)
+
+    def apply_pair(self, mapping: dict[int, int], sides) -> None:
+        for x, y in mapping.items():
+            self.mirror[x], self.mirror[y] = y, x
+            if sides is not None:
+                self.side[x], self.side[y] = sides
+
+
+@dataclasses.dataclass
+class _SideJudge:
+    """Tells left from right for two sibling branches: from the geometry (the facing direction
+    per frame ``left_t``) when it tells, else from the joint names."""
+
+    tree: _Tree
+    pos: np.ndarray
+    left_t: np.ndarray
+    facing_from: str
+    names: list[str]
+
+    def mean_points(self, k: int) -> np.ndarray:
+        sub = list(self.tree.subtree(k))
+        return self.pos[:, sub].mean(axis=1)
+
+    def decide(self, a: int, b: int) -> tuple[str, str] | None:
         """Sides of siblings a and b, from geometry, else names."""
-        if facing_from:
-            d = mean_points(a) - mean_points(b)
-            lat = float(np.sum(d * left_t))
-            norm = float(np.sum(np.linalg.norm(d, axis=1) * np.linalg.norm(left_t, axis=1)))
+        if self.facing_from:
+            d = self.mean_points(a) - self.mean_points(b)
+            lat = float(np.sum(d * self.left_t))
+            norm = float(np.sum(np.linalg.norm(d, axis=1) * np.linalg.norm(self.left_t, axis=1)))
             if norm > 0 and abs(lat) > 0.2 * norm:
                 return ("left", "right") if lat > 0 else ("right", "left")
-        na, nb = _name_side(names[a]), _name_side(names[b])
+        na, nb = _name_side(self.names[a]), _name_side(self.names[b])
         if {na, nb} == {"left", "right"}:
             return na, nb
         return None
 
-    def apply_pair(a: int, b: int, mapping: dict[int, int], sides) -> None:
-        for x, y in mapping.items():
-            mirror[x], mirror[y] = y, x
-            if sides is not None:
-                side[x], side[y] = sides
 
-    chains: dict[str, tuple[int, ...]] = {}
-    limb_sides = {}
-    for kind, pair, limb_pair in (("leg", legs_pair, legs), ("arm", arms_pair, arms)):
+def _label_limbs(labels: _Labels, judge: _SideJudge, tree: _Tree, pos_ref, ends_ref, limb_sets,
+                 warnings: list[str]) -> None:
+    """Sides, mirrors, segments and chains of the legs and arms."""
+    names = judge.names
+    for kind, pair, limb_pair in limb_sets:
         _, a, b, mapping = pair
-        sides = decide(a, b)
+        sides = judge.decide(a, b)
         if sides is None:
             warnings.append(f"cannot tell the left {kind} from the right one ({names[a]!r}, {names[b]!r}): "
                             f"{names[a]!r} is taken as left")
             sides = ("left", "right")
-            apply_pair(a, b, mapping, None)
+            labels.apply_pair(mapping, None)
             for x, y in mapping.items():
-                side[x], side[y] = sides
+                labels.side[x], labels.side[y] = sides
         else:
-            apply_pair(a, b, mapping, sides)
-        limb_sides[kind] = sides
+            labels.apply_pair(mapping, sides)
         for member, limb, s in ((a, limb_pair[0], sides[0]), (b, limb_pair[1], sides[1])):
-            _label_limb(tree, pos[ref_i], ends[ref_i], limb, kind, segment)
+            _label_limb(tree, pos_ref, ends_ref, limb, kind, labels.segment)
             end = limb.hand if limb.hand is not None else (limb.groups[limb.upper + 1] or limb.groups[limb.upper])[-1]
-            chains[f"{kind}_{s}"] = tuple(limb.chain[:limb.chain.index(end) + 1])
+            labels.chains[f"{kind}_{s}"] = tuple(limb.chain[:limb.chain.index(end) + 1])
 
-    # Other symmetric pairs outside the limbs (eyes, ...).
-    limb_roots = [legs_pair[1], legs_pair[2], arms_pair[1], arms_pair[2]]
+
+def _label_other_pairs(labels: _Labels, judge: _SideJudge, tree: _Tree, pairs, limb_roots) -> None:
+    """Other symmetric pairs outside the limbs (eyes, ...)."""
     for _, a, b, mapping in pairs:
-        if mirror[a] >= 0 or mirror[b] >= 0 or any(tree.is_below(a, m) or tree.is_below(b, m) for m in limb_roots):
+        if labels.mirror[a] >= 0 or labels.mirror[b] >= 0 or any(
+                tree.is_below(a, m) or tree.is_below(b, m) for m in limb_roots):
             continue
-        sides = decide(a, b)
+        sides = judge.decide(a, b)
         if sides is not None:
-            apply_pair(a, b, mapping, sides)
+            labels.apply_pair(mapping, sides)
 
-    # Head chain and face.
+
+def _label_head_and_trunk(labels: _Labels, tree: _Tree, head_chain, limb_roots, arm_branch) -> None:
+    """Head chain and face; the trunk is every ancestor of a limb or of the head."""
+    segment = labels.segment
     for k in head_chain:
         segment[k] = "head"
     for n_chain, k in enumerate(head_chain):
@@ -773,37 +777,35 @@ def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatom
             for j in tree.subtree(c):
                 segment[j] = label
     if head_chain:
-        chains["head"] = tuple(head_chain)
-
-    # Trunk: every ancestor of a limb or of the head.
+        labels.chains["head"] = tuple(head_chain)
     anchors = limb_roots + head_chain[:1]
     for m in anchors:
         for k in tree.path_to_root(tree.parents[m]):
             segment[k] = "trunk"
     segment[0] = "trunk"
-    chains["spine"] = tuple(reversed(tree.path_to_root(arm_branch)))
+    labels.chains["spine"] = tuple(reversed(tree.path_to_root(arm_branch)))
 
-    # Facing at the reference frame.
+
+def _forward_at(ref_i: int, fwd_t, up, tree: _Tree, judge: _SideJudge, chains, warnings: list[str]) -> np.ndarray:
+    """Unit horizontal facing at the reference frame (else over all frames, else from the legs'
+    sides, else an arbitrary horizontal axis with a warning)."""
     f = fwd_t[ref_i]
     if np.linalg.norm(f) < 1e-9 * tree.size:
         f = fwd_t.sum(axis=0)
     if np.linalg.norm(f) < 1e-9 * tree.size:  # no geometric facing: from the legs' sides
         li = chains["leg_left"][0]
         ri = chains["leg_right"][0]
-        lat = horiz(mean_points(li) - mean_points(ri))[ref_i]
+        lat = _horizontal(judge.mean_points(li) - judge.mean_points(ri), up)[ref_i]
         f = np.cross(lat, up)
         if np.linalg.norm(f) < 1e-12:
             f = np.cross(up, np.roll(up, 1))
             warnings.append("facing direction unknown: an arbitrary horizontal axis is used")
-    forward = horiz(f[None])[0]
-    forward = forward / np.linalg.norm(forward)
+    forward = _horizontal(f[None], up)[0]
+    return forward / np.linalg.norm(forward)
 
-    # Stature from the long bones, sides averaged.
-    leg = float(np.mean([l.window for l in legs]))
-    arm = float(np.mean([l.window for l in arms]))
-    height_raw = (leg + arm) / (_LEG_RATIO + _ARM_RATIO) if arm > 0 else leg / _LEG_RATIO
-    scale, unit_name, stat = _choose_units(height_raw, fixed, stature, warnings)
 
+def _translation_warnings(clip: BvhClip, scale: float, warnings: list[str]) -> None:
+    """A warning per non-root joint whose translation channels move it (their mean is used)."""
     for k, joint in enumerate(clip.joints):
         cols = joint.translation_columns
         if k == 0 or not cols:
@@ -814,10 +816,70 @@ def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatom
             warnings.append(f"joint {joint.name!r}: translation channels move it by up to {100 * move:.3g} cm; "
                             f"its mean offset is used")
 
+
+def _ankle_points(legs, pos, ends):  # (T, 2, 3)
+    return np.stack([ends[:, l.end_point] if l.end_is_site else pos[:, l.end_point] for l in legs], axis=1)
+
+
+def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatomy:
+    """Anatomy of ``clip``, whose lengths are taken as file units (read it with ``units=1.0``).
+
+    ``units``: "auto", a key of :data:`UNIT_CHOICES` or a positive number of metres per file unit.
+    ``stature`` (metres): with "auto", sets the scale (units "given"); with explicit units, is
+    reported as the stature.
+    """
+    fixed = _resolve_units_arg(units)
+    stature = _check_stature(stature)
+    tree = _Tree(clip)
+    rows = _frame_rows(clip.n_frames)
+    pos, rot, ends = forward_kinematics(clip, rows)
+    warnings: list[str] = []
+    names = [j.name for j in clip.joints]
+    pairs = tree.sibling_pairs()
+    limbs_pairs = _limb_pairs(tree, pairs)
+    if len(limbs_pairs) < 2:
+        return _no_limbs_anatomy(clip, pos, rows, fixed, stature, warnings)
+
+    limbs = [[_limb(tree, pos, rot, ends, e[1]), _limb(tree, pos, rot, ends, e[2])] for e in limbs_pairs]
+    for (x, y), e in zip(limbs, limbs_pairs):
+        _choose_windows(x, y, e[3], pos)
+    legs_i = _pick_legs(tree, limbs_pairs, [0.5 * (x.window + y.window) for x, y in limbs], names)
+    legs_pair, arms_pair = limbs_pairs[legs_i], limbs_pairs[1 - legs_i]
+    legs, arms = limbs[legs_i], limbs[1 - legs_i]
+
+    ankles = _ankle_points(legs, pos, ends).mean(axis=1)
+    arm_branch = tree.parents[arms_pair[1]]
+    up0 = _nearest_axis((pos[:, arm_branch] - ankles).mean(axis=0))
+    limb_roots = [legs_pair[1], legs_pair[2], arms_pair[1], arms_pair[2]]
+    head_chain = _head_chain(tree, pos, ends, arm_branch, set(limb_roots), pairs, up0)
+    if head_chain:
+        head_top = ends[:, head_chain[-1]]
+    else:
+        warnings.append("no head branch found: up is taken from the arms' branch joint")
+        head_top = pos[:, arm_branch]
+    up = _nearest_axis((head_top - ankles).mean(axis=0))
+    ref_i = int(np.argmax((head_top - ankles) @ up))
+
+    fwd_t, facing_from = _facing_per_frame(tree, pos, ends, legs, up, len(rows))
+    judge = _SideJudge(tree, pos, np.cross(up, fwd_t), facing_from, names)
+    labels = _Labels(["detail"] * tree.J, [""] * tree.J, [-1] * tree.J)
+    _label_limbs(labels, judge, tree, pos[ref_i], ends[ref_i], (("leg", legs_pair, legs), ("arm", arms_pair, arms)),
+                 warnings)
+    _label_other_pairs(labels, judge, tree, pairs, limb_roots)
+    _label_head_and_trunk(labels, tree, head_chain, limb_roots, arm_branch)
+    forward = _forward_at(ref_i, fwd_t, up, tree, judge, labels.chains, warnings)
+
+    # Stature from the long bones, sides averaged.
+    leg = float(np.mean([l.window for l in legs]))
+    arm = float(np.mean([l.window for l in arms]))
+    height_raw = (leg + arm) / (_LEG_RATIO + _ARM_RATIO) if arm > 0 else leg / _LEG_RATIO
+    scale, unit_name, stat = _choose_units(height_raw, fixed, stature, warnings)
+    _translation_warnings(clip, scale, warnings)
+
     up.setflags(write=False)
     forward.setflags(write=False)
-    return Anatomy(tuple(segment), tuple(side), tuple(mirror), up, forward, reference_frame, stat, scale,
-                   unit_name, tuple(warnings), chains)
+    return Anatomy(tuple(labels.segment), tuple(labels.side), tuple(labels.mirror), up, forward, int(rows[ref_i]),
+                   stat, scale, unit_name, tuple(warnings), labels.chains)
 
 
 def _pick_legs(tree: _Tree, pairs, windows, names) -> int:

@@ -52,6 +52,8 @@ from typing import Callable, NoReturn
 
 import numpy as np
 
+from neuromotor.errors import UserError
+
 __all__ = [
     "BvhError",
     "BvhJoint",
@@ -75,7 +77,7 @@ _BRACE_SPLIT_RE = re.compile(r"([{}])")
 _BRACES = frozenset("{}")
 
 
-class BvhError(ValueError):
+class BvhError(UserError):
     """Malformed BVH. ``str(e)`` is ``'PATH:LINE: message'`` (``'PATH: message'`` without a line).
 
     Attributes: ``path`` (str), ``line`` (1-based int or None), ``message`` (str).
@@ -324,125 +326,162 @@ class _Block:
         return f"joint {name!r}" if self.kind == "joint" else f"End Site of joint {name!r}"
 
 
+class _HierarchyParser:
+    """The HIERARCHY section, token by token: braces open and close blocks, every other token
+    starts a statement that runs to the end of the line or the next brace."""
+
+    def __init__(self, fail: Callable[[int | None, str], NoReturn]):
+        self.fail = fail
+        self.nodes: list[_Node] = []
+        self.first_line_of: dict[str, int] = {}
+        self.stack: list[_Block] = []
+        self.seen_hierarchy = False
+
+    def brace_or_header(self, tok: str, lineno: int) -> bool:
+        """Handle the HIERARCHY keyword and braces; False when ``tok`` starts a statement."""
+        fail, stack = self.fail, self.stack
+        if not self.seen_hierarchy:
+            if tok.upper() != "HIERARCHY":
+                fail(lineno, f"expected 'HIERARCHY' at the start of the file, got {tok!r}")
+            self.seen_hierarchy = True
+            return True
+        if stack and not stack[-1].opened:
+            if tok != "{":
+                fail(lineno, f"expected '{{' to open {stack[-1].describe(self.nodes)} "
+                             f"(line {stack[-1].line}), got {tok!r}")
+            stack[-1].opened = True
+            return True
+        if tok == "{":
+            fail(lineno, "unexpected '{'")
+        if tok == "}":
+            if not stack:
+                fail(lineno, "unmatched '}'")
+            _close_block(stack.pop(), self.nodes, self.fail)
+            return True
+        return False
+
+    def motion(self, toks: list[str], lineno: int) -> None:
+        """Check that MOTION may come here."""
+        top = self.stack[-1] if self.stack else None
+        if top is not None:
+            self.fail(lineno, f"MOTION inside the hierarchy: {top.describe(self.nodes)} opened at line "
+                              f"{top.line} is missing its closing '}}'")
+        if not self.nodes:
+            self.fail(lineno, "MOTION before any ROOT")
+        if len(toks) > 1:
+            self.fail(lineno, f"unexpected text after MOTION: {_short(' '.join(toks[1:]))!r}")
+
+    def statement(self, word: str, tok: str, args: list[str], toks: list[str], k: int, end: int,
+                  lineno: int) -> None:
+        top = self.stack[-1] if self.stack else None
+        if word in ("ROOT", "JOINT"):
+            self.joint(word, tok, args, top, lineno)
+        elif word == "END":
+            self.end_site(args, toks[k:end], top, lineno)
+        elif word == "OFFSET":
+            self.offset(args, top, lineno)
+        elif word == "CHANNELS":
+            self.channels(args, top, lineno)
+        else:
+            context = "in the hierarchy" if self.stack else "between blocks"
+            self.fail(lineno, f"unexpected {_short(tok)!r} {context}")
+
+    def joint(self, word: str, tok: str, args: list[str], top: _Block | None, lineno: int) -> None:
+        fail, nodes = self.fail, self.nodes
+        if word == "ROOT":
+            if nodes:
+                fail(lineno, f"several ROOTs: only one skeleton per file is supported "
+                             f"(first ROOT {nodes[0].name!r} at line {nodes[0].line})")
+            parent = -1
+        else:
+            if top is None:
+                where = "before ROOT" if not nodes else "after the ROOT block was closed"
+                fail(lineno, f"JOINT {where}")
+            if top.kind == "end":
+                fail(lineno, f"JOINT inside the {top.describe(nodes)} (line {top.line})")
+            parent = top.node
+        if not args:
+            fail(lineno, f"{tok} without a name")
+        name = " ".join(args)
+        if name in self.first_line_of:
+            fail(lineno, f"duplicate joint name {name!r} (first defined at line {self.first_line_of[name]})")
+        self.first_line_of[name] = lineno
+        nodes.append(_Node(name=name, parent=parent, line=lineno))
+        self.stack.append(_Block("joint", len(nodes) - 1, lineno))
+
+    def end_site(self, args: list[str], statement: list[str], top: _Block | None, lineno: int) -> None:
+        fail = self.fail
+        if len(args) != 1 or args[0].upper() != "SITE":
+            fail(lineno, f"expected 'End Site', got {_short(' '.join(statement))!r}")
+        if top is None or top.kind != "joint":
+            fail(lineno, "End Site outside a joint")
+        node = self.nodes[top.node]
+        if node.end_site_line is not None:
+            fail(lineno, f"joint {node.name!r} has a second End Site (first at line {node.end_site_line})")
+        node.end_site_line = lineno
+        self.stack.append(_Block("end", top.node, lineno))
+
+    def offset(self, args: list[str], top: _Block | None, lineno: int) -> None:
+        fail = self.fail
+        if top is None:
+            fail(lineno, "OFFSET outside a joint")
+        values = _parse_offset(args, lineno, fail)
+        if top.kind == "end":
+            if top.offset is not None:
+                fail(lineno, f"second OFFSET in the {top.describe(self.nodes)}")
+            top.offset = values
+        else:
+            node = self.nodes[top.node]
+            if node.offset is not None:
+                fail(lineno, f"second OFFSET in joint {node.name!r}")
+            node.offset = values
+
+    def channels(self, args: list[str], top: _Block | None, lineno: int) -> None:
+        fail = self.fail
+        if top is None:
+            fail(lineno, "CHANNELS outside a joint")
+        if top.kind == "end":
+            fail(lineno, "an End Site cannot have CHANNELS")
+        node = self.nodes[top.node]
+        if node.channels is not None:
+            fail(lineno, f"second CHANNELS line in joint {node.name!r}")
+        node.channels = _parse_channels(args, lineno, fail)
+
+    def no_motion(self, lines: list[str]) -> NoReturn:
+        """The file ended before MOTION: say what is missing."""
+        last = _last_text_line(lines)
+        if not self.seen_hierarchy:
+            self.fail(last, "empty file: expected 'HIERARCHY'")
+        if self.stack:
+            self.fail(last, f"unexpected end of file inside the hierarchy: {self.stack[-1].describe(self.nodes)} "
+                            f"opened at line {self.stack[-1].line} is not closed")
+        if not self.nodes:
+            self.fail(last, "no ROOT in the hierarchy")
+        self.fail(last, "missing MOTION section after the hierarchy")
+
+
 def _parse_hierarchy(lines: list[str], fail: Callable[[int | None, str], NoReturn]) -> tuple[list[_Node], int]:
     """Parse up to and including the MOTION line; return the joints and MOTION's 0-based line index."""
-    nodes: list[_Node] = []
-    first_line_of: dict[str, int] = {}
-    stack: list[_Block] = []
-    seen_hierarchy = False
-
+    parser = _HierarchyParser(fail)
     for index, raw in enumerate(lines):
         lineno = index + 1
         toks = _line_tokens(raw)
         k = 0
         while k < len(toks):
             tok = toks[k]
-            word = tok.upper()
-            if not seen_hierarchy:
-                if word != "HIERARCHY":
-                    fail(lineno, f"expected 'HIERARCHY' at the start of the file, got {tok!r}")
-                seen_hierarchy = True
+            if parser.brace_or_header(tok, lineno):
                 k += 1
                 continue
-            if stack and not stack[-1].opened:
-                if tok != "{":
-                    fail(lineno, f"expected '{{' to open {stack[-1].describe(nodes)} "
-                                 f"(line {stack[-1].line}), got {tok!r}")
-                stack[-1].opened = True
-                k += 1
-                continue
-            if tok == "{":
-                fail(lineno, "unexpected '{'")
-            if tok == "}":
-                if not stack:
-                    fail(lineno, "unmatched '}'")
-                _close_block(stack.pop(), nodes, fail)
-                k += 1
-                continue
-
             # A statement: keyword plus the rest of the line up to the next brace.
             end = k + 1
             while end < len(toks) and toks[end] not in _BRACES:
                 end += 1
-            args = toks[k + 1 : end]
-            top = stack[-1] if stack else None
-
-            if word == "MOTION":
-                if top is not None:
-                    fail(lineno, f"MOTION inside the hierarchy: {top.describe(nodes)} opened at line "
-                                 f"{top.line} is missing its closing '}}'")
-                if not nodes:
-                    fail(lineno, "MOTION before any ROOT")
-                if len(toks) > 1:
-                    fail(lineno, f"unexpected text after MOTION: {_short(' '.join(toks[1:]))!r}")
-                return nodes, index
-            if word in ("ROOT", "JOINT"):
-                if word == "ROOT":
-                    if nodes:
-                        fail(lineno, f"several ROOTs: only one skeleton per file is supported "
-                                     f"(first ROOT {nodes[0].name!r} at line {nodes[0].line})")
-                    parent = -1
-                else:
-                    if top is None:
-                        where = "before ROOT" if not nodes else "after the ROOT block was closed"
-                        fail(lineno, f"JOINT {where}")
-                    if top.kind == "end":
-                        fail(lineno, f"JOINT inside the {top.describe(nodes)} (line {top.line})")
-                    parent = top.node
-                if not args:
-                    fail(lineno, f"{tok} without a name")
-                name = " ".join(args)
-                if name in first_line_of:
-                    fail(lineno, f"duplicate joint name {name!r} (first defined at line {first_line_of[name]})")
-                first_line_of[name] = lineno
-                nodes.append(_Node(name=name, parent=parent, line=lineno))
-                stack.append(_Block("joint", len(nodes) - 1, lineno))
-            elif word == "END":
-                if len(args) != 1 or args[0].upper() != "SITE":
-                    fail(lineno, f"expected 'End Site', got {_short(' '.join(toks[k:end]))!r}")
-                if top is None or top.kind != "joint":
-                    fail(lineno, "End Site outside a joint")
-                node = nodes[top.node]
-                if node.end_site_line is not None:
-                    fail(lineno, f"joint {node.name!r} has a second End Site (first at line {node.end_site_line})")
-                node.end_site_line = lineno
-                stack.append(_Block("end", top.node, lineno))
-            elif word == "OFFSET":
-                if top is None:
-                    fail(lineno, "OFFSET outside a joint")
-                values = _parse_offset(args, lineno, fail)
-                if top.kind == "end":
-                    if top.offset is not None:
-                        fail(lineno, f"second OFFSET in the {top.describe(nodes)}")
-                    top.offset = values
-                else:
-                    node = nodes[top.node]
-                    if node.offset is not None:
-                        fail(lineno, f"second OFFSET in joint {node.name!r}")
-                    node.offset = values
-            elif word == "CHANNELS":
-                if top is None:
-                    fail(lineno, "CHANNELS outside a joint")
-                if top.kind == "end":
-                    fail(lineno, "an End Site cannot have CHANNELS")
-                node = nodes[top.node]
-                if node.channels is not None:
-                    fail(lineno, f"second CHANNELS line in joint {node.name!r}")
-                node.channels = _parse_channels(args, lineno, fail)
-            else:
-                context = "in the hierarchy" if stack else "between blocks"
-                fail(lineno, f"unexpected {_short(tok)!r} {context}")
+            if tok.upper() == "MOTION":
+                parser.motion(toks, lineno)
+                return parser.nodes, index
+            parser.statement(tok.upper(), tok, toks[k + 1:end], toks, k, end, lineno)
             k = end
-
-    last = _last_text_line(lines)
-    if not seen_hierarchy:
-        fail(last, "empty file: expected 'HIERARCHY'")
-    if stack:
-        fail(last, f"unexpected end of file inside the hierarchy: {stack[-1].describe(nodes)} opened at "
-                   f"line {stack[-1].line} is not closed")
-    if not nodes:
-        fail(last, "no ROOT in the hierarchy")
-    fail(last, "missing MOTION section after the hierarchy")
+    parser.no_motion(lines)
 
 
 def _close_block(block: _Block, nodes: list[_Node], fail: Callable[[int | None, str], NoReturn]) -> None:
@@ -495,6 +534,59 @@ def _last_text_line(lines: list[str]) -> int:
     return 1
 
 
+def _header_value(lines: list[str], index: int, pattern: re.Pattern, expected: str, fail) -> str:
+    """The value of a MOTION header line (``Frames: N``, ``Frame Time: t``), or a failure
+    quoting the line."""
+    m = pattern.match(lines[index].strip())
+    if m is None:
+        fail(index + 1, f"expected '{expected}', got {_short(lines[index])!r}")
+    return m.group(1).strip()
+
+
+def _parse_frame_count(lines: list[str], index: int, fail) -> int:
+    value = _header_value(lines, index, _FRAMES_RE, "Frames: N", fail)
+    try:
+        n_frames = int(value)
+    except ValueError:
+        fail(index + 1, f"invalid frame count {value!r} (expected 'Frames: N' with an integer N)")
+    if n_frames <= 0:
+        fail(index + 1, f"Frames: {n_frames}: a clip needs at least one frame")
+    return n_frames
+
+
+def _parse_frame_time(lines: list[str], index: int, fail) -> float:
+    value = _header_value(lines, index, _FRAME_TIME_RE, "Frame Time: t", fail)
+    frame_time = _parse_float(value)
+    if frame_time is None or not math.isfinite(frame_time):
+        fail(index + 1, f"invalid Frame Time {value!r} (expected a positive number of seconds)")
+    if frame_time <= 0:
+        fail(index + 1, f"Frame Time must be positive, got {value}")
+    return frame_time
+
+
+def _parse_frame(toks: list[str], lineno: int, row: int, n_channels: int, n_frames: int, last_line: bool,
+                 fail) -> list[float]:
+    """One frame line's values, checked: numbers, one per channel, finite."""
+    try:
+        values = [float(t) for t in toks]
+    except ValueError:
+        for col, tok in enumerate(toks):
+            if _parse_float(tok) is None:
+                fail(lineno, f"frame {row + 1}, value {col + 1}: {_short(tok)!r} is not a number")
+        raise  # unreachable: some token failed above
+    if len(values) != n_channels:
+        if len(values) < n_channels and last_line and row < n_frames:
+            fail(lineno, f"truncated motion block: data ends here inside frame {row + 1} "
+                         f"({len(values)} of {n_channels} values); expected {n_frames} frames, "
+                         f"found {row} complete")
+        fail(lineno, f"frame {row + 1} has {len(values)} values, expected {n_channels} (one per channel)")
+    bad = [c for c, v in enumerate(values) if not math.isfinite(v)]
+    if bad:
+        fail(lineno, f"frame {row + 1}, value {bad[0] + 1}: {toks[bad[0]]!r} is not finite "
+                     f"(NaN and infinite values are not allowed)")
+    return values
+
+
 def _parse_motion(lines: list[str], motion_index: int, n_channels: int,
                   fail: Callable[[int | None, str], NoReturn], path: str = "<string>",
                   ) -> tuple[float, np.ndarray, tuple[str, ...]]:
@@ -502,60 +594,22 @@ def _parse_motion(lines: list[str], motion_index: int, n_channels: int,
     Returns (frame time, motion, warnings)."""
     data_lines = [i for i in range(motion_index + 1, len(lines)) if lines[i].strip()]
     last = data_lines[-1] + 1 if data_lines else motion_index + 1
-
     if not data_lines:
         fail(last, "unexpected end of file after MOTION: expected 'Frames: N'")
     frames_index = data_lines[0]
-    m = _FRAMES_RE.match(lines[frames_index].strip())
-    if m is None:
-        fail(frames_index + 1, f"expected 'Frames: N', got {_short(lines[frames_index])!r}")
-    value = m.group(1).strip()
-    try:
-        n_frames = int(value)
-    except ValueError:
-        fail(frames_index + 1, f"invalid frame count {value!r} (expected 'Frames: N' with an integer N)")
-    if n_frames <= 0:
-        fail(frames_index + 1, f"Frames: {n_frames}: a clip needs at least one frame")
-
+    n_frames = _parse_frame_count(lines, frames_index, fail)
     if len(data_lines) < 2:
         fail(last, "unexpected end of file: expected 'Frame Time: t'")
-    time_index = data_lines[1]
-    m = _FRAME_TIME_RE.match(lines[time_index].strip())
-    if m is None:
-        fail(time_index + 1, f"expected 'Frame Time: t', got {_short(lines[time_index])!r}")
-    value = m.group(1).strip()
-    frame_time = _parse_float(value)
-    if frame_time is None or not math.isfinite(frame_time):
-        fail(time_index + 1, f"invalid Frame Time {value!r} (expected a positive number of seconds)")
-    if frame_time <= 0:
-        fail(time_index + 1, f"Frame Time must be positive, got {value}")
+    frame_time = _parse_frame_time(lines, data_lines[1], fail)
     if n_channels == 0:
-        fail(time_index + 1, "the hierarchy declares no channels, so frames cannot carry data")
+        fail(data_lines[1] + 1, "the hierarchy declares no channels, so frames cannot carry data")
 
     frame_indices = data_lines[2:]
     # Size by the lines present, not by the declared count (a bogus huge Frames must not allocate).
     motion = np.empty((len(frame_indices), n_channels), dtype=np.float64)
     for row, index in enumerate(frame_indices):
-        lineno = index + 1
-        toks = lines[index].split()
-        try:
-            values = [float(t) for t in toks]
-        except ValueError:
-            for col, tok in enumerate(toks):
-                if _parse_float(tok) is None:
-                    fail(lineno, f"frame {row + 1}, value {col + 1}: {_short(tok)!r} is not a number")
-            raise  # unreachable: some token failed above
-        if len(values) != n_channels:
-            if len(values) < n_channels and index == data_lines[-1] and row < n_frames:
-                fail(lineno, f"truncated motion block: data ends here inside frame {row + 1} "
-                             f"({len(values)} of {n_channels} values); expected {n_frames} frames, "
-                             f"found {row} complete")
-            fail(lineno, f"frame {row + 1} has {len(values)} values, expected {n_channels} (one per channel)")
-        motion[row] = values
-        if not np.all(np.isfinite(motion[row])):
-            col = int(np.flatnonzero(~np.isfinite(motion[row]))[0])
-            fail(lineno, f"frame {row + 1}, value {col + 1}: {toks[col]!r} is not finite "
-                         f"(NaN and infinite values are not allowed)")
+        motion[row] = _parse_frame(lines[index].split(), index + 1, row, n_channels, n_frames,
+                                   index == data_lines[-1], fail)
     if len(frame_indices) < n_frames:
         fail(last, f"truncated motion block: 'Frames: {n_frames}' (line {frames_index + 1}) declares "
                    f"{n_frames} frames but the data ends at this line after {len(frame_indices)}")
@@ -579,7 +633,7 @@ def _resolve_units_arg(units: str | float) -> float | None:
         value = float(units)
         if math.isfinite(value) and value > 0:
             return value
-    raise ValueError(f"units must be 'auto', one of {', '.join(UNIT_SCALES)} or a positive number of "
+    raise UserError(f"units must be 'auto', one of {', '.join(UNIT_SCALES)} or a positive number of "
                      f"metres per file unit, got {units!r}")
 
 

@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from neuromotor.errors import UserError
+
 __all__ = ["SegmentParameters", "SEX", "segment_parameters", "mass_fractions", "LENGTH_OF_STATURE",
            "DEFAULT_BMI"]
 
@@ -47,30 +49,20 @@ class SegmentParameters:
     r_longitudinal: float
 
 
-# (mass %, COM %, r_sag %, r_trans %, r_long %) per sex. The head's and trunk's COM positions are
-# measured from the vertex and from the cervicale (their proximal endpoints in the table).
-_TABLE4 = {
-    "male": {
-        "head": (6.94, 59.76, 36.2, 37.6, 31.2),
-        "trunk": (43.46, 44.86, 37.2, 34.7, 19.1),
-        "upper_arm": (2.71, 57.72, 28.5, 26.9, 15.8),
-        "forearm": (1.62, 45.74, 27.6, 26.5, 12.1),
-        "hand": (0.61, 79.00, 62.8, 51.3, 40.1),
-        "thigh": (14.16, 40.95, 32.9, 32.9, 14.9),
-        "shank": (4.33, 44.59, 25.5, 24.9, 10.3),
-        "foot": (1.37, 44.15, 25.7, 24.5, 12.4),
-    },
-    "female": {
-        "head": (6.68, 58.94, 33.0, 35.9, 31.8),
-        "trunk": (42.57, 41.51, 35.7, 33.9, 17.1),
-        "upper_arm": (2.55, 57.54, 27.8, 26.0, 14.8),
-        "forearm": (1.38, 45.59, 26.1, 25.7, 9.4),
-        "hand": (0.56, 74.74, 53.1, 45.4, 33.5),
-        "thigh": (14.78, 36.12, 36.9, 36.4, 16.2),
-        "shank": (4.81, 44.16, 27.1, 26.7, 9.3),
-        "foot": (1.29, 40.14, 29.9, 27.9, 13.9),
-    },
+# Per segment, the male and the female row of (mass %, COM %, r_sag %, r_trans %, r_long %). The
+# head's and trunk's COM positions are measured from the vertex and from the cervicale (their
+# proximal endpoints in the table).
+_TABLE4 = {  # segment: (male, female)
+    "head": ((6.94, 59.76, 36.2, 37.6, 31.2), (6.68, 58.94, 33.0, 35.9, 31.8)),
+    "trunk": ((43.46, 44.86, 37.2, 34.7, 19.1), (42.57, 41.51, 35.7, 33.9, 17.1)),
+    "upper_arm": ((2.71, 57.72, 28.5, 26.9, 15.8), (2.55, 57.54, 27.8, 26.0, 14.8)),
+    "forearm": ((1.62, 45.74, 27.6, 26.5, 12.1), (1.38, 45.59, 26.1, 25.7, 9.4)),
+    "hand": ((0.61, 79.0, 62.8, 51.3, 40.1), (0.56, 74.74, 53.1, 45.4, 33.5)),
+    "thigh": ((14.16, 40.95, 32.9, 32.9, 14.9), (14.78, 36.12, 36.9, 36.4, 16.2)),
+    "shank": ((4.33, 44.59, 25.5, 24.9, 10.3), (4.81, 44.16, 27.1, 26.7, 9.3)),
+    "foot": ((1.37, 44.15, 25.7, 24.5, 12.4), (1.29, 40.14, 29.9, 27.9, 13.9)),
 }
+_SEX_COLUMN = {"male": 0, "female": 1}
 
 # Segment lengths as fractions of stature, from de Leva's Table 1 mean lengths over his mean
 # statures (1741 mm male, 1735 mm female), averaged over the sexes; ``hand_full`` (wrist to the
@@ -101,15 +93,14 @@ LENGTH_OF_STATURE = {
 def segment_parameters(segment: str, sex: str = "average") -> SegmentParameters:
     """de Leva's Table 4 row of ``segment`` for ``sex`` (male, female or average)."""
     if sex not in SEX:
-        raise ValueError(f"sex must be one of {SEX}, got {sex!r}")
+        raise UserError(f"sex must be one of {SEX}, got {sex!r}")
     if sex == "average":
-        rows = [_TABLE4["male"][segment], _TABLE4["female"][segment]]
-        row = tuple(0.5 * (a + b) for a, b in zip(*rows))
+        row = tuple(0.5 * (a + b) for a, b in zip(*_TABLE4[segment]))
     else:
-        row = _TABLE4[sex][segment]
+        row = _TABLE4[segment][_SEX_COLUMN[sex]]
     return SegmentParameters(*(v / 100.0 for v in row))
 
 
 def mass_fractions(sex: str = "average") -> dict[str, float]:
     """Fraction of body mass of each segment (limbs: one side). Sums to 1 over the body."""
-    return {name: segment_parameters(name, sex).mass for name in _TABLE4["male"]}
+    return {name: segment_parameters(name, sex).mass for name in _TABLE4}

@@ -27,9 +27,8 @@ import numpy as np
 from jaxtyping import Array, Float
 from scipy.interpolate import CubicSpline
 
-from neuromotor import vec3
 from neuromotor.model.bvh import BvhClip
-from neuromotor.rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, quat_to_matrix, vee
+from neuromotor.rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, mm, mmt, mv, quat_to_matrix, vee
 from neuromotor.model.skeleton import Model
 
 
@@ -137,45 +136,6 @@ def trajectory_from_clip(model: Model, clip: BvhClip) -> Trajectory:
     return Trajectory(Spline.fit(times, q), ref, jnp.asarray(times[-1]))
 
 
-@functools.lru_cache(maxsize=64)
-def _structure(joint_parent: tuple[int, ...], joint_order: tuple[str, ...]) -> dict:
-    """Static index arrays of the joint tree, built once per topology.
-
-    Per-joint work becomes batched ops -- one quaternion-to-matrix call for all joints, one
-    Euler decomposition per rotation order, one loop body for forward kinematics -- instead of
-    a few tiny ops per joint, which (traced again for every derivative) made the setup programs
-    thousands of HLO ops and most of a cold start's compile time.
-    """
-    n = len(joint_parent)
-    rotating = [k for k, order in enumerate(joint_order) if order]
-    # Row of each joint's local rotation in [quaternion rotations; identity].
-    local_row = np.full(n, len(rotating), dtype=np.int64)
-    local_row[rotating] = np.arange(len(rotating))
-    depth = np.zeros(n, dtype=np.int64)
-    for k, parent in enumerate(joint_parent):  # BVH order: a parent precedes its children
-        depth[k] = depth[parent] + 1 if parent >= 0 else 0
-    cols = _dof_columns(joint_parent, joint_order)
-    groups: dict[str, list[int]] = {}
-    for k, order in enumerate(joint_order):
-        if joint_parent[k] >= 0 and order:
-            groups.setdefault(order, []).append(k)
-    euler = tuple((order, np.array(ks), np.array([cols[k] for k in ks], dtype=np.int64))
-                  for order, ks in groups.items())
-    return {
-        "rotating": np.array(rotating, dtype=np.int64),
-        "local_row": local_row,
-        "all_rotate": len(rotating) == n,
-        "depth": depth,
-        "euler": euler,  # (order, joints, their (m, 3) columns in the angles block)
-        "n_all": sum(len(c) for c in cols),
-    }
-
-
-def structure(model: Model) -> dict:
-    """Static index arrays of the model's joint tree (cached by topology)."""
-    return _structure(model.joint_parent, model.joint_order)
-
-
 def local_rotations(model: Model, q: Float[Array, " Q"]) -> Float[Array, "J 3 3"]:
     """Local rotation matrix of every joint (identity where a joint has no rotation channels)."""
     return _local_jet(model, (q,))[0]
@@ -184,8 +144,8 @@ def local_rotations(model: Model, q: Float[Array, " Q"]) -> Float[Array, "J 3 3"
 def _local_jet(model: Model, q_jet: tuple) -> list:
     """Local rotations of every joint and, for a jet ``(q, qd, qdd)``, their first two time
     derivatives (``jax.jvp`` of the batched quaternion-to-matrix map: elementwise, cheap)."""
-    st = structure(model)
-    n_rot = len(st["rotating"])
+    st = model.topology
+    n_rot = len(st.rotating)
     quats = [x[3:3 + 4 * n_rot].reshape(-1, 4) for x in q_jet]
 
     def rot(u):
@@ -199,18 +159,18 @@ def _local_jet(model: Model, q_jet: tuple) -> list:
 
         (r, r_dot), (_, r_ddot) = jax.jvp(rate, tuple(quats[:2]), tuple(quats[1:]))
         out = [r, r_dot, r_ddot]
-    if st["all_rotate"]:
+    if st.all_rotate:
         return out
     pad = [jnp.eye(3, dtype=out[0].dtype)] + [jnp.zeros((3, 3), out[0].dtype)] * (len(out) - 1)
-    return [jnp.concatenate([x, e[None]], 0)[st["local_row"]] for x, e in zip(out, pad)]
+    return [jnp.concatenate([x, e[None]], 0)[st.local_row] for x, e in zip(out, pad)]
 
 
 def _jet_mm(a: list, b: list) -> list:
     """Product of two matrix jets by the Leibniz rule: (AB)' = A'B + AB', (AB)'' = A''B + 2A'B' + AB''."""
-    out = [vec3.mm(a[0], b[0])]
+    out = [mm(a[0], b[0])]
     if len(a) > 1:
-        out.append(vec3.mm(a[1], b[0]) + vec3.mm(a[0], b[1]))
-        out.append(vec3.mm(a[2], b[0]) + 2.0 * vec3.mm(a[1], b[1]) + vec3.mm(a[0], b[2]))
+        out.append(mm(a[1], b[0]) + mm(a[0], b[1]))
+        out.append(mm(a[2], b[0]) + 2.0 * mm(a[1], b[1]) + mm(a[0], b[2]))
     return out
 
 
@@ -239,7 +199,7 @@ def _frames_jet(model: Model, q_jet: tuple) -> tuple[list, list]:
         k, p, offset, loc = x
         rot_p = jax.lax.dynamic_index_in_dim(rots, p, 1, keepdims=False)  # (K, 3, 3)
         org_p = jax.lax.dynamic_index_in_dim(origins, p, 1, keepdims=False)
-        org = org_p + vec3.mv(rot_p, offset)
+        org = org_p + mv(rot_p, offset)
         rot = jnp.stack(_jet_mm(list(rot_p), list(loc)))
         origins = jax.lax.dynamic_update_index_in_dim(origins, org, k, 1)
         rots = jax.lax.dynamic_update_index_in_dim(rots, rot, k, 1)
@@ -252,32 +212,21 @@ def _frames_jet(model: Model, q_jet: tuple) -> tuple[list, list]:
 
 def joint_angles_from_q(model: Model, q: Float[Array, " Q"], reference: Float[Array, " n_all"]):
     """Euler angles of every non-root rotation channel (n_all), nearest ``reference``."""
-    st = structure(model)
-    if not st["euler"]:
+    st = model.topology
+    if not st.euler:
         return jnp.zeros((0,), q.dtype)
     rots = local_rotations(model, q)
-    out = jnp.zeros((st["n_all"],), q.dtype)
-    for order, joints, cols in st["euler"]:  # usually one rotation order per skeleton
+    out = jnp.zeros((st.n_all,), q.dtype)
+    for order, joints, cols in st.euler:  # usually one rotation order per skeleton
         part = matrix_to_euler(rots[joints], order, reference[cols]).reshape(-1)
         # Columns are assigned in joint order, so a single group is already in place.
-        out = part if cols.size == st["n_all"] else out.at[cols.reshape(-1)].set(part)
-    return out
-
-
-def _dof_columns(joint_parent: tuple[int, ...], joint_order: tuple[str, ...]) -> list[tuple[int, ...]]:
-    out, start = [], 0
-    for k, order in enumerate(joint_order):
-        if joint_parent[k] < 0:
-            out.append(())
-            continue
-        out.append(tuple(range(start, start + len(order))))
-        start += len(order)
+        out = part if cols.size == st.n_all else out.at[cols.reshape(-1)].set(part)
     return out
 
 
 def joint_dof_columns(model: Model) -> list[tuple[int, ...]]:
     """For each joint, the columns of its rotation channels within the ``angles`` block."""
-    return _dof_columns(model.joint_parent, model.joint_order)
+    return list(model.topology.dof_columns)
 
 
 def joint_frames(model: Model, q: Float[Array, " Q"]) -> tuple[Float[Array, "J 3"], Float[Array, "J 3 3"]]:
@@ -291,7 +240,7 @@ def _body_jet(model: Model, q_jet: tuple) -> tuple[list, list]:
     origins, rots = _frames_jet(model, q_jet)
     idx = np.array(model.body_joint)
     rot = [r[idx] for r in rots]
-    pos = [o[idx] + vec3.mv(r, model.com) for o, r in zip(origins, rot)]
+    pos = [o[idx] + mv(r, model.com) for o, r in zip(origins, rot)]
     return pos, rot
 
 
@@ -310,8 +259,8 @@ def body_kinematics(model: Model, q, qd, qdd):
     frame (Rdot Rdot^T is symmetric, and its computed entries are too, so it drops exactly).
     """
     (pos, vel, acc), (rot, rot_dot, rot_ddot) = _body_jet(model, (q, qd, qdd))
-    omega = vee(vec3.mmt(rot_dot, rot))
-    alpha = vee(vec3.mmt(rot_ddot, rot))
+    omega = vee(mmt(rot_dot, rot))
+    alpha = vee(mmt(rot_ddot, rot))
     return pos, rot, vel, omega, acc, alpha
 
 

@@ -37,6 +37,7 @@ from neuromotor.model import deleva
 from neuromotor.model import polyhedron as poly
 from neuromotor.model.anatomy import DETAIL_SEGMENTS, Anatomy, euler_to_matrix
 from neuromotor.model.bvh import BvhClip
+from neuromotor.errors import UserError
 
 # (overhang past the distal joint, distal/proximal radius) of the limb frustums. A frustum of
 # taper t has its COM at (1 + 2t + 3t^2) / (4 (1 + t + t^2)) of its length: these put the COM
@@ -72,7 +73,11 @@ class BodyPlan:
 
 def world_frames(clip: BvhClip, offsets: np.ndarray, frame: int) -> tuple[np.ndarray, np.ndarray]:
     """World origins (J, 3) and rotations (J, 3, 3) of every joint at one frame of the clip,
-    with the fixed ``offsets`` (non-root translation channels replaced as in the model)."""
+    with the fixed ``offsets`` (non-root translation channels replaced as in the model).
+
+    Not :func:`neuromotor.model.anatomy.forward_kinematics`: that one follows the file's
+    translation channels frame by frame (what the capture shows); the bodies are shaped on the
+    model's fixed offsets."""
     n = len(clip.joints)
     pos, rot = np.zeros((n, 3)), np.zeros((n, 3, 3))
     row = np.asarray(clip.motion[frame], dtype=np.float64)
@@ -355,13 +360,10 @@ def _budget_segment(g: _Geometry, k: int) -> str:
     return _BUDGET.get(seg, seg)
 
 
-def plan_bodies(clip: BvhClip, anatomy: Anatomy, offsets: np.ndarray, *, body_mass: float | None = None,
-                sex: str = "average", density: float = 1000.0, simulate_extremities: bool = False,
-                sides: int = 10) -> BodyPlan:
-    """Bodies, shapes and mass properties of a clip whose joints ``anatomy`` has labelled."""
-    g = _Geometry(clip, anatomy, offsets)
+def _is_body(clip: BvhClip, g: _Geometry, simulate_extremities: bool) -> list[bool]:
+    """Which joints are bodies: an eligible joint (not extremity detail, unless simulated) with
+    a bone of at least 1 % of the stature, a hand, a foot, the skull, or one with a body below."""
     n, H = g.n, g.H
-    total = float(body_mass) if body_mass is not None else deleva.DEFAULT_BMI * H * H
     eligible = [g.seg[k] not in DETAIL_SEGMENTS or simulate_extremities for k in range(n)]
     always = ("hand", "foot")
     is_body = [False] * n
@@ -379,17 +381,13 @@ def plan_bodies(clip: BvhClip, anatomy: Anatomy, offsets: np.ndarray, *, body_ma
         is_body[k] = (tip_len >= 0.01 * H or g.seg[k] in always or skull
                       or any(is_body[c_] for c_ in g.children[k]))
     if not is_body[0]:
-        raise ValueError(f"{clip.path}: the root joint {clip.joints[0].name!r} carries no body")
+        raise UserError(f"{clip.path}: the root joint {clip.joints[0].name!r} carries no body")
+    return is_body
 
-    shaper = _Shaper(g, is_body, sides)
-    body_joint = tuple(k for k in range(n) if is_body[k])
-    sides_of = anatomy.side
-    groups: dict[tuple[str, str], list[int]] = {}
-    for k in body_joint:
-        seg = _budget_segment(g, k)
-        side = sides_of[k] if seg not in ("trunk", "head") else ""
-        groups.setdefault((seg, side), []).append(k)
 
+def _mass_targets(groups: dict[tuple[str, str], list[int]], sex: str, total: float) -> dict:
+    """Mass of each (budget segment, side) group: de Leva's fraction of ``total``, a segment the
+    rig lacks carried by its parent segment, normalised to ``total``."""
     fractions = deleva.mass_fractions(sex)
     target: dict[tuple[str, str], float] = {}
     for seg, frac in fractions.items():
@@ -409,8 +407,12 @@ def plan_bodies(clip: BvhClip, anatomy: Anatomy, offsets: np.ndarray, *, body_ma
             seg, side = key
             target[key] = fractions.get(seg, 0.0) * total * (2.0 if seg not in ("trunk", "head") else 1.0)
     scale_total = total / sum(target.values())
-    target = {k: v * scale_total for k, v in target.items()}
+    return {k: v * scale_total for k, v in target.items()}
 
+
+def _fit_shapes(groups, target, shaper: _Shaper, density: float) -> tuple[dict, dict]:
+    """Hulls and mass properties of every body, each group's shapes scaled in girth until the
+    group weighs its target."""
     shape_of: dict[int, poly.Polyhedron] = {}
     props: dict[int, tuple] = {}
     for key, members in groups.items():
@@ -425,6 +427,25 @@ def plan_bodies(clip: BvhClip, anatomy: Anatomy, offsets: np.ndarray, *, body_ma
             c *= ratio ** 0.5
         shape_of.update(hulls)
         props.update(got)
+    return shape_of, props
+
+
+def plan_bodies(clip: BvhClip, anatomy: Anatomy, offsets: np.ndarray, *, body_mass: float | None = None,
+                sex: str = "average", density: float = 1000.0, simulate_extremities: bool = False,
+                sides: int = 10) -> BodyPlan:
+    """Bodies, shapes and mass properties of a clip whose joints ``anatomy`` has labelled."""
+    g = _Geometry(clip, anatomy, offsets)
+    n, H = g.n, g.H
+    total = float(body_mass) if body_mass is not None else deleva.DEFAULT_BMI * H * H
+    is_body = _is_body(clip, g, simulate_extremities)
+    shaper = _Shaper(g, is_body, sides)
+    body_joint = tuple(k for k in range(n) if is_body[k])
+    groups: dict[tuple[str, str], list[int]] = {}
+    for k in body_joint:
+        seg = _budget_segment(g, k)
+        side = anatomy.side[k] if seg not in ("trunk", "head") else ""
+        groups.setdefault((seg, side), []).append(k)
+    shape_of, props = _fit_shapes(groups, _mass_targets(groups, sex, total), shaper, density)
 
     masses = np.array([props[k][0] for k in body_joint])
     joint_body = [-1] * n
@@ -501,7 +522,7 @@ def plan_generic(clip: BvhClip, offsets: np.ndarray, density: float = 1000.0,
     for k in reversed(range(n)):
         has_body[k] = bone_len[k] >= rule.min_bone_length or any(has_body[c] for c in children[k])
     if not has_body[0]:
-        raise ValueError(f"{clip.path}: the skeleton has no bone longer than {rule.min_bone_length} m; "
+        raise UserError(f"{clip.path}: the skeleton has no bone longer than {rule.min_bone_length} m; "
                          "nothing to simulate")
     leaves = _leaf_counts(children, [j.end_site is not None for j in joints])
     span = _tree_span(clip, offsets, children)

@@ -37,6 +37,8 @@ from neuromotor.model import polyhedron as poly
 from neuromotor.model.anatomy import Anatomy, analyse
 from neuromotor.model.bvh import BvhClip
 from neuromotor.model.massmodel import plan_bodies, plan_generic
+from neuromotor.model.topology import Topology, of as topology_of
+from neuromotor.errors import UserError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,6 +102,11 @@ class Model(eqx.Module):
     def dofs_of_body(self, b: int) -> tuple[int, ...]:
         return tuple(i for i, db in enumerate(self.dof_body) if db == b)
 
+    @property
+    def topology(self) -> "Topology":
+        """Static index arrays of the joint and body trees (built once per skeleton shape)."""
+        return topology_of(self)
+
 
 def scale_masses(model: Model, body_mass=None, body_scale=None) -> Model:
     """The same shapes at another total mass and/or per-body mass factors (B,): masses and
@@ -142,6 +149,86 @@ def joint_offsets(clip: BvhClip) -> np.ndarray:
     return offsets
 
 
+def _plan(clip: BvhClip, anatomy: Anatomy, offsets: np.ndarray, options: MassModelOptions):
+    """Which joints are bodies and their shapes and masses: the anthropometric model for a
+    person, generic shapes otherwise."""
+    if anatomy.humanoid:
+        return plan_bodies(clip, anatomy, offsets, body_mass=options.body_mass, sex=options.sex,
+                           density=options.density, simulate_extremities=options.simulate_extremities,
+                           sides=options.sides)
+    return plan_generic(clip, offsets, options.density)
+
+
+def _body_parents(clip: BvhClip, joint_body: list[int], body_joint) -> list[int]:
+    body_parent = []
+    for k in body_joint:
+        p = clip.joints[k].parent
+        body_parent.append(joint_body[p] if p >= 0 else -1)
+        if p >= 0 and joint_body[p] < 0:  # cannot happen: ancestors of bodies have bodies
+            raise AssertionError("body with a massless parent joint")
+    return body_parent
+
+
+def _bone_radii(n_joints: int, stature: float, body_joint, shapes) -> np.ndarray:
+    """Drawing radius per joint: half the median distance of its body's vertices from their
+    centre, at least 1.2 % of the stature."""
+    radii = np.full(n_joints, 0.012 * float(stature))
+    for b, k in enumerate(body_joint):
+        v = shapes[b].vertices
+        radii[k] = max(radii[k], 0.5 * float(np.median(np.linalg.norm(v - v.mean(0), axis=1))))
+    return radii
+
+
+@dataclasses.dataclass
+class _Dofs:
+    """Every rotation channel of a non-root joint; the simulated ones (joint has a body) apart."""
+
+    all_names: list[str] = dataclasses.field(default_factory=list)
+    sim_columns: list[int] = dataclasses.field(default_factory=list)
+    body: list[int] = dataclasses.field(default_factory=list)
+    slot: list[int] = dataclasses.field(default_factory=list)
+    names: list[str] = dataclasses.field(default_factory=list)
+
+
+def _dofs(clip: BvhClip, joint_body: list[int]) -> _Dofs:
+    out = _Dofs()
+    for k, j in enumerate(clip.joints):
+        if j.parent < 0:
+            continue
+        for slot, axis in enumerate(j.rotation_order):
+            name = f"{j.name}.{axis}rotation"
+            if joint_body[k] >= 0:
+                out.sim_columns.append(len(out.all_names))
+                out.names.append(name)
+                out.body.append(joint_body[k])
+                out.slot.append(slot)
+            out.all_names.append(name)
+    return out
+
+
+def _check_channels(clip: BvhClip, joint_body: list[int]) -> None:
+    """The root needs 6 channels (driven along the mocap); every body joint three rotations."""
+    joints = clip.joints
+    if joints[0].rotation_order == "" or len(joints[0].translation_columns) == 0:
+        raise UserError(f"{clip.path}: root joint {joints[0].name!r} needs 3 position and 3 "
+                         "rotation channels to be driven along the mocap path")
+    for k, j in enumerate(joints):
+        if j.parent >= 0 and joint_body[k] >= 0 and j.rotation_order == "":
+            raise UserError(f"{clip.path}:{j.line}: joint {j.name!r} carries a body but has no "
+                             "rotation channels; ball joints need three")
+
+
+def _gravity(anatomy: Anatomy, up_axis: int | None, gravity) -> np.ndarray:
+    """Gravity: ``gravity`` if given, else 9.81 m/s^2 against the up axis (``up_axis`` or the
+    anatomy's)."""
+    if gravity is not None:
+        return np.asarray(gravity, dtype=np.float64)
+    up = np.asarray(anatomy.up, dtype=np.float64)
+    if up_axis is not None:
+        up = np.eye(3)[int(up_axis)]
+    return -9.81 * up
+
+
 def build_character(
     clip: BvhClip,
     options: MassModelOptions | None = None,
@@ -158,57 +245,15 @@ def build_character(
     if anatomy is None:
         anatomy = analyse(clip, units=1.0)
     joints = clip.joints
-    n = len(joints)
     offsets = joint_offsets(clip)
-    if anatomy.humanoid:
-        plan = plan_bodies(clip, anatomy, offsets, body_mass=options.body_mass, sex=options.sex,
-                           density=options.density, simulate_extremities=options.simulate_extremities,
-                           sides=options.sides)
-    else:
-        plan = plan_generic(clip, offsets, options.density)
+    plan = _plan(clip, anatomy, offsets, options)
     joint_body, body_joint = list(plan.joint_body), plan.body_joint
-    has_body = [b >= 0 for b in joint_body]
-    body_parent = []
-    for k in body_joint:
-        p = joints[k].parent
-        body_parent.append(joint_body[p] if p >= 0 else -1)
-        if p >= 0 and joint_body[p] < 0:  # cannot happen: ancestors of bodies have bodies
-            raise AssertionError("body with a massless parent joint")
-    radii = np.full(n, 0.012 * float(anatomy.stature))
-    for b, k in enumerate(body_joint):
-        v = plan.shapes[b].vertices
-        radii[k] = max(radii[k], 0.5 * float(np.median(np.linalg.norm(v - v.mean(0), axis=1))))
-
-    # DOFs: every rotation channel of a non-root joint; simulated if the joint has a body.
-    all_dofs, sim_cols, dof_body, dof_slot, dof_names = [], [], [], [], []
-    for k, j in enumerate(joints):
-        if j.parent < 0:
-            continue
-        for slot, axis in enumerate(j.rotation_order):
-            name = f"{j.name}.{axis}rotation"
-            if has_body[k]:
-                sim_cols.append(len(all_dofs))
-                dof_names.append(name)
-                dof_body.append(joint_body[k])
-                dof_slot.append(slot)
-            all_dofs.append(name)
-    if joints[0].rotation_order == "" or len(joints[0].translation_columns) == 0:
-        raise ValueError(f"{clip.path}: root joint {joints[0].name!r} needs 3 position and 3 "
-                         "rotation channels to be driven along the mocap path")
-    for k, j in enumerate(joints):
-        if j.parent >= 0 and has_body[k] and j.rotation_order == "":
-            raise ValueError(f"{clip.path}:{j.line}: joint {j.name!r} carries a body but has no "
-                             "rotation channels; ball joints need three")
-
+    body_parent = _body_parents(clip, joint_body, body_joint)
+    radii = _bone_radii(len(joints), anatomy.stature, body_joint, plan.shapes)
+    dofs = _dofs(clip, joint_body)
+    _check_channels(clip, joint_body)
     end_joint = tuple(k for k, j in enumerate(joints) if j.end_site is not None)
     end_off = np.array([joints[k].end_site for k in end_joint], dtype=np.float64).reshape(-1, 3)
-    up = np.asarray(anatomy.up, dtype=np.float64)
-    if up_axis is not None:
-        up = np.eye(3)[int(up_axis)]
-    g = -9.81 * up
-    if gravity is not None:
-        g = np.asarray(gravity, dtype=np.float64)
-
     model = Model(
         joint_names=tuple(j.name for j in joints),
         joint_parent=tuple(j.parent for j in joints),
@@ -217,18 +262,18 @@ def build_character(
         body_names=tuple(joints[k].name for k in body_joint),
         body_joint=tuple(body_joint),
         body_parent=tuple(body_parent),
-        dof_names=tuple(dof_names),
-        dof_body=tuple(dof_body),
-        dof_slot=tuple(dof_slot),
-        all_dof_names=tuple(all_dofs),
-        sim_dof_columns=tuple(sim_cols),
+        dof_names=tuple(dofs.names),
+        dof_body=tuple(dofs.body),
+        dof_slot=tuple(dofs.slot),
+        all_dof_names=tuple(dofs.all_names),
+        sim_dof_columns=tuple(dofs.sim_columns),
         end_site_joint=end_joint,
         mass=jnp.asarray(plan.mass),
         inertia=jnp.asarray(plan.inertia),
         com=jnp.asarray(plan.com),
         joint_offset=jnp.asarray(offsets),
         end_site_offset=jnp.asarray(end_off),
-        gravity=jnp.asarray(g),
+        gravity=jnp.asarray(_gravity(anatomy, up_axis, gravity)),
     )
     warnings = tuple(getattr(clip, "warnings", ())) + tuple(anatomy.warnings)
     return Character(model=model, clip=clip, shapes=plan.shapes, radii=radii, options=options,

@@ -50,7 +50,9 @@ from jaxtyping import Array, Float
 
 from neuromotor.model.kinematics import body_kinematics
 from neuromotor.model.skeleton import Model
-from neuromotor.physics.system import dof_axes, dofs_to_per_joint, per_joint_to_dofs
+from neuromotor.physics.system import dof_axes, dofs_to_per_joint, per_joint_to_dofs, solve3
+from neuromotor.rotations import (AXIS, axis_rotation, euler_axes, inv3, matrix_to_quat, mm, mmt, mv, quat_conj, quat_log, quat_mul,
+                                  quat_to_matrix)
 
 DEFAULT_KS = 400.0  # 1/s^2: natural frequency 20 rad/s (3.2 Hz) at typical load
 DEFAULT_KD = 20.0  # 1/s: damping ratio 0.5
@@ -175,3 +177,156 @@ def rate_feedback_gains(gains: Gains, activation: Float[Array, " n"],
 
 def _feedback_magnitude(gains: Gains, activation):
     return jnp.maximum(gains.signal_dependence * activation, gains.floor)
+
+
+# ---------------------------------------------------------------- the joint torque (Section 5.2)
+
+DAMPING = 0.02  # damped least squares at gimbal lock (singular value scale of the Euler axes)
+
+
+class ControllerInputs(eqx.Module):
+    """What the Section 5.2 torque of every joint reads at one grid step, per joint (leading
+    axis C, joint c attaching body c + 1): the mocap's targets, the per-DOF gain scaling and the
+    mask of the DOFs that are not driven. Everything here is independent of the state."""
+
+    tau: Float[Array, "C 3"]  # feedforward multipliers tau_i (Eq. 3)
+    activation: Float[Array, "C 3"]  # |T_j|, the signal that scales the feedback
+    theta_d: Float[Array, "C 3"]  # desired Euler angles
+    rel_rot: Float[Array, "C 3 3"]  # desired rotation of the child in the parent's frame
+    rel_omega: Float[Array, "C 3"]  # desired relative angular velocity, parent frame
+    local_axes: Float[Array, "C 3 3"]  # Euler axes h_i at theta_d in the parent's frame (columns)
+    rel_quat: Float[Array, "C 4"]  # rel_rot as a quaternion
+    scale: Float[Array, "C 3"]  # Gains.scale, per joint
+    floor: Float[Array, "C 3"]  # Gains.floor, per joint
+    reference_torque: Float[Array, "C 3"]  # Gains.reference_torque, per joint
+    active: Float[Array, "C 3"]  # 0 on the DOFs of driven joints (their torque is not applied)
+
+    def gains(self, gains: Gains) -> Gains:
+        """``gains`` with this joint's per-DOF leaves (the scalars ks, kd stay shared)."""
+        return dataclasses.replace(gains, scale=self.scale, floor=self.floor, reference_torque=self.reference_torque)
+
+
+def controller_inputs(model: Model, gains: Gains, active: Float[Array, " n"], tau, activation, theta_d,
+                      rel_rot: Float[Array, "B 3 3"], rel_omega: Float[Array, "B 3"], local_axes, rel_quat
+                      ) -> ControllerInputs:
+    """Per-DOF (n) and per-body (B) values of one grid step regrouped per joint."""
+    per = lambda x: dofs_to_per_joint(model, x)
+    c = model.topology.child
+    return ControllerInputs(per(tau), per(activation), per(theta_d), rel_rot[c], rel_omega[c], local_axes,
+                            rel_quat, per(gains.scale), per(gains.floor), per(gains.reference_torque), per(active))
+
+
+def damped_solve(a: Float[Array, "... 3 3"], e: Float[Array, "... 3"], mu: float = DAMPING):
+    """x = A^T (A A^T + mu^2 I)^-1 e: A^-1 e away from singularity, bounded at gimbal lock."""
+    at = jnp.swapaxes(a, -1, -2)
+    gram = a @ at + mu**2 * jnp.eye(3, dtype=a.dtype)
+    return jnp.einsum("...ij,...j->...i", at, solve3(gram, e))
+
+
+def joint_errors(rot_p, rot_c, w_p, w_c, a, rel_d, rel_w_d):
+    """Angle and rate errors of joints (any leading shape) resolved along their axes ``a``
+    (columns h_i); see :func:`dof_errors`."""
+    rel = jnp.swapaxes(rot_p, -1, -2) @ rot_c
+    e_local = quat_log(matrix_to_quat(rel_d @ jnp.swapaxes(rel, -1, -2)))
+    e_world = jnp.einsum("...ij,...j->...i", rot_p, e_local)
+    w_err = jnp.einsum("...ij,...j->...i", rot_p, rel_w_d) - (w_c - w_p)
+    return damped_solve(a, e_world), damped_solve(a, w_err)
+
+
+def dof_errors(model: Model, rot, omega, axes, rel_d, rel_w_d):
+    """Per-DOF angle and rate errors (desired minus simulated) from rotation errors.
+
+    The joint's rotation error (rotation vector taking the simulated relative orientation to
+    the desired one, world frame) and relative angular-velocity error are resolved along the
+    Euler axes h_i. To first order this is exactly theta_d - theta and thetadot_d - thetadot of
+    the BVH decomposition, it is always the shortest rotation (no wrapping issue), and it stays
+    bounded at gimbal lock, where Euler differences are ill-defined.
+    """
+    topo = model.topology
+    c, p = topo.child, topo.parent
+    a = jnp.swapaxes(dofs_to_per_joint(model, axes), -1, -2)
+    d_theta, d_rate = joint_errors(rot[p], rot[c], omega[p], omega[c], a, rel_d[c], rel_w_d[c])
+    return per_joint_to_dofs(model, d_theta), per_joint_to_dofs(model, d_rate)
+
+
+def joint_torque(order: str, gains: Gains, rot_p, rot_c, w_p, w_c, inp: ControllerInputs):
+    """World muscle torque ``T_j = sum_i h_i (psi_i + gamma_i)`` of joints on their children
+    (Eq. 4 and Section 5.2; each parent gets -T_j), from rotation matrices. The Euler axes h_i
+    come from the desired angles placed in the simulated parent's frame: exactly Eq. 4 on the
+    mocap, and the feedforward sum h_i tau_i stays well-conditioned near gimbal lock where the
+    individual tau_i are large and of opposite signs. A joint's torque depends on its two
+    bodies only."""
+    a = jnp.swapaxes(euler_axes(rot_p, inp.theta_d, order), -1, -2)  # columns h_i
+    d_theta, d_rate = joint_errors(rot_p, rot_c, w_p, w_c, a, inp.rel_rot, inp.rel_omega)
+    mult = feedback_multipliers(inp.gains(gains), inp.tau, inp.activation, d_theta, d_rate, inp.active)
+    return jnp.einsum("...ij,...j->...i", a, mult)
+
+
+def joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inp: ControllerInputs):
+    """:func:`joint_torque` of one joint from quaternions, with its damping block.
+
+    The same equation written for speed inside the per-joint Jacobian of Eq. 2 (component-wise
+    algebra fuses on a CPU). Returns the torque and ``d torque / d w_c`` (= -d torque / d w_p).
+    The rotation error is ``log(q_p q_d q_c^-1)``, the world-frame rotation vector of
+    ``R_p R_d R_c^T``, the same vector as ``R_p log(R_d R_rel^T)`` of :func:`joint_errors`.
+    The rate error ``w_err = R_p w_d - (w_c - w_p)`` enters the torque linearly, through
+    ``d_rate = P w_err`` with ``P = a^T (a a^T + mu^2 1)^-1`` and the slope of
+    :func:`rate_feedback_gains`, so the damping block is ``-a diag(slope) P`` in closed form.
+    """
+    r_p = quat_to_matrix(q_p)
+    a = r_p @ inp.local_axes  # columns h_i (a dot: materialized once, used by every later line)
+    # The barrier materializes the error quaternion and its tangents: fused into its consumers,
+    # XLA recomputes the whole product chain for every entry of the Jacobian.
+    q_err = jax.lax.optimization_barrier(quat_mul(quat_mul(q_p, inp.rel_quat), quat_conj(q_c)))
+    e_world = quat_log(q_err)
+    w_err = mv(r_p, inp.rel_omega) - (w_c - w_p)
+    gram = mmt(a, a) + DAMPING**2 * jnp.eye(3, dtype=a.dtype)
+    proj = jnp.swapaxes(a, -1, -2) @ inv3(gram)  # P (a dot, materialized as above)
+    d = proj @ jnp.stack([e_world, w_err], -1)  # both right-hand sides at once
+    d_theta, d_rate = d[..., 0], d[..., 1]
+    g = inp.gains(gains)
+    damping = -(a * rate_feedback_gains(g, inp.activation, inp.active)[..., None, :]) @ proj
+    # A dot, not mv: it materializes a and the multipliers, which XLA would otherwise
+    # recompute inside every entry of the (nested) Jacobian.
+    torque = jnp.einsum("...ij,...j->...i", a, feedback_multipliers(g, inp.tau, inp.activation, d_theta, d_rate,
+                                                                    inp.active))
+    return torque, damping
+
+
+def joint_torques(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> Float[Array, "C 3"]:
+    """:func:`joint_torque` of every joint (one batched call per rotation order)."""
+    topo = model.topology
+    c, p = topo.child, topo.parent
+    out = jnp.zeros((model.n_bodies - 1, 3), rot.dtype)
+    for order, _, rows in topo.groups:
+        sub = jax.tree_util.tree_map(lambda x: x[rows], inputs)
+        part = joint_torque(order, gains, rot[p[rows]], rot[c[rows]], omega[p[rows]], omega[c[rows]], sub)
+        out = part if len(rows) == model.n_bodies - 1 else out.at[rows].set(part)
+    return out
+
+
+def body_torques(model: Model, joint_torque: Float[Array, "C 3"]) -> Float[Array, "B 3"]:
+    """+T_j on each joint's child, -T_j on its parent (static one-hot selectors, no scatter)."""
+    topo = model.topology
+    return jnp.einsum("cb,ci->bi", topo.sel_child - topo.sel_parent, joint_torque)
+
+
+def _local_axes(theta: Float[Array, "C 3"], order: str) -> Float[Array, "C 3 3"]:
+    """Euler axes of joints in their parent's frame, as columns: ``h_i = R_p L[:, i]`` (Eq. 4).
+    They depend on the desired angles only, so they stay outside the state Jacobians."""
+    a0, a1, a2 = (AXIS[ax] for ax in order)
+    eye = jnp.eye(3, dtype=theta.dtype)
+    r1 = axis_rotation(a0, theta[..., 0])
+    r2 = mm(r1, axis_rotation(a1, theta[..., 1]))
+    return jnp.stack([jnp.broadcast_to(eye[a0], theta.shape), r1[..., :, a1], r2[..., :, a2]], -1)
+
+
+def joint_local_axes(model: Model, theta_d: Float[Array, " n"]) -> Float[Array, "C 3 3"]:
+    """:func:`_local_axes` of every joint, each group of joints with its own rotation order."""
+    per = dofs_to_per_joint(model, theta_d)
+    out = jnp.zeros((model.n_bodies - 1, 3, 3), theta_d.dtype)
+    for order, _, rows in model.topology.groups:
+        if len(rows) == model.n_bodies - 1:
+            return _local_axes(per, order)
+        out = out.at[rows].set(_local_axes(per[rows], order))
+    return out

@@ -11,8 +11,6 @@ multipliers tau_i (Eq. 4) and the constraint forces lam.
 
 from __future__ import annotations
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -22,6 +20,7 @@ from jaxtyping import Array, Float
 from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angles_from_q
 from neuromotor.rotations import matrix_to_quat, skew
 from neuromotor.model.skeleton import Model
+from neuromotor.model.topology import Topology
 from neuromotor.physics.system import dof_axes, external_forces, joint_jacobian_blocks, root_lever, world_inertia
 
 
@@ -51,12 +50,12 @@ def sim_columns(model: Model):
     return jnp.array(model.sim_dof_columns, dtype=jnp.int32)
 
 
-@functools.lru_cache(maxsize=64)
-def _eq3_layout(body_parent: tuple[int, ...], dof_body: tuple[int, ...]) -> np.ndarray:
+def _eq3_layout(topo: Topology) -> np.ndarray:
     """Static placement of the nonzero blocks of ``[J^T H^T]`` (Eq. 3): for every entry of the
     (6B, nc + n) matrix, its index in the flat vector of block values of :func:`eq3_matrix`,
     or the index of a trailing zero. One gather then assembles the matrix, instead of scatters
     and one-hot contractions that each compile to kernels of their own."""
+    body_parent, dof_body = topo.body_parent, topo.dof_body
     n_bodies, n_dofs = len(body_parent), len(dof_body)
     nc = 6 + 3 * (n_bodies - 1)
     n_vals = 36 + 36 * (n_bodies - 1) + 6 * n_dofs
@@ -90,7 +89,7 @@ def eq3_matrix(model: Model, rot: Float[Array, "B 3 3"], axes: Float[Array, "n 3
         jnp.concatenate([axes, -axes], -1).reshape(-1),
         jnp.zeros((1,), dtype),
     ])
-    return vals[_eq3_layout(model.body_parent, model.dof_body)]
+    return vals[model.topology.derived(_eq3_layout)]
 
 
 def solve_eq3(model: Model, q, qd, qdd, theta_sim):

@@ -14,77 +14,35 @@ rotational DOF: the world-frame Euler axis h_i as +torque on the child and -torq
 
 from __future__ import annotations
 
-import functools
-
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
 from neuromotor.rotations import (
-    AXIS,
-    axis_rotation,
+    euler_axes,
     matrix_to_euler,
     quat_to_matrix,
+    quat_turn,
     rotation_error,
     skew,
 )
 from neuromotor.model.skeleton import Model
 
 
-# ---------------------------------------------------------------- static topology (numpy)
-# Index arrays built once per topology from the static fields of the model, so that per-joint
-# work is one gather / one batched op over all joints instead of a Python loop of tiny ops
-# (which made the traced step tens of thousands of HLO ops and compile for about a minute).
-
-
-@functools.lru_cache(maxsize=64)
-def _topology(body_parent: tuple[int, ...], dof_body: tuple[int, ...], orders: tuple[str, ...]):
-    n = len(body_parent)
-    dofs = [tuple(i for i, db in enumerate(dof_body) if db == b) for b in range(n)]
-    for b in range(1, n):
-        if len(dofs[b]) != 3:
-            raise ValueError(f"body {b} has {len(dofs[b])} simulated DOFs; ball joints need three")
-    joint_dofs = np.array(dofs[1:], dtype=np.int64).reshape(n - 1, 3)
-    groups: dict[str, list[int]] = {}
-    for b in range(1, n):
-        groups.setdefault(orders[b], []).append(b)
-    depth = [0] * n
-    for b in range(1, n):
-        depth[b] = depth[body_parent[b]] + 1
-    return {
-        "joint_dofs": joint_dofs,  # (B-1, 3): DOF indices of each non-root body, slot order
-        "child": np.arange(1, n),
-        "parent": np.array(body_parent[1:], dtype=np.int64),
-        "parent0": np.array([max(p, 0) for p in body_parent], dtype=np.int64),
-        # one entry per rotation order: (order, bodies, their rows in the joint arrays)
-        "groups": tuple((o, np.array(bs), np.array(bs) - 1) for o, bs in groups.items()),
-        "depth": np.array(depth),
-        # DOF layout is body-major and slot-ordered: per-joint (B-1, 3) arrays reshape to (n,)
-        "contiguous": bool(np.array_equal(joint_dofs.reshape(-1), np.arange(len(dof_body)))),
-    }
-
-
-def topology(model: Model) -> dict:
-    """Static index arrays of the model's tree (cached by topology)."""
-    orders = tuple(model.joint_order[j] for j in model.body_joint)
-    return _topology(model.body_parent, model.dof_body, orders)
-
-
 def per_joint_to_dofs(model: Model, values: Float[Array, "C 3 ..."]) -> Float[Array, "n ..."]:
     """Scatter per-joint triples (rows in body order 1..B-1) to the DOF layout."""
-    topo = topology(model)
-    if topo["contiguous"]:
+    topo = model.topology
+    if topo.contiguous:
         return values.reshape((-1,) + values.shape[2:])
     out = jnp.zeros((model.n_dofs,) + values.shape[2:], values.dtype)
-    return out.at[topo["joint_dofs"].reshape(-1)].set(values.reshape((-1,) + values.shape[2:]))
+    return out.at[topo.joint_dofs.reshape(-1)].set(values.reshape((-1,) + values.shape[2:]))
 
 
 def dofs_to_per_joint(model: Model, values: Float[Array, "n ..."]) -> Float[Array, "C 3 ..."]:
-    topo = topology(model)
-    if topo["contiguous"]:
+    topo = model.topology
+    if topo.contiguous:
         return values.reshape((model.n_bodies - 1, 3) + values.shape[1:])
-    return values[topo["joint_dofs"]]
+    return values[topo.joint_dofs]
 
 
 def solve3(a: Float[Array, "... 3 3"], b: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
@@ -95,14 +53,6 @@ def solve3(a: Float[Array, "... 3 3"], b: Float[Array, "... 3"]) -> Float[Array,
     det = jnp.sum(c0 * r0, -1)
     adj_b = jnp.stack([jnp.sum(r0 * b, -1), jnp.sum(r1 * b, -1), jnp.sum(r2 * b, -1)], -1)
     return adj_b / det[..., None]
-
-
-def euler_axes_batched(parent_rot: Float[Array, "... 3 3"], angles: Float[Array, "... 3"], order: str) -> Float[Array, "... 3 3"]:
-    """Batched :func:`rotations.euler_axes`: rows h_1, h_2, h_3 (Eq. 4) of many joints."""
-    a0, a1, a2 = (AXIS[c] for c in order)
-    r1 = parent_rot @ axis_rotation(a0, angles[..., 0])
-    r2 = r1 @ axis_rotation(a1, angles[..., 1])
-    return jnp.stack([parent_rot[..., :, a0], r1[..., :, a1], r2[..., :, a2]], -2)
 
 
 class State(eqx.Module):
@@ -186,10 +136,9 @@ def constraint_jacobian(model: Model, rot) -> Float[Array, "nc 6B"]:
     root = jnp.zeros((6, n, 6), dtype)
     root = root.at[0:3, 0, 0:3].set(eye).at[0:3, 0, 3:6].set(-skew(r0)).at[3:6, 0, 3:6].set(eye)
     blk_parent, blk_child = joint_jacobian_blocks(model, rot)
-    topo = topology(model)
+    topo = model.topology
     # One-hot selectors (static) place every joint's two 3x6 blocks in one contraction.
-    sel_p = np.eye(n)[topo["parent"]]
-    sel_c = np.eye(n)[topo["child"]]
+    sel_p, sel_c = topo.sel_parent, topo.sel_child
     rows = (jnp.einsum("cb,cij->cibj", sel_p, blk_parent) + jnp.einsum("cb,cij->cibj", sel_c, blk_child))
     return jnp.concatenate([root.reshape(6, 6 * n), rows.reshape(3 * (n - 1), 6 * n)], 0)
 
@@ -214,7 +163,7 @@ def constraint_error(model: Model, pos, rot, root_origin, root_rot) -> Float[Arr
 
 def relative_rotations(model: Model, rot) -> Float[Array, "B 3 3"]:
     """Orientation of each body in its parent's frame (identity for the root)."""
-    parent = topology(model)["parent0"]
+    parent = model.topology.parent0
     rel = jnp.swapaxes(rot[parent], -1, -2) @ rot
     return rel.at[0].set(jnp.eye(3, dtype=rot.dtype))
 
@@ -227,7 +176,7 @@ def joint_angles(model: Model, rot, reference: Float[Array, " n"] | None = None)
     rel = relative_rotations(model, rot)
     ref = None if reference is None else dofs_to_per_joint(model, reference)
     out = jnp.zeros((model.n_bodies - 1, 3), rot.dtype)
-    for order, bodies, rows in topology(model)["groups"]:  # usually one order per skeleton
+    for order, bodies, rows in model.topology.groups:  # usually one order per skeleton
         part = matrix_to_euler(rel[bodies], order, None if ref is None else ref[rows])
         out = part if len(bodies) == model.n_bodies - 1 else out.at[rows].set(part)
     return per_joint_to_dofs(model, out)
@@ -235,11 +184,11 @@ def joint_angles(model: Model, rot, reference: Float[Array, " n"] | None = None)
 
 def joint_axes(model: Model, rot, angles: Float[Array, " n"]) -> Float[Array, "C 3 3"]:
     """Per non-root body, the rows h_1, h_2, h_3 of its joint (Eq. 4)."""
-    topo = topology(model)
+    topo = model.topology
     ang = dofs_to_per_joint(model, angles)
     out = jnp.zeros((model.n_bodies - 1, 3, 3), rot.dtype)
-    for order, bodies, rows in topo["groups"]:
-        part = euler_axes_batched(rot[topo["parent"][rows]], ang[rows], order)
+    for order, bodies, rows in topo.groups:
+        part = euler_axes(rot[topo.parent[rows]], ang[rows], order)
         out = part if len(bodies) == model.n_bodies - 1 else out.at[rows].set(part)
     return out
 
@@ -263,8 +212,8 @@ def muscle_jacobian(model: Model, axes: Float[Array, "n 3"]) -> Float[Array, "n 
 
 def joint_rates(model: Model, axes: Float[Array, "n 3"], omega: Float[Array, "B 3"]) -> Float[Array, " n"]:
     """theta_dot of each DOF: solve sum_i h_i thetadot_i = omega_child - omega_parent per joint."""
-    topo = topology(model)
-    w_rel = omega[topo["child"]] - omega[topo["parent"]]
+    topo = model.topology
+    w_rel = omega[topo.child] - omega[topo.parent]
     a = jnp.swapaxes(dofs_to_per_joint(model, axes), -1, -2)  # columns h_i
     return per_joint_to_dofs(model, solve3(a, w_rel))
 
@@ -278,3 +227,29 @@ def kkt_matrix(model: Model, rot, axes) -> Float[Array, "N N2"]:
     top = jnp.concatenate([m, -jac.T, -h.T], 1)
     bottom = jnp.concatenate([jac, jnp.zeros((nc, nc + nd), m.dtype)], 1)
     return jnp.concatenate([top, bottom], 0)
+
+
+def mass_times(model: Model, inertia: Float[Array, "B 3 3"], x: Float[Array, "B 6"]) -> Float[Array, "B 6"]:
+    """M x with M block diagonal (``inertia``: the world inertias of :func:`world_inertia`)."""
+    return jnp.concatenate([model.mass[:, None] * x[:, :3], jnp.einsum("bij,bj->bi", inertia, x[:, 3:])], -1)
+
+
+def mass_blocks(model: Model, inertia: Float[Array, "B 3 3"]) -> Float[Array, "B 6 6"]:
+    """The diagonal blocks ``diag(m I3, R I R^T)`` of M."""
+    lin = model.mass[:, None, None] * jnp.eye(3, dtype=inertia.dtype)
+    z = jnp.zeros_like(lin)
+    return jnp.concatenate([jnp.concatenate([lin, z], -1), jnp.concatenate([z, inertia], -1)], -2)
+
+
+def embed_angular(x: Float[Array, "..."], axes: tuple[int, ...] = (-2, -1)) -> Float[Array, "..."]:
+    """Angular coordinates placed in the ``[linear, angular]`` layout of a body: every axis in
+    ``axes`` (size 3) gets 3 zeros in front (3x3 blocks become 6x6, (..., 3) rows become 6)."""
+    pad = [(0, 0)] * x.ndim
+    for a in axes:
+        pad[a] = (3, 0)
+    return jnp.pad(x, pad)
+
+
+def retract(pos: Float[Array, "B 3"], quat: Float[Array, "B 4"], dx: Float[Array, "B 6"]):
+    """x (+) dx: positions add, orientations turn by exp(dtheta) (world frame)."""
+    return pos + dx[:, :3], quat_turn(quat, dx[:, 3:])

@@ -1,4 +1,4 @@
-"""Speed benchmark (issue 6, with the figures of issues 2 and 3): ``neuromotor bench``.
+"""Speed benchmark: ``neuromotor bench``.
 
 Prints, after compilation, for the 19-joint default clip at h = 1/120 s:
 
@@ -28,12 +28,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from neuromotor.physics import dynamics as dy
 from neuromotor import compiler
-from neuromotor.physics import nullspace, treesolve
 from neuromotor.config import DEFAULT_HIT, SimulationConfig
+from neuromotor.physics import dynamics as dy
+from neuromotor.physics import solvers
+from neuromotor.physics.constraints import constraint_count, post_stabilize
 from neuromotor.physics.inverse import inverse_dynamics
-from neuromotor.physics.system import joint_levers, root_lever, world_inertia
+from neuromotor.physics.stiffness import DenseStiffness, StiffBlocks
+from neuromotor.physics.system import world_inertia
 from neuromotor.studies.simulate import load_character, prepare
 
 H = 1.0 / 120.0
@@ -88,50 +90,29 @@ def _stages(setup) -> dict:
     """The parts of a step as functions ``body(k, state, ref)``: the Jacobians K, D (Eq. 2),
     the KKT solve and post-stabilization, for the solver of ``setup.sim``."""
     m, g, cfg = setup.model, setup.gains, setup.sim
-    active = dy._active_mask(m, cfg.driven, jnp.float64)
+    solver = solvers.get(cfg.solver)
     n = m.n_bodies
-    if cfg.solver in ("tree", "nullspace"):
-        jac = lambda k, st, ref: dy.stiff_blocks(m, g, ref.controller_inputs(k), active, st.rot, st.omega,
-                                                 st.quat, ref.joint_targets(k))
-        # Stand-ins for the K, D terms (the solve's cost does not depend on their values).
-        g_diag = jnp.broadcast_to(0.01 * jnp.eye(3), (n, 3, 3))
-        g_cpl = jnp.full((n - 1, 3, 3), 1e-3)
+    sim = lambda ref: dy.SimModel(m, ref, cfg)
+
+    def jac(k, st, ref):
+        return dy.stiff_forces(sim(ref), g, dy.reference_inputs(sim(ref), g, k), st, solver.tree_blocks)
+
+    # Stand-ins for the K, D terms (the solve's cost does not depend on their values).
+    if solver.tree_blocks:
+        stiff = StiffBlocks(jnp.zeros((n, 3)), jnp.broadcast_to(0.01 * jnp.eye(3), (n, 3, 3)),
+                            *[jnp.full((n - 1, 3, 3), 1e-3)] * 2, jnp.zeros((n, 3, 3)), *[jnp.zeros((n - 1, 3, 3))] * 2)
     else:
-        jac = lambda k, st, ref: dy.stiff_jacobians(m, g, ref.controller_inputs(k), active, st.rot, st.omega)
+        stiff = DenseStiffness(jnp.zeros(6 * n), jnp.full((6 * n, 6 * n), 1e-3), jnp.zeros((6 * n, 6 * n)))
+    nc = constraint_count(m, cfg.driven, cfg.free_root)
 
-    if cfg.solver == "nullspace":
-        st_ = nullspace.structure(m.body_parent, cfg.driven, cfg.free_root)
+    def solve(k, st, ref):
+        rot = st.rot
+        system = solver.assemble(m, cfg, rot, world_inertia(m, rot), stiff, cfg.h)
+        return solver.solve(system, st.v.reshape(n, 6), jnp.ones(nc))[0]
 
-        def solve(k, st, ref):
-            rot = st.rot
-            geo = nullspace.geometry(st_, *joint_levers(m, rot), root_lever(m, rot))
-            return nullspace.solve_kkt(st_, geo, m.mass, world_inertia(m, rot), g_diag, g_cpl, g_cpl,
-                                       st.v.reshape(n, 6), jnp.ones(m.n_constraints + 3 * len(cfg.driven)))
+    def post(k, st, ref):
+        return post_stabilize(m, cfg, solver, st.pos, st.quat, ref.pose_targets(k + 1))
 
-        post_fn = dy.post_stabilize_nullspace
-    elif cfg.solver == "tree":
-        def solve(k, st, ref):
-            rot = st.rot
-            blocks = dy._mass_blocks(m, rot)
-            a = blocks.at[:, 3:, 3:].add(-g_diag)
-            cpl = jnp.zeros((n - 1, 6, 6)).at[:, 3:, 3:].set(-g_cpl)
-            j_root, j_own, j_par, pad = dy._tree_constraints(m, cfg.driven, rot, cfg.free_root)
-            sys = treesolve.TreeKKT(a, cpl, cpl, j_root, j_own, j_par, pad)
-            return treesolve.solve(sys, m.body_parent, st.v.reshape(n, 6), jnp.ones(j_root.shape[0]),
-                                   jnp.zeros(j_own.shape[:2]))
-
-        post_fn = dy.post_stabilize_tree
-    else:
-        def solve(k, st, ref):
-            n6 = 6 * m.n_bodies
-            jm = dy.full_constraints(m, cfg.driven, st.rot, cfg.free_root)
-            nc = jm.shape[0]
-            lhs = jnp.block([[dy.mass_matrix(m, st.rot) + 1e-3, -jm.T], [jm, jnp.zeros((nc, nc))]])
-            return jnp.linalg.solve(lhs, jnp.ones(n6 + nc))
-
-        post_fn = dy.post_stabilize
-    post = lambda k, st, ref: post_fn(m, cfg.driven, st.pos, st.quat, ref.stabilization_targets(k), cfg.stab_iters,
-                                      cfg.free_root)
     return {"jacobians": jac, "kkt_solve": solve, "post_stabilization": post}
 
 
@@ -181,7 +162,14 @@ def batch_split(setup, size: int, repeats: int) -> dict:
     idx = np.arange(size) % cfg.n_steps
     states = jax.tree_util.tree_map(lambda x: x[idx], run.states)
     ks = jnp.asarray(idx)
-    bodies = dict(_stages(setup), step=lambda k, st, ref: dy.step(m, g, p, cfg, ref, k, st))
+    params = dy.Params(g, p)
+
+    def whole(k, st, ref):
+        sim = dy.SimModel(m, ref, cfg)
+        out = dy.step(sim, params, dy.data_at(sim, params, k, st))
+        return out.state, out.info
+
+    bodies = dict(_stages(setup), step=whole)
     out = {"batch": size}
     for name, body in bodies.items():
         c, _ = _compile(lambda ks, states, ref: _reduce(jax.vmap(body, in_axes=(0, 0, None))(ks, states, ref)),
@@ -249,11 +237,12 @@ def batched(setup, sizes, repeats: int) -> list[dict]:
 
 def gain_jacobian(setup, repeats: int) -> dict:
     """jacfwd over (ks, kd) through the rollout, against the rollout alone."""
+    from neuromotor.studies.gains import set_gains
+
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
 
     def theta(x, g, ref):
-        gg = dataclasses.replace(g, ks=x[0], kd=x[1])
-        return dy.rollout(m, gg, p, ref, cfg).theta
+        return dy.rollout(m, set_gains(g, x[0], x[1]), p, ref, cfg).theta
 
     x = jnp.stack([g.ks, g.kd])
     fwd, c1 = _compile(theta, x, g, ref)

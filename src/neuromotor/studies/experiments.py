@@ -12,7 +12,9 @@
   at the low gains; deviation curves, tracking error and recovery numbers.
 
 Every experiment writes into its output folder ``run*.npz`` (the RUN.npz contract),
-``metrics.json`` and PNG figures, all through temporary files. The ``[experiment]`` table::
+``metrics.json`` and PNG figures, all through temporary files. ``neuromotor experiment CONFIG``
+(:func:`run_experiment`) runs the one a config names. The ``[experiment]`` table (parsed by
+:func:`neuromotor.config.experiment_spec`)::
 
     [experiment]
     kind = "arm"                  # arm | full_body | contrast
@@ -32,93 +34,31 @@ Every experiment writes into its output folder ``run*.npz`` (the RUN.npz contrac
 from __future__ import annotations
 
 import dataclasses
-import json
 import pathlib
 from typing import Any
 
 import numpy as np
 
+from neuromotor.config.parse import experiment_spec, load_experiment
+from neuromotor.config.specs import EXPERIMENT_KINDS as KINDS
+from neuromotor.config.specs import DEFAULT_CONTRAST, ExperimentSpec, GainSetting, SimulationConfig
+from neuromotor.errors import ConfigError
+from neuromotor.io.tables import write_json as _write_json
 from neuromotor.studies import metrics as mx
-from neuromotor.config import ConfigError, SimulationConfig, _Fields, read_toml, simulation_config
-from neuromotor.studies.sweep import CONTROLLERS, GainSetting, _atomic_write, _number_list, gains_for, save_figure
+from neuromotor.studies.gains import apply_gains
+from neuromotor.viz.figures import pyplot, save_png as save_figure
 
-KINDS = ("arm", "full_body", "contrast")
-DEFAULT_CONTRAST = (
-    GainSetting(400.0, 20.0, "neuromotor", "feedforward + low-gain feedback (paper)"),
-    GainSetting(10000.0, 200.0, "pd", "high-gain PD tracker (Zordan & Hodgins)"),
-    GainSetting(400.0, 20.0, "pd", "PD tracker at the low gains"),
-)
-
-
-@dataclasses.dataclass
-class Experiment:
-    kind: str
-    output: pathlib.Path
-    frames: int = 6
-    video: str = "video.gif"
-    arm: list[str] = dataclasses.field(default_factory=lambda: ["LeftShoulder", "LeftElbow", "LeftWrist"])
-    controllers: list[GainSetting] = dataclasses.field(default_factory=lambda: list(DEFAULT_CONTRAST))
-    magnitudes: list[float] | None = None
-
-
-def experiment_spec(data: dict, cfg: SimulationConfig, base_dir=None, default_kind: str | None = None) -> Experiment:
-    source = cfg.source
-    f = _Fields(data.get("experiment", {}), "experiment", source)
-    kind = f.choice("kind", default_kind, KINDS)
-    out = f.get("output", f"out/exp_{kind}")
-    if not isinstance(out, str):
-        f.fail("output", f"must be a path string, got {out!r}")
-    frames = f.get("frames", 6)
-    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
-        f.fail("frames", f"must be a positive integer, got {frames!r}")
-    video = f.get("video", "video.gif")
-    if not isinstance(video, str) or (video and not video.endswith((".mp4", ".gif"))):
-        f.fail("video", f"must be a file name ending .mp4 or .gif, or \"\", got {video!r}")
-    arm = f.string_list("arm", ["LeftShoulder", "LeftElbow", "LeftWrist"])
-    mags = _number_list(f, "magnitudes", None, nonneg=True)
-    tables = f.get("controller", None)
-    controllers = list(DEFAULT_CONTRAST)
-    if tables is not None:
-        if not isinstance(tables, list) or not tables:
-            f.fail("controller", "must be an array of tables ([[experiment.controller]])")
-        controllers = []
-        for i, t in enumerate(tables):
-            g = _Fields(t, f"experiment.controller[{i}]", source)
-            controllers.append(GainSetting(g.number("ks", cfg.ks, nonneg=True), g.number("kd", cfg.kd, nonneg=True),
-                                           g.choice("controller", "neuromotor", CONTROLLERS), str(g.get("label", ""))))
-            g.done()
-    f.done()
-    if not cfg.perturbations:
-        raise ConfigError(f"{source}: field 'perturbation' is required: every experiment hits the character")
-    output = pathlib.Path(out)
-    if base_dir is not None and not output.is_absolute():
-        output = (pathlib.Path(base_dir) / output).resolve()
-    return Experiment(kind, output, frames, video, arm, controllers, mags)
-
-
-def load_experiment(path, default_kind: str | None = None) -> tuple[SimulationConfig, Experiment]:
-    path = pathlib.Path(path)
-    data = read_toml(path)
-    cfg = simulation_config(data, str(path), path.parent)
-    return cfg, experiment_spec(data, cfg, path.parent, default_kind)
-
+__all__ = ["DEFAULT_CONTRAST", "KINDS", "RUNNERS", "arm", "contrast", "experiment_spec", "full_body", "load_experiment",
+           "run_experiment", "write_json"]
 
 def write_json(obj: Any, path) -> pathlib.Path:
-    return _atomic_write(path, lambda fh: json.dump(obj, fh, indent=2, default=float))
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    """metrics.json: indented, NaN kept as NaN (a recovery time that never came)."""
+    return _write_json(path, obj, strict=False)
 
 
 def _hit_span(cfg: SimulationConfig):
     p = cfg.perturbations[0]
-    return p["start"], p["start"] + (p["duration"] if p["kind"] == "force" else cfg.h)
+    return p.start, p.start + (p.duration if p.kind == "force" else cfg.h)
 
 
 def _simulate(cfg: SimulationConfig, out: pathlib.Path, name: str = "run.npz", setting: GainSetting | None = None,
@@ -129,13 +69,13 @@ def _simulate(cfg: SimulationConfig, out: pathlib.Path, name: str = "run.npz", s
     if setup is None:
         setup = prepare(cfg)
     if setting is not None:
-        setup = dataclasses.replace(setup, gains=gains_for(setup.gains, setting))
+        setup = dataclasses.replace(setup, gains=apply_gains(setup.gains, setting))
     result = run(setup, check=False)
     path = save_npz_atomic(out / name, run_arrays(setup, result))
     return setup, result, path
 
 
-def _render(npz, out: pathlib.Path, exp: Experiment, video: bool) -> dict[str, str]:
+def _render(npz, out: pathlib.Path, exp: ExperimentSpec, video: bool) -> dict[str, str]:
     """Filmstrip (and video) when the renderer is available; never fails the experiment."""
     files = {}
     try:
@@ -156,7 +96,7 @@ def _dof_groups(model, names):
     return {n: [i for i, d in enumerate(model.dof_names) if d.split(".")[0] == n] for n in names}
 
 
-def arm(cfg: SimulationConfig, exp: Experiment) -> dict:
+def arm(cfg: SimulationConfig, exp: ExperimentSpec) -> dict:
     """The arm experiment; returns the numbers written to ``metrics.json``."""
     out = exp.output
     setup, result, npz = _simulate(cfg, out)
@@ -178,7 +118,7 @@ def arm(cfg: SimulationConfig, exp: Experiment) -> dict:
         "per_joint_peak_deg": {n: float(np.rad2deg(np.abs(pert[:, d] - base[:, d]).max())) for n, d in groups.items()},
         "driven_joints": list(cfg.driven_joints),
     }
-    plt = _plt()
+    plt = pyplot()
     rows = len(groups) + 1
     fig, axes = plt.subplots(rows, 1, figsize=(7, 1.7 * rows + 0.6), dpi=90, sharex=True)
     axes[0].plot(t, dev_arm, color="C3")
@@ -204,14 +144,14 @@ def arm(cfg: SimulationConfig, exp: Experiment) -> dict:
     return numbers
 
 
-def full_body(cfg: SimulationConfig, exp: Experiment) -> dict:
+def full_body(cfg: SimulationConfig, exp: ExperimentSpec) -> dict:
     """The full-body experiment (Figure 2)."""
     out = exp.output
     setup, result, npz = _simulate(cfg, out)
     t = np.asarray(result.perturbed.time)
     dev = np.asarray(mx.deviation(result.perturbed.theta, result.unperturbed.theta))
     start, end = _hit_span(cfg)
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 2.6), dpi=90)
     ax.plot(t, dev, color="C3", label="deviation from the unperturbed run")
     ax.axhline(result.metrics["recovery_threshold_deg"], color="0.5", ls=":", lw=1, label="recovery threshold")
@@ -219,23 +159,23 @@ def full_body(cfg: SimulationConfig, exp: Experiment) -> dict:
     ax.set(xlabel="clip time (s)", ylabel="RMS deviation (deg)")
     ax.legend(fontsize=7)
     hit = cfg.perturbations[0]
-    ax.set_title(f"Full body, {hit['magnitude']:g} N {hit['shape']} pulse on {hit['body']}", fontsize=10)
+    ax.set_title(f"Full body, {hit.magnitude:g} N {hit.shape} pulse on {hit.body}", fontsize=10)
     fig.tight_layout()
-    numbers = {"metrics": result.metrics, "hit": hit,
+    numbers = {"metrics": result.metrics, "hit": dict(hit),
                "files": {"run": str(npz), "deviation": str(save_figure(fig, out / "deviation.png"))}}
     numbers["files"].update(_render(npz, out, exp, video=True))
     write_json(numbers, out / "metrics.json")
     return numbers
 
 
-def contrast(cfg: SimulationConfig, exp: Experiment, progress: bool = True) -> dict:
+def contrast(cfg: SimulationConfig, exp: ExperimentSpec, progress: bool = True) -> dict:
     """The same hit under each controller of ``exp.controllers``."""
     from neuromotor.studies.simulate import prepare
 
     out = exp.output
     base_setup = prepare(cfg)
     start, end = _hit_span(cfg)
-    numbers: dict[str, Any] = {"hit": cfg.perturbations[0], "controllers": []}
+    numbers: dict[str, Any] = {"hit": dict(cfg.perturbations[0]), "controllers": []}
     curves = []
     for i, setting in enumerate(exp.controllers):
         setup, result, npz = _simulate(cfg, out, f"run_{i}.npz", setting, setup=base_setup)
@@ -247,7 +187,7 @@ def contrast(cfg: SimulationConfig, exp: Experiment, progress: bool = True) -> d
         curves.append((setting, t, dev, track))
         numbers["controllers"].append({"label": setting.name, "controller": setting.controller, "ks": setting.ks,
                                        "kd": setting.kd, **result.metrics, "run": str(npz)})
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.4), dpi=90)
     for setting, t, dev, track in curves:
         axes[0].plot(t, dev, label=setting.name)
@@ -266,7 +206,7 @@ def contrast(cfg: SimulationConfig, exp: Experiment, progress: bool = True) -> d
         from neuromotor.studies.simulate import body_lookup
         from neuromotor.studies.sweep import SweepSpec, Sweeper, plot_sweep, run_sweep, write_csv
 
-        spec = SweepSpec(exp.magnitudes, list(exp.controllers))
+        spec = SweepSpec(list(exp.magnitudes), list(exp.controllers))
         sweeper = Sweeper(base_setup.model, base_setup.ref, base_setup.sim, chunk=len(spec.magnitudes) * len(spec.gains))
         res = run_sweep(sweeper, base_setup.gains, base_setup.pulses, spec.runs(cfg.perturbations[0]),
                         body_lookup(base_setup.model), base_setup.model.body_names, progress=progress)
@@ -277,15 +217,17 @@ def contrast(cfg: SimulationConfig, exp: Experiment, progress: bool = True) -> d
     return numbers
 
 
+RUNNERS = {"arm": arm, "full_body": full_body, "contrast": contrast}
+
+
 def run_experiment(path, kind: str | None = None, output=None, progress: bool = True) -> dict:
-    """Run the experiment a config describes (``experiment.kind``, or ``kind`` as default)."""
+    """Run the experiment a config describes (``experiment.kind``, or ``kind`` as default);
+    returns the numbers written to ``metrics.json``."""
     cfg, exp = load_experiment(path, kind)
     if kind is not None and exp.kind != kind:
         raise ConfigError(f"{cfg.source}: field 'experiment.kind' is {exp.kind!r}, this script runs {kind!r}")
     if output is not None:
-        exp.output = pathlib.Path(output)
-    if exp.kind == "arm":
-        return arm(cfg, exp)
-    if exp.kind == "full_body":
-        return full_body(cfg, exp)
-    return contrast(cfg, exp, progress)
+        exp = dataclasses.replace(exp, output=pathlib.Path(output))
+    if exp.kind == "contrast":
+        return contrast(cfg, exp, progress)
+    return RUNNERS[exp.kind](cfg, exp)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.resources
-import json
 import pathlib
 
 import jax
@@ -18,19 +17,20 @@ import numpy as np
 
 from neuromotor import compiler
 
-from neuromotor.physics import contact
+from neuromotor.physics.contact import ContactRollout
+from neuromotor.studies.ball import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies import metrics as mx
-from neuromotor.io.atomic import atomic_path
 from neuromotor.model.bvh import BvhClip
 from neuromotor.config import ConfigError, SimulationConfig
 from neuromotor.physics.control import Gains, make_gains
 from neuromotor.physics.dynamics import Reference, Rollout, SimConfig, check_rollout, make_reference, rollout
-from neuromotor.model.kinematics import (Trajectory, local_rotations, skeleton_edges, skeleton_points, structure,
-                         trajectory_from_clip)
+from neuromotor.model.kinematics import Trajectory, trajectory_from_clip
 from neuromotor.physics.perturbation import ForcePulses, pulses
-from neuromotor.rotations import quat_to_matrix
 from neuromotor.model.anatomy import prepare_clip
 from neuromotor.model.skeleton import BODY_KEYWORDS, Character, MassModelOptions, Model, build_character, keyword_body
+from neuromotor.io.runfile import read_run_info, save_npz_atomic  # noqa: F401  (re-exported)
+from neuromotor.studies.record import (file_sha256, joint_frames_from_state, provenance,  # noqa: F401
+                                       rollout_points, run_arrays, up_axis_of)
 
 DEFAULT_CLIP_NAME = "mocapbank_19joint.bvh"
 
@@ -60,7 +60,7 @@ class Setup:
     sim: SimConfig
     pulses: ForcePulses
     config: SimulationConfig
-    ball: "contact.BallSetup | None" = None  # a [ball] config: the flying ball and its contacts
+    ball: BallSetup | None = None  # a [ball] config: the flying ball and its contacts
     warnings: tuple[str, ...] = ()  # the clip's (see Character.warnings) and the run's, one line each
 
     @property
@@ -146,7 +146,7 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     for s in specs:  # no point given: push at the body's centre of mass
         if s.get("point") is None:
             s["point"] = [float(x) for x in np.asarray(model.com[index(s["body"])])]
-    ball = contact.ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
+    ball = ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
     warnings = tuple(character.warnings) + step_warnings(ref, config.h)
     return Setup(character, traj, ref, gains, sim, pulses(specs, index), config, ball, warnings)
 
@@ -171,13 +171,14 @@ class RunResult:
     perturbed: Rollout
     unperturbed: Rollout
     metrics: dict
-    ball: "contact.ContactRollout | None" = None
+    ball: ContactRollout | None = None  # the ball run: its state and contact record
 
 
 def run(setup: Setup, check: bool = True) -> RunResult:
     """Perturbed and unperturbed rollouts plus the recovery metrics."""
     if setup.ball is not None:
-        return contact.run_ball(setup, check)
+        pert, base = ball_rollouts(setup, _zero(setup.pulses), check)
+        return RunResult(pert.run, base.run, run_metrics(setup, pert.run, base.run) | ball_metrics(pert), pert)
     model = setup.model
     pert = simulate_jit(model, setup.gains, setup.pulses, setup.ref, setup.sim)
     base = simulate_jit(model, setup.gains, _zero(setup.pulses), setup.ref, setup.sim)
@@ -207,265 +208,6 @@ def _metric_arrays(theta, theta_base, residual, residual_base, violation, violat
     """The array reductions of :func:`run_metrics` as one program (not a dozen eager ops)."""
     return (mx.deviation(theta, theta_base), jnp.maximum(jnp.max(residual), jnp.max(residual_base)),
             jnp.maximum(jnp.max(violation), jnp.max(violation_base)))
-
-
-def joint_frames_from_state(model: Model, pos, rot, local_ref):
-    """World origin and rotation of every joint: bodies from the state, massless joints from
-    their parent frame and the mocap's local rotations ``local_ref`` (J, 3, 3)."""
-    joint_body = np.array(model.joint_body)
-    carried = np.flatnonzero(joint_body >= 0)
-    b = joint_body[carried]
-    origins = pos[b] - jnp.einsum("bij,bj->bi", rot[b], model.com[b])
-    rots = rot[b]
-    if len(carried) == len(joint_body):  # every joint carries a body
-        return origins, rots
-    n = len(joint_body)
-    origins = jnp.zeros((n, 3), pos.dtype).at[carried].set(origins)
-    rots = jnp.zeros((n, 3, 3), rot.dtype).at[carried].set(rots)
-    # Massless joints (leaves and their chains) one tree level at a time, parents first.
-    parent = np.array(model.joint_parent)
-    depth = structure(model)["depth"]
-    for d in np.unique(depth[joint_body < 0]):
-        k = np.flatnonzero((joint_body < 0) & (depth == d))
-        p = parent[k]
-        origins = origins.at[k].set(origins[p] + jnp.einsum("kij,kj->ki", rots[p], model.joint_offset[k]))
-        rots = rots.at[k].set(rots[p] @ local_ref[k])
-    return origins, rots
-
-
-@jax.jit
-def _skeleton_points(model: Model, traj: Trajectory, time, pos, quat):
-    """Skeleton points of states (leading time axis), as one compiled program."""
-    def one(pos, quat, qr):
-        o, r = joint_frames_from_state(model, pos, quat_to_matrix(quat), local_rotations(model, qr))
-        return skeleton_points(model, o, r)
-
-    return jax.vmap(one)(pos, quat, jax.vmap(traj.q)(time))
-
-
-def rollout_points(setup: Setup, run_: Rollout) -> np.ndarray:
-    """(S+1, P, 3) skeleton points (joints then End Sites) of a rollout, for drawing."""
-    return np.asarray(_skeleton_points(setup.model, setup.traj, run_.time, run_.states.pos, run_.states.quat))
-
-
-def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
-    """The RUN.npz contract (see README)."""
-    model = setup.model
-    pert, base = result.perturbed, result.unperturbed
-    force = np.asarray(pert.force)
-    total = force.sum(axis=1)
-    pts = np.asarray(pert.points)
-    origin = pts[:, 0, :] if pts.shape[1] else np.zeros_like(total)
-    clip = setup.character.clip
-    # Continuous angles (no 2 pi jumps in time), on the mocap's branch at the start: what
-    # export-bvh writes and what a plot of theta against time should show.
-    theta_desired = np.asarray(setup.ref.theta)[: pert.time.shape[0]]
-    theta_base = mx.continuous_angles(np.asarray(base.theta), theta_desired)
-    arrays = {
-        "time": np.asarray(pert.time),
-        "dof_names": np.array(model.dof_names),
-        "theta": mx.continuous_angles(np.asarray(pert.theta), theta_base),
-        "theta_unperturbed": theta_base,
-        "theta_desired": theta_desired,
-        "body_names": np.array(model.body_names),
-        "body_pos": np.asarray(pert.states.pos),
-        "body_quat": np.asarray(pert.states.quat),
-        "body_pos_unperturbed": np.asarray(base.states.pos),
-        "body_quat_unperturbed": np.asarray(base.states.quat),
-        "perturbation_force": force,
-        "force_origin": origin,
-        "force_vector": total,
-        "kkt_residual": np.asarray(pert.residual),
-        "constraint_violation": np.asarray(pert.violation),
-        "skeleton_points": rollout_points(setup, pert),
-        "skeleton_points_unperturbed": rollout_points(setup, base),
-        "skeleton_edges": skeleton_edges(model),
-        "skeleton_radii": np.asarray(setup.character.radii)[skeleton_edges(model)[:, 0]],
-        "up_axis": np.asarray(up_axis_of(model)),
-        "source_clip": np.asarray(str(pathlib.Path(clip.path).resolve())),
-        "source_units": np.asarray(repr(float(clip.length_scale))),
-        "clip_start": np.asarray(setup.config.start),
-        "metrics_json": np.asarray(json.dumps(result.metrics)),
-        "provenance_json": np.asarray(json.dumps(provenance(setup), default=_json_default)),
-    }
-    # Body shapes for drawing: every body's polyhedron in its body frame less its COM, so that a
-    # vertex v of body b is at body_pos[:, b] + R(body_quat[:, b]) @ v in the world.
-    com = np.asarray(model.com)
-    verts, faces, owner, n_v = [], [], [], 0
-    for b, shape in enumerate(setup.character.shapes):
-        if shape is None:
-            continue
-        v = np.asarray(shape.vertices, dtype=np.float64)
-        verts.append(v - com[b])
-        faces.append(np.asarray(shape.faces, dtype=np.int64) + n_v)
-        owner.append(np.full(len(v), b, dtype=np.int64))
-        n_v += len(v)
-    arrays["shape_vertices"] = np.concatenate(verts) if verts else np.zeros((0, 3))
-    arrays["shape_faces"] = np.concatenate(faces) if faces else np.zeros((0, 3), np.int64)
-    arrays["shape_body"] = np.concatenate(owner) if owner else np.zeros(0, np.int64)
-    # Body whose shape carries each drawn bone (its parent joint's body), -1 for detail bones.
-    arrays["skeleton_edge_body"] = np.asarray(model.joint_body, dtype=np.int64)[arrays["skeleton_edges"][:, 0]]
-    # Horizontal facing direction: the anatomy's forward (a world direction at the clip's
-    # reference frame), carried with the root body to the simulated window; else estimated from
-    # the skeleton.
-    from neuromotor.viz.render import facing_direction
-
-    forward = getattr(getattr(setup.character, "anatomy", None), "forward", None)
-    if forward is not None:
-        try:
-            from neuromotor.model.kinematics import body_poses
-
-            forward = np.asarray(forward, dtype=np.float64).reshape(3)
-            ref_frame = getattr(setup.character.anatomy, "reference_frame", None)
-            if ref_frame is not None:
-                _, rot_ref = body_poses(model, setup.traj.q(jnp.asarray(float(ref_frame) * clip.frame_time)))
-                local = np.asarray(rot_ref)[0].T @ forward
-                forward = (quat_to_matrix(jnp.asarray(base.states.quat[:, 0])) @ local).mean(axis=0)
-                forward = np.asarray(forward)
-        except Exception:  # an anatomy without a usable forward: the skeleton estimate
-            forward = None
-    arrays["facing"] = facing_direction(arrays["skeleton_points_unperturbed"], arrays["skeleton_edges"],
-                                        int(arrays["up_axis"]), forward)
-    if getattr(result, "ball", None) is not None:
-        arrays.update(contact.ball_arrays(setup, result))
-    return arrays
-
-
-def file_sha256(path) -> str:
-    """Hex SHA-256 of a file's bytes."""
-    import hashlib
-
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def _json_default(obj):
-    if isinstance(obj, (np.ndarray, jax.Array)):
-        return np.asarray(obj).tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, pathlib.Path):
-        return str(obj)
-    return repr(obj)
-
-
-def _floats(a):
-    a = np.asarray(a, dtype=np.float64)
-    return a.tolist()
-
-
-def provenance(setup: Setup) -> dict:
-    """What made a run, as plain JSON values (RUN.npz ``provenance_json``): the package
-    version, the clip file and its SHA-256, and the fully resolved configuration (gains, step,
-    window, perturbations with their resolved body and point, units, up axis, stature, mass
-    options, ball)."""
-    from neuromotor import __version__
-
-    cfg, model, character = setup.config, setup.model, setup.character
-    clip = character.source
-    clip_path = pathlib.Path(clip.path).resolve()
-    anat = getattr(character, "anatomy", None)
-    p = setup.pulses
-    names = model.body_names
-    perts = []
-    for i, spec in enumerate(cfg.perturbations):
-        b = int(np.asarray(p.body)[i])
-        perts.append({
-            "kind": spec.get("kind", "force"),
-            "body_requested": spec.get("body"),
-            "body": names[b],
-            "body_index": b,
-            "point": _floats(np.asarray(p.point)[i]),
-            "point_given": spec.get("point") is not None,
-            "direction": _floats(np.asarray(p.direction)[i]),
-            "magnitude": float(np.asarray(p.magnitude)[i]),
-            "start": float(np.asarray(p.start)[i]),
-            "duration": float(np.asarray(p.duration)[i]),
-            "shape": p.shape[i],
-        })
-    ball = None
-    if setup.ball is not None:
-        b = setup.ball.ball
-        ball = {"config": cfg.ball}
-        ball.update({f.name: _floats(getattr(b, f.name)) for f in dataclasses.fields(b)})
-    elif cfg.ball:
-        ball = {"config": cfg.ball}
-    sim = setup.sim
-    return {
-        "neuromotor_version": __version__,
-        "jax_version": jax.__version__,
-        "config_source": cfg.source,
-        "clip": {
-            "path": str(clip_path),
-            "sha256": file_sha256(clip_path) if clip_path.is_file() else None,
-            "frames": int(clip.n_frames),
-            "frame_time": float(clip.frame_time),
-        },
-        "gains": {"ks": float(cfg.ks), "kd": float(cfg.kd), "tau_floor": float(cfg.tau_floor)},
-        "h": float(cfg.h),
-        "start": float(cfg.start),
-        "duration": float(sim.n_steps * cfg.h),
-        "n_steps": int(sim.n_steps),
-        "implicit": bool(cfg.implicit),
-        "stabilization_steps": int(cfg.stabilization_steps),
-        "driven_joints": [names[b] for b in sim.driven],
-        "perturbations": perts,
-        "ball": ball,
-        "units": {"requested": cfg.units, "resolved": getattr(anat, "units", None),
-                  "length_scale": float(character.clip.length_scale)},
-        "up_axis": {"requested": cfg.up_axis, "resolved": up_axis_of(model),
-                    "up": _floats(anat.up) if anat is not None else None},
-        "stature": {"requested": cfg.stature,
-                    "resolved": float(anat.stature) if anat is not None else None},
-        "body_mass": {"requested": cfg.body_mass, "total": float(np.sum(np.asarray(model.mass)))},
-        "sex": cfg.sex,
-        "simulate_extremities": bool(cfg.simulate_extremities),
-        "n_bodies": int(model.n_bodies),
-        "n_dofs": int(model.n_dofs),
-    }
-
-
-def read_run_info(path) -> dict:
-    """Provenance, metrics and array shapes of a RUN.npz; ValueError naming the file when it
-    is not one (unreadable, not an .npz, no ``time``/``theta``, malformed JSON)."""
-    path = pathlib.Path(path)
-    if not path.exists():
-        raise ValueError(f"{path}: no such file")
-    if path.is_dir():
-        raise ValueError(f"{path}: is a directory, not a run file")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            shapes = {k: list(data[k].shape) for k in data.files}
-            text = {k: str(data[k]) for k in ("provenance_json", "metrics_json") if k in data.files}
-    except Exception as e:  # zip, pickle, truncation errors all mean the same to the user
-        raise ValueError(f"{path}: not a readable .npz run file ({type(e).__name__}: {e})") from None
-    missing = [k for k in ("time", "theta") if k not in shapes]
-    if missing:
-        raise ValueError(f"{path}: not a neuromotor run file (no {', '.join(missing)} array)")
-    out = {"file": str(path), "provenance": None, "metrics": None, "arrays": shapes}
-    for key, field in (("provenance_json", "provenance"), ("metrics_json", "metrics")):
-        if key in text:
-            try:
-                out[field] = json.loads(text[key])
-            except json.JSONDecodeError as e:
-                raise ValueError(f"{path}: {key} is not valid JSON ({e})") from None
-    return out
-
-
-def save_npz_atomic(path, arrays: dict) -> pathlib.Path:
-    """Write an .npz through a temporary file in the same folder, then rename."""
-    path = pathlib.Path(path)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
-    return path
-
-
-def up_axis_of(model: Model) -> int:
-    """The coordinate axis gravity pulls against (0, 1 or 2)."""
-    return int(np.argmax(np.abs(np.asarray(model.gravity))))
 
 
 def clip_of(setup: Setup) -> BvhClip:

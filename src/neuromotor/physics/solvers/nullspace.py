@@ -40,7 +40,6 @@ gap and turns the root and driven joints by their errors; the null-space part is
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import equinox as eqx
 import jax
@@ -49,7 +48,11 @@ import jax.scipy.linalg  # noqa: F401  (cho_factor, cho_solve)
 import numpy as np
 from jaxtyping import Array, Float
 
-from neuromotor.rotations import quat_turn
+from neuromotor.model.topology import Topology
+from neuromotor.physics.solvers.base import KKTSolver
+from neuromotor.physics.stiffness import tree_matvec
+from neuromotor.physics.system import joint_levers, root_lever, world_inertia
+from neuromotor.rotations import cross, skew
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -65,15 +68,9 @@ class Structure:
     free_root: bool
 
 
-@functools.lru_cache(maxsize=64)
-def _structure(body_parent: tuple[int, ...], driven: tuple[int, ...], free_root: bool) -> Structure:
-    n = len(body_parent)
-    anc = np.zeros((n, n))
-    for i in range(n):
-        k = i
-        while k >= 0:
-            anc[i, k] = 1.0
-            k = body_parent[k]
+def _structure(topo: Topology, driven: tuple[int, ...], free_root: bool) -> Structure:
+    n = topo.n_bodies
+    anc = topo.anc
     strict_up = anc - np.eye(n)
     # u = [v0 (3), u_0 (3), u_1 (3), ..., u_{B-1} (3)]
     known_blocks = ([] if free_root else [0, 1]) + [1 + b for b in driven]
@@ -83,26 +80,12 @@ def _structure(body_parent: tuple[int, ...], driven: tuple[int, ...], free_root:
     return Structure(anc, strict_up, free, known, order, tuple(driven), free_root)
 
 
-def structure(body_parent: tuple[int, ...], driven: tuple[int, ...] = (), free_root: bool = False) -> Structure:
-    """Static structure of the null-space basis (cached per topology)."""
-    if any(b <= 0 or b >= len(body_parent) for b in driven):
+def structure(topo: Topology, driven: tuple[int, ...] = (), free_root: bool = False) -> Structure:
+    """Static structure of the null-space basis (built once per topology and driven set)."""
+    if any(b <= 0 or b >= topo.n_bodies for b in driven):
         raise ValueError(f"driven bodies must be non-root bodies of the tree, got {driven}")
     # Driven joints keep the given order: it is the row order of their constraints in J.
-    return _structure(tuple(body_parent), tuple(driven), bool(free_root))
-
-
-def _cross(a, b):
-    """Cross product as elementwise arithmetic (fuses on CPU; jnp.cross is fine too)."""
-    return jnp.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-                      a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
-
-
-def _skew(a):
-    z = jnp.zeros_like(a[..., 0])
-    return jnp.stack([jnp.stack([z, -a[..., 2], a[..., 1]], -1),
-                      jnp.stack([a[..., 2], z, -a[..., 0]], -1),
-                      jnp.stack([-a[..., 1], a[..., 0], z], -1)], -2)
+    return topo.derived(_structure, tuple(driven), bool(free_root))
 
 
 def _tree_sum(mat: np.ndarray, x):
@@ -133,7 +116,7 @@ def apply_basis(st: Structure, geo: Geometry, u: Float[Array, " N"]) -> Float[Ar
     n = geo.com.shape[0]
     v0, uk = u[:3], u[3:].reshape(n, 3)
     omega = _tree_sum(st.anc, uk)
-    vel = v0 + _cross(omega, geo.com) - _tree_sum(st.anc, _cross(uk, geo.pivot))
+    vel = v0 + cross(omega, geo.com) - _tree_sum(st.anc, cross(uk, geo.pivot))
     return jnp.concatenate([vel, omega], -1)
 
 
@@ -143,7 +126,7 @@ def project_forces(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Floa
     force, torque = f[:, :3], f[:, 3:]
     desc = st.anc.T
     sub_force = _tree_sum(desc, force)
-    sub_moment = _tree_sum(desc, torque + _cross(geo.com, force)) - _cross(geo.pivot, sub_force)
+    sub_moment = _tree_sum(desc, torque + cross(geo.com, force)) - cross(geo.pivot, sub_force)
     return jnp.concatenate([jnp.sum(force, 0), sub_moment.reshape(-1)])
 
 
@@ -200,7 +183,7 @@ def reduced_inertia(st: Structure, geo: Geometry, mass: Float[Array, " B"],
     """S^T M S over all columns ``[v0, u_0, ..., u_{B-1}]`` (see :func:`inertia_blocks`)."""
     n = geo.com.shape[0]
     blocks, first = inertia_blocks(st, geo, mass, inertia)
-    cross_row = -_skew(first)  # (B, 3, 3): H_{v0,k}
+    cross_row = -skew(first)  # (B, 3, 3): H_{v0,k}
     eye = jnp.eye(3, dtype=geo.com.dtype)
     top = jnp.concatenate([jnp.sum(mass) * eye, jnp.swapaxes(cross_row, 0, 1).reshape(3, 3 * n)], 1)
     left = jnp.swapaxes(cross_row, 1, 2).reshape(3 * n, 3)
@@ -268,7 +251,7 @@ def known_velocities(st: Structure, r0: Float[Array, "3"], b: Float[Array, " nc"
     m0 = 0 if st.free_root else 6
     if not st.free_root:
         w0 = b[3:6]
-        parts += [b[0:3] - _cross(w0, r0), w0]  # origin velocity v0 + w0 x r0 = b[0:3]
+        parts += [b[0:3] - cross(w0, r0), w0]  # origin velocity v0 + w0 x r0 = b[0:3]
     n = st.anc.shape[0]
     if st.driven:
         parts.append(b[m0 + 3 * (n - 1):])
@@ -276,7 +259,7 @@ def known_velocities(st: Structure, r0: Float[Array, "3"], b: Float[Array, " nc"
 
 
 def multipliers(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[Array, " nc"]:
-    """lam from ``J^T lam = f`` (f = A v - r), in the row order of ``dynamics.full_constraints``.
+    """lam from ``J^T lam = f`` (f = A v - r), in the row order of ``constraints.full_constraints``.
 
     Ball joint k: minus the total force on its subtree. Root rows: the total force, and the
     total moment about the root COM less the lever's share. Driven joint k: the moment about
@@ -287,7 +270,7 @@ def multipliers(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[A
     parts = []
     if not st.free_root:
         total = proj[:3]
-        parts += [total, proj[3:6] - _cross(geo.r0, total)]
+        parts += [total, proj[3:6] - cross(geo.r0, total)]
     parts.append(ball.reshape(-1))
     if st.driven:
         parts.append(proj[3:].reshape(n, 3)[np.array(st.driven)].reshape(-1))
@@ -306,7 +289,7 @@ def solve_kkt(st: Structure, geo: Geometry, mass: Float[Array, " B"], inertia_wo
     blocks, first = inertia_blocks(st, geo, mass, inertia_world)
     blocks = blocks - stiffness_blocks(st, g_diag, g_up, g_down)
     v0, w0 = u_known[:3], u_known[3:6]
-    known = jnp.einsum("kij,j->ki", blocks[1:, :, 0], w0) + _cross(first[1:], v0)  # H_{k,u0} w0 + H_{k,v0} v0
+    known = jnp.einsum("kij,j->ki", blocks[1:, :, 0], w0) + cross(first[1:], v0)  # H_{k,u0} w0 + H_{k,v0} v0
     u_free = jnp.linalg.solve(_flat(blocks[1:, :, 1:]), rhs[6:] - known.reshape(-1))
     return apply_basis(st, geo, jnp.concatenate([u_known, u_free]))
 
@@ -319,7 +302,7 @@ def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) 
     u = jnp.zeros(3 * (n + 1), c.dtype)
     if not st.free_root:
         d_theta0 = -c[3:6]
-        u = u.at[3:6].set(d_theta0).at[0:3].set(-c[0:3] - _cross(d_theta0, geo.r0))
+        u = u.at[3:6].set(d_theta0).at[0:3].set(-c[0:3] - cross(d_theta0, geo.r0))
     if st.driven:
         cols = np.array([3 * (1 + b) + j for b in st.driven for j in range(3)])
         u = u.at[cols].set(-c[m0 + 3 * (n - 1):])
@@ -351,29 +334,24 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
     return x_p + apply_basis(st, geo, u)
 
 
-def retract(pos, quat, dx: Float[Array, "B 6"]):
-    """x (+) dx: positions add, orientations turn by exp(dtheta) (world frame)."""
-    return pos + dx[:, :3], quat_turn(quat, dx[:, 3:])
-
-
 def kkt_residual(st: Structure, geo: Geometry, r_parent, r_child, f: Float[Array, "B 6"], v: Float[Array, "B 6"],
                  lam: Float[Array, " nc"], b: Float[Array, " nc"], parent: np.ndarray):
     """Both block rows of the residual of Eq. 2, ``(A v - r) - J^T lam`` and ``J v - b``, with
-    J applied joint by joint (the same rows as ``dynamics.full_constraints``)."""
+    J applied joint by joint (the same rows as ``constraints.full_constraints``)."""
     n = geo.com.shape[0]
     m0 = 0 if st.free_root else 6
     child = np.arange(1, n)
     lam_ball = lam[m0:m0 + 3 * (n - 1)].reshape(n - 1, 3)
     one_hot = lambda idx: jnp.asarray(np.eye(n)[idx], f.dtype)  # (rows, B): sums without scatter
     put = lambda idx, x: jnp.tensordot(one_hot(idx), x, axes=([0], [0]))
-    jt = (put(parent, jnp.concatenate([lam_ball, _cross(r_parent, lam_ball)], -1))
-          - put(child, jnp.concatenate([lam_ball, _cross(r_child, lam_ball)], -1)))
-    point = lambda body, lever: v[body, :3] + _cross(v[body, 3:], lever)
+    jt = (put(parent, jnp.concatenate([lam_ball, cross(r_parent, lam_ball)], -1))
+          - put(child, jnp.concatenate([lam_ball, cross(r_child, lam_ball)], -1)))
+    point = lambda body, lever: v[body, :3] + cross(v[body, 3:], lever)
     rows = [(point(parent, r_parent) - point(child, r_child)).reshape(-1)]
     if not st.free_root:
         lam_lin, lam_ang = lam[0:3], lam[3:6]
-        jt = jt.at[0].add(jnp.concatenate([lam_lin, _cross(geo.r0, lam_lin) + lam_ang]))
-        rows.insert(0, jnp.concatenate([v[0, :3] + _cross(v[0, 3:], geo.r0), v[0, 3:]]))
+        jt = jt.at[0].add(jnp.concatenate([lam_lin, cross(geo.r0, lam_lin) + lam_ang]))
+        rows.insert(0, jnp.concatenate([v[0, :3] + cross(v[0, 3:], geo.r0), v[0, 3:]]))
     if st.driven:
         drv = np.array(st.driven)
         par = np.array([parent[d - 1] for d in st.driven])
@@ -381,3 +359,58 @@ def kkt_residual(st: Structure, geo: Geometry, r_parent, r_child, f: Float[Array
         jt = jt + put(drv, jnp.concatenate([jnp.zeros_like(mu), mu], -1)) - put(par, jnp.concatenate([jnp.zeros_like(mu), mu], -1))
         rows.append((v[drv, 3:] - v[par, 3:]).reshape(-1))
     return (f - jt).reshape(-1), jnp.concatenate(rows) - b
+
+
+# ---------------------------------------------------------------- the solver strategy
+
+
+class NullSpaceKKT(eqx.Module):
+    """Eq. 2 at one state in null-space form: the basis geometry, M and G = h D + h^2 K."""
+
+    st: Structure = eqx.field(static=True)
+    topo: Topology = eqx.field(static=True)
+    geo: Geometry
+    mass: Float[Array, " B"]
+    inertia: Float[Array, "B 3 3"]  # world inertias
+    g_diag: Float[Array, "B 3 3"]
+    g_up: Float[Array, "C 3 3"]
+    g_down: Float[Array, "C 3 3"]
+    r_parent: Float[Array, "C 3"]  # joint levers (the rows of J)
+    r_child: Float[Array, "C 3"]
+
+    def a_times(self, v: Float[Array, "B 6"]) -> Float[Array, "B 6"]:
+        """A v = M v - G v."""
+        mv_ = jnp.concatenate([self.mass[:, None] * v[:, :3], jnp.einsum("bij,bj->bi", self.inertia, v[:, 3:])], -1)
+        gv = tree_matvec(self.topo, self.g_diag, self.g_up, self.g_down, v[:, 3:])
+        return mv_ - jnp.concatenate([jnp.zeros_like(gv), gv], -1)
+
+
+class NullSpaceSolver(KKTSolver):
+    """Eq. 2 by the null-space method (see the module docstring): one small dense LU per step,
+    each post-stabilization Newton step with one Cholesky."""
+
+    tree_blocks = True
+
+    def assemble(self, model, cfg, rot, inertia, stiff, h):
+        st = structure(model.topology, cfg.driven, cfg.free_root)
+        r_par, r_chi = joint_levers(model, rot)
+        geo = geometry(st, r_par, r_chi, root_lever(model, rot))
+        return NullSpaceKKT(st, model.topology, geo, model.mass, inertia, *stiff.g_blocks(h), r_par, r_chi)
+
+    def solve(self, system, r, b):
+        s = system
+        return solve_kkt(s.st, s.geo, s.mass, s.inertia, s.g_diag, s.g_up, s.g_down, r, b), None
+
+    def multipliers(self, system, r, b, v, aux):
+        # A v+ - r = J^T lam gives the multipliers; the residual of the whole of Eq. 2 checks the solve.
+        s = system
+        f = s.a_times(v) - r
+        lam = multipliers(s.st, s.geo, f)
+        res = jnp.concatenate(kkt_residual(s.st, s.geo, s.r_parent, s.r_child, f, v, lam, b, s.topo.parent))
+        rhs_norm = jnp.sqrt(jnp.sum(r**2) + jnp.sum(b**2))
+        return lam, jnp.linalg.norm(res) / jnp.maximum(rhs_norm, 1e-300)
+
+    def projection_step(self, model, cfg, rot, c):
+        st = structure(model.topology, cfg.driven, cfg.free_root)
+        geo = geometry(st, *joint_levers(model, rot), root_lever(model, rot))
+        return projection_step(st, geo, model.mass, world_inertia(model, rot), c)

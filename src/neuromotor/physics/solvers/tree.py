@@ -28,13 +28,16 @@ those of E + J A^-1 J^T (positive definite for full-rank J).
 
 from __future__ import annotations
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
+
+from neuromotor.model.topology import Topology
+from neuromotor.physics.solvers.base import KKTSolver
+from neuromotor.physics.system import embed_angular, joint_jacobian_blocks, mass_blocks, root_lever, world_inertia
+from neuromotor.rotations import skew
 
 
 class TreeKKT(eqx.Module):
@@ -49,33 +52,12 @@ class TreeKKT(eqx.Module):
     pad: Float[Array, "C m"]  # 1 on padding rows (E), else 0
 
 
-@functools.lru_cache(maxsize=64)
-def levels(body_parent: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Static schedule, deepest level first, padded to equal width: joint rows (body - 1) and
-    their parent bodies, (L, W) each. Padding points at a ghost joint row C whose parent is a
-    ghost body B, so every level is the same batched operation inside one ``lax.scan``."""
-    n = len(body_parent)
-    depth = [0] * n
-    for b in range(1, n):
-        depth[b] = depth[body_parent[b]] + 1
-    per_level = [[b - 1 for b in range(1, n) if depth[b] == d] for d in range(max(depth, default=0), 0, -1)]
-    width = max((len(x) for x in per_level), default=1)
-    rows = np.full((len(per_level), width), n - 1, dtype=np.int64)
-    parents = np.full((len(per_level), width), n, dtype=np.int64)
-    for i, level in enumerate(per_level):
-        rows[i, : len(level)] = level
-        parents[i, : len(level)] = [body_parent[r + 1] for r in level]
-    return rows, parents
-
-
-@functools.lru_cache(maxsize=64)
-def selectors(body_parent: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One-hot forms of :func:`levels`: (L, W, B+1) node and parent bodies, (L, W, C+1) rows.
-
-    Gathers and scatter-adds by these become small matrix products, which stay fast under
-    ``vmap`` (a batched scatter is a slow serial loop on CPU)."""
-    rows, parents = levels(body_parent)
-    n = len(body_parent)
+def _selectors(topo: Topology) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One-hot forms of the elimination schedule ``topo.levels``: (L, W, B+1) node and parent
+    bodies, (L, W, C+1) rows. Gathers and scatter-adds by these become small matrix products,
+    which stay fast under ``vmap`` (a batched scatter is a slow serial loop on CPU)."""
+    rows, parents = topo.levels
+    n = topo.n_bodies
     return np.eye(n + 1)[rows + 1], np.eye(n + 1)[parents], np.eye(n)[rows]
 
 
@@ -102,11 +84,11 @@ def _diag(pad):
     return pad[..., :, None] * jnp.eye(pad.shape[-1], dtype=pad.dtype)
 
 
-def solve(sys: TreeKKT, body_parent: tuple[int, ...], r: Float[Array, "B 6"], s_root: Float[Array, " m0"],
+def solve(sys: TreeKKT, topo: Topology, r: Float[Array, "B 6"], s_root: Float[Array, " m0"],
           s: Float[Array, "C m"]):
     """Solve the tree KKT system; returns ``v (B,6)``, ``lam_root (m0,)``, ``lam (C,m)``."""
-    n = len(body_parent)
-    rows, parents = levels(body_parent)
+    n = topo.n_bodies
+    rows, parents = topo.levels
     nj, m = sys.j_own.shape[0], sys.j_own.shape[1]
     dtype = r.dtype
     # Ghost node (body n, joint row nj): identity blocks, no coupling, zero rhs.
@@ -126,7 +108,7 @@ def solve(sys: TreeKKT, body_parent: tuple[int, ...], r: Float[Array, "B 6"], s_
               jnp.concatenate([a_up[rows], j_par[rows]], -2),  # (L, W, 6+m, 6)
               jnp.concatenate([a_down[rows], -jnp.swapaxes(j_par[rows], -1, -2)], -1))  # (L, W, 6, 6+m)
 
-    sel_node, sel_par, sel_row = selectors(body_parent)
+    sel_node, sel_par, sel_row = topo.derived(_selectors)
     take = lambda sel, x: jnp.einsum("wb,b...->w...", sel, x)  # x[index] as a product
     put = lambda sel, x: jnp.einsum("wb,w...->b...", sel, x)  # zeros.at[index].add(x)
 
@@ -159,12 +141,10 @@ def solve(sys: TreeKKT, body_parent: tuple[int, ...], r: Float[Array, "B 6"], s_
     return v[:n], x0[6:], lam[:nj]
 
 
-def matvec(sys: TreeKKT, body_parent: tuple[int, ...], v, lam_root, lam):
+def matvec(sys: TreeKKT, topo: Topology, v, lam_root, lam):
     """The system's left-hand side applied to ``(v, lam_root, lam)`` (for residuals)."""
-    n = len(body_parent)
-    child = np.arange(1, n)
-    parent = np.array(body_parent[1:], dtype=np.int64)
-    sel_c, sel_p = np.eye(n)[child], np.eye(n)[parent]  # (C, B) one-hot: no scatter under vmap
+    child, parent = topo.child, topo.parent
+    sel_c, sel_p = topo.sel_child, topo.sel_parent  # (C, B) one-hot: no scatter under vmap
     put = lambda sel, x: jnp.einsum("cb,c...->b...", sel, x)
     mv = lambda a, x: jnp.einsum("...ij,...j->...i", a, x)
     mtv = lambda a, x: jnp.einsum("...ji,...j->...i", a, x)
@@ -174,3 +154,91 @@ def matvec(sys: TreeKKT, body_parent: tuple[int, ...], v, lam_root, lam):
     top = top.at[0].add(-mtv(sys.j_root, lam_root))
     bottom = mv(sys.j_own, v[child]) + mv(sys.j_par, v[parent]) + sys.pad * lam
     return top, mv(sys.j_root, v[0]), bottom
+
+
+# ---------------------------------------------------------------- the solver strategy
+
+
+def tree_constraints(model, driven: tuple[int, ...], rot, free_root: bool):
+    """Rows of ``constraints.full_constraints`` grouped by owner: the root's rows and, per
+    non-root body, its ball joint's 3 rows followed (when any joint is driven) by 3 driven-joint
+    rows or 3 padding rows. Returns ``(j_root, j_own, j_par, pad)``."""
+    dtype = rot.dtype
+    eye = jnp.eye(3, dtype=dtype)
+    zero3 = jnp.zeros((3, 3), dtype)
+    r0 = root_lever(model, rot)
+    j_root = jnp.block([[eye, -skew(r0)], [zero3, eye]])[: 0 if free_root else 6]
+    j_par, j_own = joint_jacobian_blocks(model, rot)
+    nj = model.n_bodies - 1
+    pad = jnp.zeros((nj, 3), dtype)
+    if driven:
+        is_drv = np.zeros((nj, 1, 1))
+        is_drv[np.array(driven) - 1] = 1.0
+        ang = jnp.asarray(is_drv) * jnp.concatenate([jnp.zeros((3, 3), dtype), eye], -1)
+        j_own = jnp.concatenate([j_own, ang], 1)
+        j_par = jnp.concatenate([j_par, -ang], 1)
+        pad = jnp.concatenate([pad, jnp.asarray(1.0 - is_drv[:, :, 0]) * jnp.ones((nj, 3), dtype)], 1)
+    return j_root, j_own, j_par, pad
+
+
+def split_rows(n_bodies: int, driven, values: Float[Array, " nc"], free_root: bool):
+    """A vector over the rows of ``constraints.full_constraints`` in tree layout (root, (C, m))."""
+    m0 = 0 if free_root else 6
+    nj = n_bodies - 1
+    root, joints = values[:m0], values[m0:m0 + 3 * nj].reshape(nj, 3)
+    if driven:
+        extra = jnp.zeros((nj, 3), values.dtype).at[np.array(driven) - 1].set(values[m0 + 3 * nj:].reshape(-1, 3))
+        joints = jnp.concatenate([joints, extra], 1)
+    return root, joints
+
+
+def join_rows(driven, root, joints):
+    """Inverse of :func:`split_rows` (padding rows dropped)."""
+    out = [root, joints[:, :3].reshape(-1)]
+    if driven:
+        out.append(joints[np.array(driven) - 1, 3:].reshape(-1))
+    return jnp.concatenate(out)
+
+
+class TreeSystem(eqx.Module):
+    """Eq. 2 at one state in tree layout, with what maps its rows to ``full_constraints``."""
+
+    kkt: TreeKKT
+    topo: Topology = eqx.field(static=True)
+    driven: tuple[int, ...] = eqx.field(static=True)
+    free_root: bool = eqx.field(static=True)
+
+    def split(self, values):
+        return split_rows(self.topo.n_bodies, self.driven, values, self.free_root)
+
+
+class TreeSolver(KKTSolver):
+    """Eq. 2 and each Newton step of post-stabilization by block elimination along the tree."""
+
+    tree_blocks = True
+
+    def assemble(self, model, cfg, rot, inertia, stiff, h):
+        g_diag, g_up, g_down = stiff.g_blocks(h)
+        kkt = TreeKKT(mass_blocks(model, inertia) - embed_angular(g_diag), -embed_angular(g_up),
+                      -embed_angular(g_down), *tree_constraints(model, cfg.driven, rot, cfg.free_root))
+        return TreeSystem(kkt, model.topology, cfg.driven, cfg.free_root)
+
+    def solve(self, system, r, b):
+        v, lam_root, lam = solve(system.kkt, system.topo, r, *system.split(b))
+        return v, (lam_root, lam)
+
+    def multipliers(self, system, r, b, v, aux):
+        s_root, s_joint = system.split(b)
+        top, bot_root, bot = matvec(system.kkt, system.topo, v, *aux)
+        res = jnp.concatenate([(top - r).reshape(-1), bot_root - s_root, (bot - s_joint).reshape(-1)])
+        rhs_norm = jnp.sqrt(jnp.sum(r**2) + jnp.sum(s_root**2) + jnp.sum(s_joint**2))
+        return join_rows(system.driven, *aux), jnp.linalg.norm(res) / jnp.maximum(rhs_norm, 1e-300)
+
+    def projection_step(self, model, cfg, rot, c):
+        # [M -J^T; J 0][dx; mu] = [0; -C]: the same projection, dx = M^-1 J^T mu, J dx = -C.
+        zero = jnp.zeros((model.n_bodies - 1, 6, 6), rot.dtype)
+        kkt = TreeKKT(mass_blocks(model, world_inertia(model, rot)), zero, zero,
+                      *tree_constraints(model, cfg.driven, rot, cfg.free_root))
+        c_root, c_joint = split_rows(model.n_bodies, cfg.driven, c, cfg.free_root)
+        delta, _, _ = solve(kkt, model.topology, jnp.zeros((model.n_bodies, 6), rot.dtype), -c_root, -c_joint)
+        return delta

@@ -1,0 +1,407 @@
+"""Every table of a config file, parsed in one place into the specs of :mod:`neuromotor.config.specs`.
+
+Errors are :class:`~neuromotor.errors.ConfigError` naming the file and the field; unknown keys
+are refused. Defaults come from the spec classes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+
+import numpy as np
+
+from neuromotor.config.fields import Fields, read_toml, resolve
+from neuromotor.config.specs import (
+    CONTROLLERS, EXPERIMENT_KINDS, FEATURE_NAMES, JACOBIANS, PERTURBATION_KINDS, PULSE_SHAPES, SEXES, SOLVERS,
+    TARGET_KINDS, BallSpec, ExperimentSpec, FeatureTarget, FitSpec, FitTargetSpec, GainSetting, PerturbationSpec,
+    SimulationConfig, SolverOptions, Surrogate, SweepSpec, default,
+)
+from neuromotor.errors import ConfigError
+
+TABLES = ("fit", "sweep", "experiment", "ball")  # top-level tables beside [sim], [gains], [[perturbation]]
+
+
+# ----------------------------------------------------------------------------- simulation
+
+
+def parse_perturbation(table, where: str, source: str) -> PerturbationSpec:
+    f = Fields(table, where, source)
+    d = lambda name: default(PerturbationSpec, name)
+    kind = f.choice("kind", d("kind"), PERTURBATION_KINDS)
+    body = f.get("body")
+    if not isinstance(body, str):
+        f.fail("body", f"must be a body (joint) name, got {body!r}")
+    spec = PerturbationSpec(
+        kind=kind, body=body,
+        point=f.vector("point", None) if "point" in table else None,
+        direction=f.vector("direction", d("direction")),
+        magnitude=f.required("magnitude", f.number("magnitude", None, nonneg=True)),
+        start=f.number("start", d("start"), nonneg=True),
+        duration=f.number("duration", d("duration"), positive=True),
+        shape=f.choice("shape", d("shape"), PULSE_SHAPES),
+    )
+    if not any(spec.direction):
+        f.fail("direction", "must be non-zero")
+    f.done()
+    return spec
+
+
+def _ball_velocity(f: Fields, table: dict) -> dict:
+    """velocity, or speed with exactly one of direction / target."""
+    given = [k for k in ("velocity", "speed", "direction", "target") if k in table]
+    if "velocity" in table:
+        if len(given) > 1:
+            f.fail("velocity", f"give either velocity or speed with direction/target, not {given}")
+        return {"velocity": f.vector("velocity", None)}
+    out = {"speed": f.required("speed", f.number("speed", None, nonneg=True),
+                               "is required (or give velocity = [vx, vy, vz])")}
+    if ("direction" in table) == ("target" in table):
+        f.fail("direction", "give exactly one of direction (a vector) or target (a body name)")
+    if "direction" in table:
+        out["direction"] = f.nonzero_vector("direction", None)
+    else:
+        target = f.get("target")
+        if not isinstance(target, str):
+            f.fail("target", f"must be a body (joint) name, got {target!r}")
+        out["target"] = target
+    return out
+
+
+def parse_ball(table, source: str) -> BallSpec:
+    """The ``[ball]`` table; errors name the field."""
+    f = Fields(table, "ball", source)
+    d = lambda name: default(BallSpec, name)
+    if "position" not in table:
+        f.fail("position", "is required")
+    out = {"position": f.vector("position", None)}
+    for key, rule in (("radius", "positive"), ("mass", "positive"), ("launch", "nonneg"), ("restitution", "nonneg"),
+                      ("friction", "nonneg"), ("restitution_threshold", "nonneg"), ("ground_height", None)):
+        out[key] = f.number(key, d(key), **({rule: True} if rule else {}))
+    out["ground"] = f.boolean("ground", d("ground"))
+    if out["restitution"] > 1.0:
+        f.fail("restitution", f"must be in [0, 1], got {out['restitution']!r}")
+    for key, low in (("friction_directions", 4), ("max_contacts", 1), ("pgs_iterations", 1)):
+        out[key] = f.integer(key, d(key), low)
+    out.update(_ball_velocity(f, table))
+    f.done()
+    return BallSpec(**out)
+
+
+def _body_fields(top: Fields, base_dir) -> dict:
+    """Top-level keys: the clip and the body model."""
+    from neuromotor.model.anatomy import UNIT_CHOICES
+
+    clip = top.path("clip", None, base_dir)
+    units = top.get("units", "auto")
+    if not (units == "auto" or (isinstance(units, str) and units in UNIT_CHOICES)
+            or (isinstance(units, (int, float)) and not isinstance(units, bool) and math.isfinite(units)
+                and units > 0)):
+        top.fail("units", f"must be auto, {', '.join(UNIT_CHOICES)} or a positive number of metres per "
+                          f"file unit, got {units!r}")
+    up = top.choice("up_axis", "auto", ("auto", 0, 1, 2))
+    stature = top.number("stature", None, positive=True)
+    if stature is not None and not 0.3 <= stature <= 3.0:
+        top.fail("stature", f"must be a stature in metres between 0.3 and 3, got {stature!r}")
+    return dict(clip=None if clip is None else str(clip), units=units, up_axis=None if up == "auto" else int(up),
+                stature=stature, body_mass=top.number("body_mass", None, positive=True),
+                sex=top.choice("sex", default(SimulationConfig, "sex"), SEXES),
+                simulate_extremities=top.boolean("simulate_extremities", False))
+
+
+def _sim_fields(top: Fields) -> dict:
+    """The ``[sim]`` and ``[gains]`` tables."""
+    d = lambda name: default(SimulationConfig, name)
+    sim = top.sub("sim")
+    out = dict(h=sim.number("h", d("h"), positive=True), start=sim.number("start", d("start"), nonneg=True),
+               duration=sim.number("duration", None, positive=True), implicit=sim.boolean("implicit", d("implicit")),
+               driven_joints=sim.string_list("driven_joints", []))
+    steps = sim.get("stabilization_steps", d("stabilization_steps"))
+    if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 5:
+        sim.fail("stabilization_steps", f"must be an integer from 1 to 5, got {steps!r}")
+    out["stabilization_steps"] = steps
+    sim.done()
+    gains = top.sub("gains")
+    for key in ("ks", "kd", "tau_floor"):
+        out[key] = gains.number(key, d(key), nonneg=True)
+    gains.done()
+    return out
+
+
+def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> SimulationConfig:
+    """The simulation of a config: top level, ``[sim]``, ``[gains]``, ``[[perturbation]]``, ``[ball]``."""
+    top = Fields(data, "", source)
+    fields = _body_fields(top, base_dir)
+    fields.update(_sim_fields(top))
+    perts = top.get("perturbation", [])
+    if not isinstance(perts, list):
+        top.fail("perturbation", "must be an array of tables ([[perturbation]])")
+    fields["perturbations"] = [parse_perturbation(p, f"perturbation[{i}]", source) for i, p in enumerate(perts)]
+    if "ball" in data:
+        fields["ball"] = parse_ball(top.get("ball"), source)
+    top.done(allowed_tables=TABLES)
+    return SimulationConfig(source=source, **fields)
+
+
+def load_simulation_config(path) -> SimulationConfig:
+    path = pathlib.Path(path)
+    return simulation_config(read_toml(path), str(path), path.parent)
+
+
+# ----------------------------------------------------------------------------- gains
+
+
+def gain_settings(f: Fields, key: str, cfg: SimulationConfig) -> list[GainSetting] | None:
+    """``[[<table>.<key>]]`` tables of explicit controllers (label, controller, ks, kd)."""
+    tables = f.tables(key, f.name(key))
+    if tables is None:
+        return None
+    out = []
+    for i, t in enumerate(tables):
+        g = Fields(t, f"{f.name(key)}[{i}]", f.source)
+        out.append(GainSetting(g.number("ks", cfg.ks, nonneg=True), g.number("kd", cfg.kd, nonneg=True),
+                               g.choice("controller", "neuromotor", CONTROLLERS), str(g.get("label", ""))))
+        g.done()
+    return out
+
+
+def read_fitted(value, source: str = "fitted") -> tuple[float, float]:
+    """(ks, kd) from ``[ks, kd]`` or a JSON file holding ``ks`` and ``kd`` (at any nesting)."""
+    if isinstance(value, (list, tuple)) and len(value) == 2:
+        return float(value[0]), float(value[1])
+    path = pathlib.Path(value)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{source}: cannot read the fitted gains from {path}: {e}") from None
+
+    def find(d):
+        if isinstance(d, dict):
+            if isinstance(d.get("ks"), (int, float)) and isinstance(d.get("kd"), (int, float)):
+                return float(d["ks"]), float(d["kd"])
+            for v in d.values():
+                hit = find(v)
+                if hit:
+                    return hit
+        return None
+
+    hit = find(data)
+    if hit is None:
+        raise ConfigError(f"{source}: {path} holds no numeric 'ks' and 'kd'")
+    return hit
+
+
+# ----------------------------------------------------------------------------- sweep
+
+
+def output_dir(path: str, base_dir) -> pathlib.Path:
+    """An output folder: relative to the config's folder (resolved), or as given."""
+    out = pathlib.Path(path)
+    if base_dir is not None and not out.is_absolute():
+        out = (pathlib.Path(base_dir) / out).resolve()
+    return out
+
+
+def _sweep_magnitudes(f: Fields, cfg: SimulationConfig) -> tuple[str, list[float]]:
+    """The kind of sweep (force pulse or ball speed) and its magnitudes."""
+    if cfg.ball is not None:
+        if cfg.perturbations:
+            raise ConfigError(f"{cfg.source}: field 'perturbation': a sweep of a [ball] config varies the ball speed "
+                              "(sweep.magnitudes in m/s); remove the [[perturbation]] tables, or the [ball] "
+                              "table to sweep the force pulse")
+        for key in ("bodies", "directions", "starts"):
+            if key in f.table:
+                f.fail(key, "does not apply to a ball sweep: sweep.magnitudes are ball speeds (m/s); "
+                            "aim and launch time come from [ball]")
+        ball = cfg.ball
+        speed = float(np.linalg.norm(ball.velocity)) if ball.velocity is not None else ball.speed
+        mags = f.number_list("magnitudes", [speed], nonneg=True)
+        if ball.target is not None and any(m <= 0 for m in mags):
+            f.fail("magnitudes", "ball speeds must be > 0 when the ball aims at a target (ball.target)")
+        return "ball", mags
+    if not cfg.perturbations:
+        raise ConfigError(f"{cfg.source}: field 'perturbation' is required: a sweep varies perturbation[0] "
+                          "(or give a [ball] table to sweep the ball speed)")
+    return "force", f.number_list("magnitudes", [cfg.perturbations[0].magnitude], nonneg=True)
+
+
+def _sweep_axes(f: Fields) -> dict:
+    """Bodies, directions and start times of the grid (None: perturbation[0]'s)."""
+    bodies = f.get("bodies", None)
+    if bodies is not None and (not isinstance(bodies, list) or not bodies
+                               or not all(isinstance(b, str) for b in bodies)):
+        f.fail("bodies", f"must be a non-empty list of body names, got {bodies!r}")
+    directions = f.get("directions", None)
+    if directions is not None:
+        ok = isinstance(directions, list) and directions and all(
+            isinstance(d, list) and len(d) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                        for x in d) and any(d) for d in directions)
+        if not ok:
+            f.fail("directions", f"must be a non-empty list of non-zero [x, y, z], got {directions!r}")
+    return dict(bodies=bodies, directions=[list(map(float, d)) for d in directions] if directions else None,
+                starts=f.number_list("starts", None, nonneg=True, allow_range=False))
+
+
+def _sweep_gains(f: Fields, cfg: SimulationConfig) -> list[GainSetting]:
+    """``[[sweep.gains]]`` or the product of the ``ks`` and ``kd`` lists."""
+    ks = f.number_list("ks", [cfg.ks], nonneg=True)
+    kd = f.number_list("kd", [cfg.kd], nonneg=True)
+    if "gains" in f.table and ("ks" in f.table or "kd" in f.table):
+        f.fail("gains", "give either [[sweep.gains]] tables or ks/kd lists, not both")
+    explicit = gain_settings(f, "gains", cfg)
+    return explicit if explicit is not None else [GainSetting(a, b) for a in ks for b in kd]
+
+
+def _sweep_fitted(f: Fields, base_dir) -> tuple[float, float] | None:
+    fitted = f.get("fitted", None)
+    if fitted is None:
+        return None
+    if isinstance(fitted, str):
+        return read_fitted(str(resolve(fitted, base_dir)), f"{f.source}: field 'sweep.fitted'")
+    if isinstance(fitted, list) and len(fitted) == 2 and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) for x in fitted):
+        return read_fitted(fitted)
+    f.fail("fitted", f"must be a JSON path or [ks, kd], got {fitted!r}")
+
+
+def sweep_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> SweepSpec:
+    """The ``[sweep]`` table of a config (layout in :mod:`neuromotor.studies.sweep`)."""
+    f = Fields(data.get("sweep", {}), "sweep", cfg.source)
+    kind, mags = _sweep_magnitudes(f, cfg)
+    axes = _sweep_axes(f)
+    gains = _sweep_gains(f, cfg)
+    chunk = f.integer("chunk", default(SweepSpec, "chunk"), 1, "must be a positive integer")
+    inner = f.integer("inner_batch", default(SweepSpec, "inner_batch"), 1, "must be a positive integer")
+    out = f.string("output", None, "a path string")
+    fitted = _sweep_fitted(f, base_dir)
+    f.done()
+    output = None if out is None else output_dir(out, base_dir)
+    return SweepSpec(mags, gains, chunk=chunk, inner_batch=inner, output=output, fitted=fitted, kind=kind, **axes)
+
+
+def load_sweep_config(path) -> tuple[SimulationConfig, SweepSpec]:
+    path = pathlib.Path(path)
+    data = read_toml(path)
+    cfg = simulation_config(data, str(path), path.parent)
+    return cfg, sweep_spec(data, cfg, path.parent)
+
+
+# ----------------------------------------------------------------------------- experiment
+
+
+def experiment_spec(data: dict, cfg: SimulationConfig, base_dir=None,
+                    default_kind: str | None = None) -> ExperimentSpec:
+    """The ``[experiment]`` table (layout in :mod:`neuromotor.studies.experiments`)."""
+    f = Fields(data.get("experiment", {}), "experiment", cfg.source)
+    d = lambda name: default(ExperimentSpec, name)
+    kind = f.choice("kind", default_kind, EXPERIMENT_KINDS)
+    out = f.string("output", f"out/exp_{kind}", "a path string")
+    frames = f.integer("frames", d("frames"), 1, "must be a positive integer")
+    video = f.get("video", d("video"))
+    if not isinstance(video, str) or (video and not video.endswith((".mp4", ".gif"))):
+        f.fail("video", f"must be a file name ending .mp4 or .gif, or \"\", got {video!r}")
+    arm = tuple(f.string_list("arm", list(d("arm"))))
+    mags = f.number_list("magnitudes", None, nonneg=True)
+    controllers = gain_settings(f, "controller", cfg)
+    f.done()
+    if not cfg.perturbations:
+        raise ConfigError(f"{cfg.source}: field 'perturbation' is required: every experiment hits the character")
+    return ExperimentSpec(kind, output_dir(out, base_dir), frames, video, arm,
+                          d("controllers") if controllers is None else tuple(controllers),
+                          None if mags is None else tuple(mags))
+
+
+def load_experiment(path, default_kind: str | None = None) -> tuple[SimulationConfig, ExperimentSpec]:
+    path = pathlib.Path(path)
+    data = read_toml(path)
+    cfg = simulation_config(data, str(path), path.parent)
+    return cfg, experiment_spec(data, cfg, path.parent, default_kind)
+
+
+# ----------------------------------------------------------------------------- fit
+
+
+def _fit_window(f: Fields):
+    window = f.get("window")
+    if window is not None and (not isinstance(window, list) or len(window) != 2 or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in window)):
+        f.fail("window", f"must be [t0, t1] in clip seconds, got {window!r}")
+    return None if window is None else tuple(window)
+
+
+def _feature_case(case, i: int, source: str) -> dict:
+    """One ``[[fit.target.case]]``: feature name -> :class:`FeatureTarget`."""
+    c = Fields(case, f"fit.target.case[{i}]", source)
+    row = {}
+    for feat in FEATURE_NAMES:
+        if c.get(feat) is None:
+            continue
+        g = c.sub(feat)
+        value = g.required("value", g.number("value", None))
+        sd = g.required("sd", g.number("sd", None, positive=True),
+                        "is required (the residual is (simulated - value) / sd)")
+        cite = g.get("source", "")
+        if not isinstance(cite, str) or not cite.strip():
+            g.fail("source", "is required: cite where the number comes from, or say it is illustrative")
+        g.done()
+        row[feat] = FeatureTarget(value, sd, cite)
+    c.done()
+    if not row:
+        c.fail(FEATURE_NAMES[0], f"one of {list(FEATURE_NAMES)} is required")
+    return row
+
+
+def _feature_target(t: Fields, n_perturbations: int) -> FitTargetSpec:
+    d = lambda name: default(Surrogate, name)
+    dofs = tuple(t.string_list("dofs", []))
+    surrogate = Surrogate(beta=t.number("beta", d("beta"), positive=True),
+                          width=t.number("width", d("width"), positive=True),
+                          fraction=t.number("recovery_fraction", d("fraction"), positive=True),
+                          floor_deg=t.number("recovery_floor_deg", d("floor_deg"), nonneg=True),
+                          accel_beta=t.number("accel_beta", d("accel_beta"), positive=True))
+    cases = t.get("case", [])
+    if not isinstance(cases, list) or not cases:
+        t.fail("case", "must be one or more [[fit.target.case]] tables (one per [[perturbation]])")
+    t.done()
+    if len(cases) != n_perturbations:
+        t.fail("case", f"has {len(cases)} entries but there are {n_perturbations} [[perturbation]] entries")
+    rows = tuple(_feature_case(c, i, t.source) for i, c in enumerate(cases))
+    return FitTargetSpec("features", names=dofs, surrogate=surrogate, cases=rows)
+
+
+def _trajectory_target(t: Fields, kind: str, base_dir) -> FitTargetSpec:
+    file = t.get("file")
+    if not isinstance(file, str):
+        t.fail("file", f"must be the path of an NPZ or CSV target, got {file!r}")
+    names = tuple(t.string_list("dofs" if kind == "joint_angles" else "bodies", []))
+    unit = t.choice("angle_unit", default(FitTargetSpec, "angle_unit"), ("rad", "deg"))
+    weights = t.get("weights", {})
+    if not isinstance(weights, dict):
+        t.fail("weights", f"must be a table of name = weight, got {weights!r}")
+    t.done()
+    return FitTargetSpec(kind, resolve(file, base_dir), names, unit, dict(weights))
+
+
+def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
+    """The ``[fit]`` table (layout in docs/fitting.md)."""
+    source = cfg.source
+    if "fit" not in data:
+        raise ConfigError(f"{source}: a fit config needs a [fit] table")
+    f = Fields(data["fit"], "fit", source)
+    d = lambda name: default(SolverOptions, name)
+    solver = f.choice("solver", default(FitSpec, "solver"), SOLVERS)
+    opts = SolverOptions(max_steps=int(f.number("max_steps", d("max_steps"), positive=True)),
+                         rtol=f.number("rtol", d("rtol"), positive=True),
+                         atol=f.number("atol", d("atol"), positive=True),
+                         gtol=f.number("gtol", d("gtol"), positive=True))
+    jacobian = f.choice("jacobian", default(FitSpec, "jacobian"), JACOBIANS)
+    window = _fit_window(f)
+    t = Fields(f.get("target", None) or f.fail("target", "is required ([fit.target] table)"), "fit.target", source)
+    f.done()
+    kind = t.choice("kind", None, TARGET_KINDS)
+    if kind == "features":
+        target = _feature_target(t, len(cfg.perturbations))
+    else:
+        target = _trajectory_target(t, kind, base_dir)
+    return FitSpec(target, solver, opts, jacobian, window)

@@ -1,0 +1,297 @@
+"""The typed, frozen specs that a config file becomes (see :mod:`neuromotor.config.parse`).
+
+Every default is written here once; the parser reads it from the field, and a changed copy is
+``dataclasses.replace(spec, field=value)``. :class:`PerturbationSpec` and :class:`BallSpec`
+also read like the dicts they replace (``spec["body"]``, ``spec.get("point")``, ``dict(spec)``),
+so code that indexes a perturbation by key keeps working.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import pathlib
+from collections.abc import Mapping
+from typing import ClassVar
+
+from neuromotor.physics.contact.ball import make_ball
+from neuromotor.physics.contact.detection import ContactSettings
+from neuromotor.physics.control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
+from neuromotor.studies.metrics import RECOVERY_FLOOR_DEG, RECOVERY_FRACTION
+
+PERTURBATION_KINDS = ("force", "impulse")
+PULSE_SHAPES = ("square", "half_sine", "triangle")
+SEXES = ("average", "male", "female")
+CONTROLLERS = ("neuromotor", "pd")  # the paper's model, or the high-gain PD tracker
+SOLVERS = ("optimistix_lm", "optimistix_gn", "optimistix_bfgs", "jaxopt_lm", "jaxopt_lbfgs")
+JACOBIANS = ("forward", "reverse")
+TARGET_KINDS = ("joint_angles", "body_positions", "features")
+FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg",
+                 "peak_acceleration_deg_s2")
+EXPERIMENT_KINDS = ("arm", "full_body", "contrast")
+
+
+def default(cls, name: str):
+    """The default of field ``name`` of dataclass ``cls`` (the one place it is written)."""
+    f = cls.__dataclass_fields__[name]
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+
+
+class _KeyView(Mapping):
+    """Read access by key, like the dict the spec replaces; ``_optional`` keys are absent
+    while None (a ball given by velocity has no ``speed`` key)."""
+
+    _optional: ClassVar[tuple[str, ...]] = ()
+
+    def _keys(self) -> list[str]:
+        return [f.name for f in dataclasses.fields(self)
+                if not (f.name in self._optional and getattr(self, f.name) is None)]
+
+    def __getitem__(self, key):
+        if key not in self._keys():
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def __iter__(self):
+        return iter(self._keys())
+
+    def __len__(self) -> int:
+        return len(self._keys())
+
+    def __eq__(self, other):
+        return isinstance(other, Mapping) and dict(self) == dict(other)
+
+    __hash__ = None
+
+
+@dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
+class PerturbationSpec(_KeyView):
+    """One ``[[perturbation]]``: a force pulse or an impulse at a point on a body."""
+
+    kind: str = "force"  # force | impulse
+    body: str  # a body (joint) name, or a segment keyword such as chest
+    point: list[float] | None = None  # body frame, m, from the joint origin; None: the body's COM
+    direction: list[float] = dataclasses.field(default_factory=lambda: [1.0, 0.0, 0.0])  # world
+    magnitude: float  # N (force) or N s (impulse)
+    start: float = 1.0  # s, clip time
+    duration: float = 0.1  # s (force only)
+    shape: str = "half_sine"  # square | half_sine | triangle
+
+    @classmethod
+    def of(cls, value) -> "PerturbationSpec":
+        return value if isinstance(value, cls) else cls(**dict(value))
+
+    @property
+    def span(self) -> float:
+        """Seconds it acts (an impulse: none; callers use one step)."""
+        return self.duration if self.kind == "force" else 0.0
+
+
+DEFAULT_HIT = PerturbationSpec(
+    kind="force",
+    body="chest",  # a segment keyword: Chest2 on the embedded clip, the same place on any rig
+    point=[0.0, 0.1, 0.0],
+    direction=[0.0, 0.0, 1.0],
+    magnitude=400.0,
+    start=1.0,
+    duration=0.1,
+    shape="half_sine",
+)
+
+
+_BALL = inspect.signature(make_ball).parameters  # the ball's physical defaults live with the physics
+
+
+@dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
+class BallSpec(_KeyView):
+    """The ``[ball]`` table: a ball thrown at the character (see :mod:`neuromotor.physics.contact`).
+    Its velocity is ``velocity``, or ``speed`` along ``direction`` or aimed at ``target``."""
+
+    _optional: ClassVar[tuple[str, ...]] = ("velocity", "speed", "direction", "target")
+
+    radius: float = _BALL["radius"].default  # m
+    mass: float = _BALL["mass"].default  # kg
+    position: list[float]  # world centre at launch (m)
+    launch: float = _BALL["launch"].default  # s, clip time of release
+    restitution: float = _BALL["restitution"].default  # Newton's coefficient, 0..1
+    friction: float = _BALL["friction"].default  # Coulomb coefficient
+    restitution_threshold: float = ContactSettings.restitution_threshold  # m/s: slower impacts do not bounce
+    ground_height: float = ContactSettings.ground_height
+    ground: bool = ContactSettings.ground  # the ball also hits the ground plane
+    friction_directions: int = ContactSettings.friction_directions  # sides of the friction pyramid
+    max_contacts: int = ContactSettings.max_contacts  # nearest contact candidates solved per step
+    pgs_iterations: int = ContactSettings.pgs_iterations  # projected Gauss-Seidel sweeps
+    velocity: list[float] | None = None
+    speed: float | None = None  # m/s
+    direction: list[float] | None = None
+    target: str | None = None  # a body to aim at
+
+    @classmethod
+    def of(cls, value) -> "BallSpec | None":
+        return value if value is None or isinstance(value, cls) else cls(**dict(value))
+
+
+@dataclasses.dataclass(frozen=True)
+class GainSetting:
+    """One controller: the paper's model ("neuromotor") or the high-gain PD tracker ("pd") at
+    the gains (ks, kd). The one way gains are set: :func:`neuromotor.studies.gains.apply_gains`."""
+
+    ks: float
+    kd: float
+    controller: str = "neuromotor"
+    label: str = ""
+
+    @property
+    def name(self) -> str:
+        return self.label or f"{self.controller} ks={self.ks:g} kd={self.kd:g}"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SimulationConfig:
+    """The character, the step, the gains and the perturbations of one simulation."""
+
+    clip: str | None = None  # None: the embedded clip
+    units: str | float = "auto"
+    up_axis: int | None = None  # None: from the motion
+    stature: float | None = None
+    body_mass: float | None = None
+    sex: str = "average"
+    simulate_extremities: bool = False
+    h: float = 1.0 / 120.0
+    start: float = 0.0
+    duration: float | None = None  # None: to the clip's end
+    implicit: bool = True
+    driven_joints: list[str] = dataclasses.field(default_factory=list)
+    stabilization_steps: int = 2  # Newton steps of post-stabilization (SimConfig.stab_iters)
+    ks: float = DEFAULT_KS
+    kd: float = DEFAULT_KD
+    tau_floor: float = DEFAULT_TAU_FLOOR
+    perturbations: list[PerturbationSpec] = dataclasses.field(default_factory=list)
+    ball: BallSpec | None = None
+    source: str = "<defaults>"
+
+    def __post_init__(self):
+        object.__setattr__(self, "perturbations", [PerturbationSpec.of(p) for p in self.perturbations])
+        object.__setattr__(self, "ball", BallSpec.of(self.ball))
+
+    @property
+    def gains(self) -> GainSetting:
+        return GainSetting(self.ks, self.kd)
+
+    def with_gains(self, ks: float | None = None, kd: float | None = None) -> "SimulationConfig":
+        """The config at other gains (None keeps a gain)."""
+        return dataclasses.replace(self, ks=self.ks if ks is None else ks, kd=self.kd if kd is None else kd)
+
+    def mass_options(self):
+        from neuromotor.model.skeleton import MassModelOptions
+
+        return MassModelOptions(body_mass=self.body_mass, sex=self.sex,
+                                simulate_extremities=self.simulate_extremities)
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverOptions:
+    """Stopping rules. optimistix: relative/absolute change of y and of the objective
+    (``rtol``, ``atol``). jaxopt: gradient norm below ``gtol`` times its value at the start."""
+
+    max_steps: int = 100
+    rtol: float = 1e-9
+    atol: float = 1e-10
+    gtol: float = 1e-9
+
+
+@dataclasses.dataclass(frozen=True)
+class Surrogate:
+    """Smoothing of the feature surrogates: ``beta`` (1/deg) sharpens the soft peak, ``width``
+    is the sigmoid width as a fraction of the threshold, the recovery threshold is
+    ``max(fraction * peak, floor_deg)``, ``accel_beta`` (s^2/deg) sharpens the peak acceleration."""
+
+    beta: float = 20.0
+    width: float = 0.1
+    fraction: float = RECOVERY_FRACTION
+    floor_deg: float = RECOVERY_FLOOR_DEG
+    accel_beta: float = 0.1
+
+
+@dataclasses.dataclass(frozen=True)
+class FeatureTarget:
+    """One feature of one case: the value, its standard deviation and where it comes from."""
+
+    value: float
+    sd: float
+    source: str
+
+    def as_dict(self) -> dict:
+        return {"value": self.value, "sd": self.sd, "source": self.source}
+
+
+@dataclasses.dataclass(frozen=True)
+class FitTargetSpec:
+    """``[fit.target]``: a trajectory file (joint angles, body positions) or feature values."""
+
+    kind: str
+    file: pathlib.Path | None = None
+    names: tuple[str, ...] = ()  # dofs (joint angles, features) or bodies; () = every column / DOF
+    angle_unit: str = "rad"
+    weights: dict = dataclasses.field(default_factory=dict)
+    surrogate: Surrogate = Surrogate()
+    cases: tuple[dict, ...] = ()  # features: per case, feature name -> FeatureTarget
+
+
+@dataclasses.dataclass(frozen=True)
+class FitSpec:
+    """The ``[fit]`` table."""
+
+    target: FitTargetSpec
+    solver: str = "optimistix_lm"
+    options: SolverOptions = SolverOptions()
+    jacobian: str = "forward"
+    window: tuple[float, float] | None = None  # clip seconds
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepSpec:
+    """The grid: every combination of gain setting, body, direction, start and magnitude."""
+
+    magnitudes: list[float]
+    gains: list[GainSetting]
+    bodies: list[str] | None = None  # None: the config's perturbation[0] value
+    directions: list[list[float]] | None = None
+    starts: list[float] | None = None
+    chunk: int = 64
+    inner_batch: int = 1
+    output: pathlib.Path | None = None
+    fitted: tuple[float, float] | None = None
+    kind: str = "force"  # "ball": magnitudes are ball speeds (m/s) of the config's [ball]
+
+    def runs(self, base) -> list[dict]:
+        """Flat list of run descriptions (dicts), gain setting outermost, magnitude innermost."""
+        out = []
+        for g in self.gains:
+            for body in self.bodies or [base["body"]]:
+                for d in self.directions or [base["direction"]]:
+                    for start in self.starts or [base["start"]]:
+                        for m in self.magnitudes:
+                            out.append(dict(gain=g, body=body, direction=list(d), start=float(start),
+                                            magnitude=float(m), duration=base["duration"]))
+        return out
+
+
+DEFAULT_CONTRAST = (
+    GainSetting(400.0, 20.0, "neuromotor", "feedforward + low-gain feedback (paper)"),
+    GainSetting(10000.0, 200.0, "pd", "high-gain PD tracker (Zordan & Hodgins)"),
+    GainSetting(400.0, 20.0, "pd", "PD tracker at the low gains"),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class ExperimentSpec:
+    """The ``[experiment]`` table: which of the paper's experiments, and its outputs."""
+
+    kind: str  # arm | full_body | contrast
+    output: pathlib.Path
+    frames: int = 6
+    video: str = "video.gif"
+    arm: tuple[str, ...] = ("LeftShoulder", "LeftElbow", "LeftWrist")
+    controllers: tuple[GainSetting, ...] = DEFAULT_CONTRAST
+    magnitudes: tuple[float, ...] | None = None

@@ -1,0 +1,99 @@
+"""The constraint rows of Eq. 2 and post-stabilization (Cline & Pai 2003).
+
+J stacks the rows of Eq. 1 (the driven root's 6 rows, unless the root floats free, and 3 rows
+per ball joint) and 3 rows per driven joint (relative angular velocity of child and parent).
+``b`` is their prescribed velocity (Eq. 2's second block row) and ``C(x)`` their position-level
+error. Post-stabilization projects positions back onto ``C(x) = 0`` in the metric of M,
+
+    (J M^-1 J^T) mu = -C(x),      x <- x (+) M^-1 J^T mu,
+
+by a fixed number of Newton steps (so the step stays differentiable in both modes); each Newton
+step is solved by the chosen solver (:meth:`~neuromotor.physics.solvers.base.KKTSolver.projection_step`).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from neuromotor.model.skeleton import Model
+from neuromotor.physics.system import constraint_error, constraint_jacobian, retract
+from neuromotor.rotations import quat_to_matrix, rotation_error
+
+
+class PoseTargets(eqx.Module):
+    """What post-stabilization projects onto: the driven root's pose and the driven joints'
+    relative rotations, at one grid time."""
+
+    root_origin: Float[Array, "3"]
+    root_rot: Float[Array, "3 3"]
+    rel_rot: Float[Array, "B 3 3"]  # each body's desired rotation in its parent's frame
+
+
+def constraint_count(model: Model, driven: tuple[int, ...], free_root: bool) -> int:
+    """Rows of :func:`full_constraints`."""
+    return model.n_constraints - (6 if free_root else 0) + 3 * len(driven)
+
+
+def full_constraints(model: Model, driven: tuple[int, ...], rot, free_root: bool = False) -> Float[Array, "nc 6B"]:
+    """J with extra rows for driven joints (relative angular velocity of child and parent);
+    without the 6 root rows when the root floats free."""
+    jac = constraint_jacobian(model, rot)[6 if free_root else 0:]
+    if not driven:
+        return jac
+    n = model.n_bodies
+    rows = jnp.zeros((3 * len(driven), 6 * n), rot.dtype)
+    eye = jnp.eye(3, dtype=rot.dtype)
+    for i, b in enumerate(driven):
+        p = model.body_parent[b]
+        rows = rows.at[3 * i:3 * i + 3, 6 * b + 3:6 * b + 6].set(eye)
+        rows = rows.at[3 * i:3 * i + 3, 6 * p + 3:6 * p + 6].set(-eye)
+    return jnp.concatenate([jac, rows], 0)
+
+
+def full_constraint_error(model: Model, driven: tuple[int, ...], pos, rot, targets: PoseTargets,
+                          free_root: bool = False) -> Float[Array, " nc"]:
+    """C(x) over the rows of :func:`full_constraints`."""
+    err = constraint_error(model, pos, rot, targets.root_origin, targets.root_rot)[6 if free_root else 0:]
+    if not driven:
+        return err
+    drv = jnp.array(driven)
+    par = jnp.array([model.body_parent[b] for b in driven])
+    target = rot[par] @ targets.rel_rot[drv]
+    extra = rotation_error(rot[drv], target).reshape(-1)
+    return jnp.concatenate([err, extra])
+
+
+def constraint_velocity(model: Model, driven: tuple[int, ...], rot, root_vel, root_omega, rel_omega,
+                        free_root: bool = False) -> Float[Array, " nc"]:
+    """b of Eq. 2: driven root origin velocity and angular velocity, driven joints' rates."""
+    b = jnp.zeros(model.n_constraints, rot.dtype)
+    b = b.at[0:3].set(root_vel).at[3:6].set(root_omega)[6 if free_root else 0:]
+    if not driven:
+        return b
+    par = jnp.array([model.body_parent[bb] for bb in driven])
+    extra = jnp.einsum("dij,dj->di", rot[par], rel_omega[jnp.array(driven)]).reshape(-1)
+    return jnp.concatenate([b, extra])
+
+
+def apply_inverse_mass(model: Model, rot, g: Float[Array, "... 6B"]) -> Float[Array, "... 6B"]:
+    """M^-1 g for generalized vectors (rows of g)."""
+    inv_m = 1.0 / model.mass
+    inv_i = rot @ jnp.linalg.inv(model.inertia) @ jnp.swapaxes(rot, -1, -2)
+    g = g.reshape(g.shape[:-1] + (model.n_bodies, 6))
+    lin = g[..., :3] * inv_m[:, None]
+    ang = jnp.einsum("bij,...bj->...bi", inv_i, g[..., 3:])
+    return jnp.concatenate([lin, ang], -1).reshape(g.shape[:-2] + (6 * model.n_bodies,))
+
+
+def post_stabilize(model: Model, cfg, solver, pos, quat, targets: PoseTargets):
+    """Project positions onto the constraint manifold by ``cfg.stab_iters`` Newton steps, each
+    ``dx = M^-1 J^T mu`` with ``J dx = -C(x)`` solved by ``solver``; full Newton (refactored at
+    every iterate). Returns the positions, orientations and the constraint error left."""
+    for _ in range(cfg.stab_iters):  # a fixed, small number of Newton steps (unrolled)
+        rot = quat_to_matrix(quat)
+        c = full_constraint_error(model, cfg.driven, pos, rot, targets, cfg.free_root)
+        pos, quat = retract(pos, quat, solver.projection_step(model, cfg, rot, c))
+    rot = quat_to_matrix(quat)
+    return pos, quat, full_constraint_error(model, cfg.driven, pos, rot, targets, cfg.free_root)

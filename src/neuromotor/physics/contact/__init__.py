@@ -1,0 +1,34 @@
+"""A flying ball hitting the character: contact as a linear complementarity problem (LCP).
+
+Section 4 of the paper handles contact as an LCP at the velocity level, together with the joint
+constraints (Cline 2002). This package adds one free rigid ball to the linearly implicit step
+of Eq. 2 and solves its contacts with the character's bodies and with the ground plane in the
+same step. One job per module:
+
+* :mod:`.ball` -- the ball (a solid sphere, every parameter an array leaf) and its state;
+* :mod:`.shapes` -- collision capsules fitted to the bodies' polyhedra;
+* :mod:`.detection` -- gaps, normals and tangent frames of the candidates (capsules, ground);
+* :mod:`.lcp` -- projected Gauss-Seidel for the LCP and for the gap projection;
+* :mod:`.step` -- the contact step: the ordinary step plus contact rows, in named stages;
+* :mod:`.rollout` -- the scan over steps with the ball's state beside the character's.
+
+The ball's place in a run (building it from a config, aiming, RUN.npz arrays, speed sweeps)
+is :mod:`neuromotor.studies.ball`; docs/contact.md describes the physics.
+"""
+
+from neuromotor.physics.contact.ball import Ball, BallState, initial_ball_state, make_ball, never_launched
+from neuromotor.physics.contact.detection import (ContactSettings, candidate_bodies, candidate_names, detect,
+                                                  tangent_basis)
+from neuromotor.physics.contact.lcp import project_polygon, solve_gap_projection, solve_lcp_pgs
+from neuromotor.physics.contact.rollout import (ContactRollout, batched_contact_rollout, check_contact_rollout,
+                                                contact_rollout, contact_rollout_jit)
+from neuromotor.physics.contact.shapes import Capsules, fit_capsules, segment_distances
+from neuromotor.physics.contact.step import ContactData, ContactInfo, ContactScene, contact_step
+
+__all__ = [
+    "Ball", "BallState", "Capsules", "ContactData", "ContactInfo", "ContactRollout", "ContactScene",
+    "ContactSettings", "batched_contact_rollout", "candidate_bodies", "candidate_names", "check_contact_rollout",
+    "contact_rollout", "contact_rollout_jit", "contact_step", "detect", "fit_capsules", "initial_ball_state",
+    "make_ball", "never_launched", "project_polygon", "segment_distances", "solve_gap_projection", "solve_lcp_pgs",
+    "tangent_basis",
+]

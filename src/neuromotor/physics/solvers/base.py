@@ -1,0 +1,65 @@
+"""The interface every solver of Eq. 2 implements, and the option that picks one.
+
+Eq. 2 is the saddle-point system
+
+    [ A   -J^T ] [ v+  ]   [ r ]        A = M - h D - h^2 K,
+    [ J    0   ] [ lam ] = [ b ]        r = M v + h (k - D v),
+
+and each Newton step of post-stabilization is the same shape with A = M, r = 0, b = -C(x). The
+step (:func:`neuromotor.physics.dynamics.step`) computes what is common -- controller inputs,
+K and D, r and b -- once; a solver only assembles its own form of the matrix and solves it:
+
+* :meth:`KKTSolver.assemble` -- the matrix at the current orientations, in the solver's layout;
+* :meth:`KKTSolver.solve` -- v+ for a right-hand side ``(r, b)``. The result is linear in
+  ``(r, b)``, so ``jax.vmap`` over extra right-hand sides (responses to unit contact impulses,
+  ``A^-1 [Jc^T; 0]``) reuses one factorization;
+* :meth:`KKTSolver.multipliers` -- lam and the relative residual of the whole of Eq. 2;
+* :meth:`KKTSolver.projection_step` -- one Newton step of post-stabilization.
+
+To add a solver: subclass :class:`KKTSolver` in a module of this package, add a member to
+:class:`Solver` and register the class in ``neuromotor.physics.solvers.SOLVERS``.
+"""
+
+from __future__ import annotations
+
+import abc
+import enum
+from typing import Any, ClassVar
+
+from jaxtyping import Array, Float
+
+
+class Solver(str, enum.Enum):
+    """Which solver of Eq. 2 a rollout uses (``SimConfig.solver``; the strings are accepted too)."""
+
+    NULLSPACE = "nullspace"  # v = S u over the joint-space basis, one small LU (fastest on a CPU)
+    TREE = "tree"  # linear-time block elimination along the body tree (Baraff 1996)
+    DENSE = "dense"  # one dense LU of the (6B + nc) matrix: the reference path
+
+    def __str__(self) -> str:
+        return self.value
+
+
+class KKTSolver(abc.ABC):
+    """One way to solve Eq. 2 and the post-stabilization projection (stateless)."""
+
+    # True: K and D come as 3x3 blocks on the body tree (``stiffness.StiffBlocks``); False: dense.
+    tree_blocks: ClassVar[bool]
+
+    @abc.abstractmethod
+    def assemble(self, model, cfg, rot, inertia, stiff, h: float) -> Any:
+        """The matrix of Eq. 2 (``A = M - h D - h^2 K`` and J) in this solver's layout (a pytree)."""
+
+    @abc.abstractmethod
+    def solve(self, system, r: Float[Array, "B 6"], b: Float[Array, " nc"]) -> tuple[Float[Array, "B 6"], Any]:
+        """``(v, aux)``: v+ of Eq. 2 for the right-hand side ``(r, b)``; ``aux`` is what
+        :meth:`multipliers` reuses."""
+
+    @abc.abstractmethod
+    def multipliers(self, system, r, b, v, aux) -> tuple[Float[Array, " nc"], Float[Array, ""]]:
+        """``(lam, residual)``: the constraint multipliers (rows of ``constraints.full_constraints``)
+        and the relative residual of both block rows of Eq. 2."""
+
+    @abc.abstractmethod
+    def projection_step(self, model, cfg, rot, c: Float[Array, " nc"]) -> Float[Array, "B 6"]:
+        """dx of least M-norm with ``J dx = -C``: one Newton step of post-stabilization."""

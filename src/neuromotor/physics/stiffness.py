@@ -1,0 +1,165 @@
+"""The stiff forces of Eq. 2 and their derivatives K = dk/dx and D = dk/dv.
+
+Only the stiff forces -- the muscle torques of Section 5.2 (:mod:`neuromotor.physics.control`)
+and the gyroscopic term -- depend on the state, and both are pure torques that depend on
+orientations and angular velocities only, so K and D live in the angular-angular blocks; K is
+taken over the position tangent space (3 translations and 3 world-frame rotations per body,
+rotations perturbed as ``exp(d) R``). Two representations, both by ``jax.jacfwd``:
+
+* :class:`StiffBlocks` (tree and null-space solvers): a joint's torque depends on its two bodies
+  only, so K and D are 3x3 blocks on the body tree -- the diagonal and the body/parent couplings.
+  K by ``jacfwd`` of the per-joint quaternion form of the torque along its 6 rotation tangents,
+  vmapped over joints; D in closed form (the torque is linear in the rate error). The sparsity is
+  exact, not an approximation.
+* :class:`DenseStiffness` (dense solver, the reference path): one ``jacfwd`` of the whole force
+  vector (rotation-matrix form of the torque) over all bodies.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from neuromotor.model.skeleton import Model
+from neuromotor.model.topology import Topology
+from neuromotor.physics.control import ControllerInputs, Gains, body_torques, joint_torque_q, joint_torques
+from neuromotor.physics.system import State, embed_angular, gyroscopic_forces
+from neuromotor.rotations import cross, mtv, mv, quat_exp, quat_mul, quat_to_matrix
+
+
+def muscle_and_gyro(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> Float[Array, " 6B"]:
+    """Stiff generalized forces: muscle torques (feedforward + feedback, Eq. 4 and Section 5.2)
+    and the gyroscopic term, in the rotation-matrix form."""
+    torque = body_torques(model, joint_torques(model, gains, inputs, rot, omega))
+    muscle = jnp.concatenate([jnp.zeros_like(torque), torque], -1).reshape(-1)
+    return gyroscopic_forces(model, rot, omega) + muscle
+
+
+def _as_forces(torque: Float[Array, "B 3"]) -> Float[Array, "B 6"]:
+    return jnp.concatenate([jnp.zeros_like(torque), torque], -1)
+
+
+class StiffBlocks(eqx.Module):
+    """K = dk/dx and D = dk/dv of the stiff torques, angular 3x3 blocks on the body tree."""
+
+    k: Float[Array, "B 3"]  # stiff torques per body (muscles and gyroscopic term)
+    k_diag: Float[Array, "B 3 3"]
+    k_up: Float[Array, "C 3 3"]  # d torque(child) / d rotation(parent)
+    k_down: Float[Array, "C 3 3"]  # d torque(parent) / d rotation(child)
+    d_diag: Float[Array, "B 3 3"]
+    d_up: Float[Array, "C 3 3"]
+    d_down: Float[Array, "C 3 3"]
+
+    def forces(self) -> Float[Array, "B 6"]:
+        return _as_forces(self.k)
+
+    def g_blocks(self, h: float):
+        """The blocks of ``G = h D + h^2 K`` (A = M - G in Eq. 2): diagonal, up, down."""
+        return (h * self.d_diag + h * h * self.k_diag, h * self.d_up + h * h * self.k_up,
+                h * self.d_down + h * h * self.k_down)
+
+    def damping_times(self, model: Model, v: Float[Array, "B 6"]) -> Float[Array, "B 6"]:
+        """D v."""
+        return _as_forces(tree_matvec(model.topology, self.d_diag, self.d_up, self.d_down, v[:, 3:]))
+
+
+class DenseStiffness(eqx.Module):
+    """The stiff forces, K and D as dense (6B,), (6B, 6B), (6B, 6B)."""
+
+    k: Float[Array, " 6B"]
+    kmat: Float[Array, "6B 6B"]
+    dmat: Float[Array, "6B 6B"]
+
+    def forces(self) -> Float[Array, "B 6"]:
+        return self.k.reshape(-1, 6)
+
+    def damping_times(self, model: Model, v: Float[Array, "B 6"]) -> Float[Array, "B 6"]:
+        return (self.dmat @ v.reshape(-1)).reshape(-1, 6)
+
+
+def tree_matvec(topo: Topology, diag: Float[Array, "B 3 3"], up: Float[Array, "C 3 3"],
+                down: Float[Array, "C 3 3"], w: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
+    """An angular block-tree matrix times w: diagonal, body <- parent and parent <- child blocks
+    (one-hot sums, no scatter under vmap)."""
+    c, p = topo.child, topo.parent
+    return (jnp.einsum("bij,bj->bi", diag, w) + jnp.einsum("cb,cij,cj->bi", topo.sel_child, up, w[p])
+            + jnp.einsum("cb,cij,cj->bi", topo.sel_parent, down, w[c]))
+
+
+def stiff_jacobians(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> DenseStiffness:
+    """k_stiff, K and D over all bodies by one dense ``jacfwd`` each (angular columns embedded
+    in the 6B layout)."""
+    n = model.n_bodies
+
+    def f(delta, w):
+        return muscle_and_gyro(model, gains, inputs, quat_to_matrix(quat_exp(delta)) @ rot, w)
+
+    zero = jnp.zeros((n, 3), rot.dtype)
+    embed = lambda m: embed_angular(m.reshape(6 * n, n, 3), (-1,)).reshape(6 * n, 6 * n)
+    kmat = jax.jacfwd(f, argnums=0)(zero, omega).reshape(6 * n, 3 * n)
+    dmat = jax.jacfwd(f, argnums=1)(zero, omega).reshape(6 * n, 3 * n)
+    return DenseStiffness(f(zero, omega), embed(kmat), embed(dmat))
+
+
+def _joint_jacobians(model: Model, gains: Gains, inputs: ControllerInputs, quat, omega):
+    """Per joint: its torque on the child and ``[dT/d rot_p, dT/d rot_c, dT/d w_c]`` (C, 3, 9)."""
+    topo = model.topology
+    c, p = topo.child, topo.parent
+    zero = jnp.zeros(6, quat.dtype)
+
+    def one(x, qp, qc, wp, wc, inp):
+        # x = [d_parent, d_child]: 6 tangents. The torque depends on w_child - w_parent, and
+        # linearly (given the rotations), so its damping block comes in closed form as aux.
+        torque, damping = joint_torque_q(gains, quat_mul(quat_exp(x[0:3]), qp), quat_mul(quat_exp(x[3:6]), qc),
+                                         wp, wc, inp)
+        return torque, (torque, damping)
+
+    def val_jac(qp, qc, wp, wc, inp):
+        k, (torque, damping) = jax.jacfwd(one, has_aux=True)(zero, qp, qc, wp, wc, inp)
+        return torque, jnp.concatenate([k, damping], -1)
+
+    return jax.vmap(val_jac)(quat[p], quat[c], omega[p], omega[c], inputs)
+
+
+def _gyro_jacobians(model: Model, quat, omega):
+    """The gyroscopic torque -w x (I w) of every body and its [d/d rot, d/d w] (B, 3, 6)."""
+
+    def gyro(x, q, ib):
+        r = quat_to_matrix(quat_mul(quat_exp(x[:3]), q))
+        return -cross(x[3:], mv(r, mv(ib, mtv(r, x[3:]))))
+
+    def gyro_val_jac(q, w, ib):
+        x = jnp.concatenate([jnp.zeros(3, q.dtype), w])
+        return gyro(x, q, ib), jax.jacfwd(gyro)(x, q, ib)
+
+    return jax.vmap(gyro_val_jac)(quat, omega, model.inertia)
+
+
+def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: State) -> StiffBlocks:
+    """The same K and D as :func:`stiff_jacobians`, as blocks on the body tree, plus the stiff
+    torques; orientations enter as quaternions, perturbed as ``exp(d) q`` (the tangent of Eq. 2)."""
+    topo = model.topology
+    tq, jac = _joint_jacobians(model, gains, inputs, state.quat, state.omega)
+    jac = jnp.concatenate([jac[..., :6], -jac[..., 6:9], jac[..., 6:9]], -1)
+    g, gj = _gyro_jacobians(model, state.quat, state.omega)
+    # Child rows get +dT, parent rows -dT; diagonal blocks gather both ends of every joint.
+    diag = lambda dp, dc: (jnp.einsum("cb,cij->bij", topo.sel_child, dc)
+                           - jnp.einsum("cb,cij->bij", topo.sel_parent, dp))
+    k_diag = gj[:, :, :3] + diag(jac[:, :, 0:3], jac[:, :, 3:6])
+    d_diag = gj[:, :, 3:] + diag(jac[:, :, 6:9], jac[:, :, 9:12])
+    torque = g + body_torques(model, tq)
+    return StiffBlocks(torque, k_diag, jac[:, :, 0:3], -jac[:, :, 3:6], d_diag, jac[:, :, 6:9], -jac[:, :, 9:12])
+
+
+def explicit_forces(model: Model, gains: Gains, inputs: ControllerInputs, state: State,
+                    tree: bool) -> StiffBlocks | DenseStiffness:
+    """The stiff forces with K = D = 0 (``SimConfig.implicit = False``), in either representation."""
+    k = muscle_and_gyro(model, gains, inputs, state.rot, state.omega)
+    n, dtype = model.n_bodies, k.dtype
+    if not tree:
+        zero = jnp.zeros((6 * n, 6 * n), dtype)
+        return DenseStiffness(k, zero, zero)
+    diag, cpl = jnp.zeros((n, 3, 3), dtype), jnp.zeros((n - 1, 3, 3), dtype)
+    return StiffBlocks(k.reshape(n, 6)[:, 3:], diag, cpl, cpl, diag, cpl, cpl)

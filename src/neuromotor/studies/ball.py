@@ -1,0 +1,207 @@
+"""A ball thrown at the character in a run: the ``[ball]`` table made into a ball (aimed at a
+body when it names a target), its perturbed and unperturbed contact rollouts and metrics, its
+part of RUN.npz, and a quick vmapped sweep over its speed.
+
+The physics (shapes, detection, LCP, the contact step and rollout) is
+:mod:`neuromotor.physics.contact`; :mod:`neuromotor.studies.simulate` calls this module for a
+config with a ``[ball]`` table.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from neuromotor.config import ConfigError
+from neuromotor.model.kinematics import body_poses
+from neuromotor.model.skeleton import Character, Model
+from neuromotor.physics.contact import (Ball, Capsules, ContactRollout, ContactSettings, batched_contact_rollout,
+                                        candidate_bodies, candidate_names, check_contact_rollout,
+                                        contact_rollout_jit, detect, fit_capsules, make_ball, never_launched)
+from neuromotor.rotations import quat_to_matrix
+from neuromotor.studies import metrics as mx
+
+
+class BallSetup(eqx.Module):
+    """What :func:`neuromotor.studies.simulate.prepare` keeps for a ``[ball]`` config."""
+
+    ball: Ball
+    capsules: Capsules
+    settings: ContactSettings = eqx.field(static=True)
+    target: int | None = eqx.field(static=True, default=None)  # body the ball is aimed at
+
+
+# ----------------------------------------------------------------------------- aiming
+
+
+@eqx.filter_jit
+def _com_at(model: Model, traj, body, t):
+    return body_poses(model, traj.q(t))[0][body]
+
+
+def aim_ball(model: Model, traj, position, speed: float, target_body: int, launch: float,
+             iterations: int = 20) -> np.ndarray:
+    """Unit launch direction u so that the ballistic path from ``position`` at ``speed``,
+    ``x(T) = position + speed u T + g T^2 / 2``, meets the target body's mocap COM at launch + T.
+
+    The flight time solves ``|target(launch + T) - position - g T^2 / 2| = speed T`` by fixed-point
+    iteration (a contraction for the throws of interest: target speed and g T << ball speed).
+    Raises ValueError when it does not converge (a ball too slow to reach the target)."""
+    position = np.asarray(position, np.float64)
+    g = np.asarray(model.gravity)
+    flight = previous = 0.0
+    for _ in range(iterations):
+        com = np.asarray(_com_at(model, traj, jnp.asarray(target_body), jnp.asarray(launch + flight, jnp.float64)))
+        d = com - position - 0.5 * g * flight**2
+        flight, previous = float(np.linalg.norm(d)) / speed, flight
+        if not flight < 1e6:  # running away: out of reach
+            break
+    # A ball too slow to reach the target makes the iteration diverge (or crawl): refuse it
+    # rather than aim at nothing (a miss of more than 1 mm along the path).
+    if not (math.isfinite(flight) and speed * abs(flight - previous) <= 1e-3):
+        raise ValueError(f"is too low: a ball at {speed:g} m/s cannot reach the target from {position.tolist()} "
+                         f"(the aim does not converge)")
+    return d / np.linalg.norm(d)
+
+
+# ----------------------------------------------------------------------------- the [ball] table
+
+
+def _aims(spec) -> bool:
+    """Whether the table aims the ball at a body; ValueError when its speed cannot."""
+    if "velocity" in spec or "target" not in spec:
+        return False
+    if not spec["speed"] > 0:
+        raise ValueError("must be > 0 to aim at a target")
+    return True
+
+
+def ball_from_spec(spec, model: Model, traj, target: int | None = None) -> Ball:
+    """The :class:`Ball` of a parsed ``[ball]`` table; aimed at body ``target`` when the table
+    names one. Raises ValueError when the aim is impossible (speed <= 0, or too slow to reach it)."""
+    if "velocity" in spec:
+        return make_ball(spec["radius"], spec["mass"], spec["position"], velocity=spec["velocity"],
+                         restitution=spec["restitution"], friction=spec["friction"], launch=spec["launch"])
+    direction = spec.get("direction")
+    if _aims(spec):
+        direction = aim_ball(model, traj, spec["position"], spec["speed"], target, spec["launch"])
+    return make_ball(spec["radius"], spec["mass"], spec["position"], speed=spec["speed"], direction=direction,
+                     restitution=spec["restitution"], friction=spec["friction"], launch=spec["launch"])
+
+
+def ball_setup(spec, character: Character, traj, body_index, source: str = "config") -> BallSetup:
+    """Build the ball from a parsed ``[ball]`` table (see :func:`neuromotor.config.parse_ball`);
+    ``body_index`` maps a body name to its index (raising ConfigError for an unknown one)."""
+    model = character.model
+    try:
+        target = body_index(spec["target"]) if _aims(spec) else None
+        ball = ball_from_spec(spec, model, traj, target)
+    except ConfigError:
+        raise
+    except ValueError as e:
+        raise ConfigError(f"{source}: field 'ball.speed' {e}") from None
+    settings = ContactSettings(
+        friction_directions=spec["friction_directions"], max_contacts=spec["max_contacts"],
+        pgs_iterations=spec["pgs_iterations"], restitution_threshold=spec["restitution_threshold"],
+        ground=spec["ground"], ground_height=spec["ground_height"])
+    return BallSetup(ball, fit_capsules(character), settings, target)
+
+
+def balls_at_speeds(setup, speeds) -> Ball:
+    """The config's ball at each speed (leading axis = speed): exactly the ball that
+    ``simulate.prepare`` builds for the config with ``ball.speed`` set to that speed. A ball
+    aimed at a ``target`` is re-aimed per speed (a slower ball needs a higher arc); a
+    ``direction`` or ``velocity`` keeps its direction. Raises ValueError for a speed that
+    cannot reach the target."""
+    spec = dict(setup.config.ball)
+    if "velocity" in spec:  # speed + direction of the given velocity
+        spec["direction"] = np.asarray(setup.ball.ball.direction).tolist()
+        del spec["velocity"]
+    balls = []
+    for s in speeds:
+        try:
+            balls.append(ball_from_spec(dict(spec, speed=float(s)), setup.model, setup.traj, setup.ball.target))
+        except ValueError as e:
+            raise ValueError(f"speed {float(s):g} m/s {e}") from None
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *balls)
+
+
+# ----------------------------------------------------------------------------- a run
+
+
+def ball_rollouts(setup, base_pulses, check: bool = True) -> tuple[ContactRollout, ContactRollout]:
+    """Perturbed (the ball flies) and unperturbed (the ball never launched, ``base_pulses``:
+    the config's pulses switched off) contact rollouts, with the same compiled function."""
+    bs, model = setup.ball, setup.model
+    pert = contact_rollout_jit(model, setup.gains, setup.pulses, setup.ref, setup.sim, bs.ball, bs.capsules,
+                               bs.settings)
+    base = contact_rollout_jit(model, setup.gains, base_pulses, setup.ref, setup.sim, never_launched(bs.ball),
+                               bs.capsules, bs.settings)
+    if check:
+        check_contact_rollout(model, base)
+        check_contact_rollout(model, pert)
+    return pert, base
+
+
+def ball_metrics(out: ContactRollout) -> dict:
+    """The metrics a ball adds to a run's: peak contact impulse and the first contact's time."""
+    hit = np.nonzero(np.asarray(out.contact.normal_impulse).max(-1) > 0)[0]
+    return {"ball_peak_impulse_Ns": float(jnp.max(jnp.linalg.norm(out.contact.impulse, axis=-1))),
+            "ball_first_contact_s": float(out.run.time[hit[0]]) if hit.size else None}
+
+
+def ball_arrays(setup, result) -> dict[str, np.ndarray]:
+    """The ball's part of RUN.npz: ``ball_pos`` (T,3), ``ball_quat``, ``ball_vel``,
+    ``ball_radius``, per contact candidate ``contact_impulse`` / ``contact_force`` (T,C,3, on
+    the ball, world; the body gets the opposite), ``contact_point`` (T,C,3, on the body),
+    ``contact_normal_impulse``, ``contact_gap`` (T,C), ``contact_body`` (C, -1 = ground),
+    ``contact_names`` (C)."""
+    out: ContactRollout = result.ball
+    bs: BallSetup = setup.ball
+    c = out.contact
+    impulse = np.asarray(c.impulse)
+    model = setup.model
+    # Closest points on the bodies (and the ground) to the ball, for drawing the force arrows.
+    points = np.asarray(jax.vmap(lambda p, q, centre: detect(model, bs.capsules, bs.settings, bs.ball.radius,
+                                                             centre, p, quat_to_matrix(q))[2])(
+        out.run.states.pos, out.run.states.quat, out.ball.pos))
+    return {
+        "ball_pos": np.asarray(out.ball.pos),
+        "ball_quat": np.asarray(out.ball.quat),
+        "ball_vel": np.asarray(out.ball.vel),
+        "ball_radius": np.asarray(float(bs.ball.radius)),
+        "contact_impulse": impulse,
+        "contact_force": impulse / setup.sim.h,
+        "contact_normal_impulse": np.asarray(c.normal_impulse),
+        "contact_point": points,
+        "contact_gap": np.asarray(c.gap),
+        "contact_body": np.asarray(candidate_bodies(bs.capsules, bs.settings)),
+        "contact_names": np.array(candidate_names(bs.capsules, bs.settings)),
+    }
+
+
+def sweep_ball_speed(setup, speeds) -> dict[str, np.ndarray]:
+    """Ball speed as the perturbation magnitude: one vmapped batch of contact rollouts.
+
+    The batch holds one run per speed plus the unperturbed run (the ball never launched), so a
+    single compiled function serves them all. The ball keeps its direction (no re-aiming).
+    Returns per speed the peak joint-angle deviation from the unperturbed run (RMS over DOFs,
+    degrees), its time, and the peak contact impulse."""
+    bs = setup.ball
+    speeds = jnp.asarray(speeds, jnp.float64)
+    balls = jax.vmap(lambda s: eqx.tree_at(lambda b: b.speed, bs.ball, s))(speeds)
+    balls = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), balls, never_launched(bs.ball))
+    batch = batched_contact_rollout(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim, balls,
+                                    bs.capsules, bs.settings)
+    theta = batch.run.theta
+    dev = jax.vmap(lambda th: mx.deviation(th, theta[-1]))(theta[:-1])
+    return {
+        "speed": np.asarray(speeds),
+        "peak_deviation_deg": np.asarray(jnp.max(dev, -1)),
+        "time_of_peak_s": np.asarray(batch.run.time[0])[np.asarray(jnp.argmax(dev, -1))],
+        "peak_impulse_Ns": np.asarray(jnp.max(jnp.linalg.norm(batch.contact.impulse[:-1], axis=-1), axis=(1, 2))),
+    }

@@ -1,0 +1,69 @@
+"""Gain calibration: the single (ks, kd) whose simulated reaction to a hit matches a target.
+
+Parameters. ``x = (log ks, log kd)``: the gains stay positive and both are fitted on the scale
+on which they matter (a factor, not an increment).
+
+Residuals (:mod:`.problem`, :mod:`.surrogate`). Given C perturbation cases, simulated jointly by
+one ``vmap`` over the case axis of a :class:`~neuromotor.physics.perturbation.ForcePulses`, the
+model output y(x) stacks over cases either the simulated trajectory inside the fit window (joint
+angles of all or named DOFs, or body COM positions), or smooth response features of the
+deviation from the unperturbed twin (peak deviation, time to peak, recovery time, overshoot,
+peak angular acceleration), the unperturbed run being one extra member of the batch. The
+residual is ``r(x) = w * (y(x) - y_target)`` with per-entry weights w (a per-DOF weight, or
+1/sd for a feature). **What is minimized**: ``L(x) = 1/2 ||r(x)||^2``, through the whole rollout.
+
+Derivatives (:mod:`.evaluate`). ``J = dr/dx`` by ``jax.jacfwd`` (two tangents through the scan),
+or in reverse mode (``jacobian="reverse"``: one recorded forward pass, then one backward pass
+per residual, a few at a time), which pays off when residuals are few or parameters many.
+
+Solvers (:mod:`.solvers`, by name in :data:`SOLVERS`): optimistix Levenberg-Marquardt,
+Gauss-Newton with an Armijo line search (:class:`GaussNewtonLineSearch`) and BFGS, jaxopt
+Levenberg-Marquardt and L-BFGS. All see the same residual: :class:`ResponseEvaluator` compiles
+``x -> (y, dy/dx)`` once and :func:`residual_function` (:mod:`.bridge`) exposes it as a JAX
+function with a custom JVP through ``jax.pure_callback``, so switching solver costs no compile
+and every solver is stepped one iteration at a time from Python (progress, divergence checks).
+The pure-JAX path (:meth:`FitProblem.residuals`, :func:`loss`) stays for ``jit``/``grad``/``vmap``.
+
+After the fit (:mod:`.driver`, :mod:`.covariance`, :class:`FitResult`): the Gauss-Newton
+covariance ``s^2 (J^T J)^-1`` of (log ks, log kd) with ``s^2 = ||r||^2 / (m - 2)``, standard
+errors (also of ks and kd by the delta method), residual, counts, wall time, and a status:
+``converged``, ``converged (loss flat)`` (the step limit was reached with the loss flat:
+relative change below ``LOSS_FLAT_RTOL`` in each of the last ``LOSS_FLAT_ITERATIONS``
+iterations; counts as converged), ``max_steps``, ``diverged`` or ``nonfinite`` (the last finite
+iterate is returned). A fit never returns NaN gains; with ``strict=True`` anything but the two
+converged statuses raises :class:`FitError`.
+
+Config files (:mod:`.calibration`): the ``[fit]`` table is parsed by
+:func:`neuromotor.config.fit_spec`; synthetic targets are in :mod:`.synthetic`, the plot in
+:mod:`neuromotor.viz.fit_plots`.
+"""
+
+from neuromotor.config.specs import FEATURE_NAMES, SOLVERS, SolverOptions
+from neuromotor.config.specs import TARGET_KINDS as KINDS
+from neuromotor.studies.fit.bridge import residual_function
+from neuromotor.studies.fit.calibration import (
+    Calibration, calibrate, calibration_from_dict, calibration_from_spec, load_calibration, trajectory_calibration,
+)
+from neuromotor.studies.fit.covariance import gauss_newton_covariance
+from neuromotor.studies.fit.driver import fit
+from neuromotor.studies.fit.evaluate import REVERSE_BATCH, Evaluation, ResponseEvaluator, compiled_response
+from neuromotor.studies.fit.problem import FitProblem, ResponseSpec, loss, make_problem
+from neuromotor.studies.fit.result import (
+    CONVERGED_STATUSES, LOSS_FLAT_ITERATIONS, LOSS_FLAT_RTOL, FitError, FitResult, loss_is_flat,
+)
+from neuromotor.studies.fit.solvers import GaussNewtonLineSearch, run_solver
+from neuromotor.studies.fit.surrogate import (
+    acceleration_deg, deviation_deg, exact_peak_acceleration, response_features, soft_max_weighted, soft_recovery,
+)
+from neuromotor.studies.fit.synthetic import synthetic_target, write_synthetic_target
+
+__all__ = [
+    "CONVERGED_STATUSES", "Calibration", "Evaluation", "FEATURE_NAMES", "FitError", "FitProblem", "FitResult",
+    "GaussNewtonLineSearch", "KINDS", "LOSS_FLAT_ITERATIONS", "LOSS_FLAT_RTOL", "REVERSE_BATCH", "ResponseEvaluator",
+    "ResponseSpec", "SOLVERS", "SolverOptions", "acceleration_deg", "calibrate", "calibration_from_dict",
+    "calibration_from_spec", "compiled_response", "deviation_deg", "exact_peak_acceleration", "fit",
+    "gauss_newton_covariance",
+    "load_calibration", "loss", "loss_is_flat", "make_problem", "residual_function", "response_features",
+    "run_solver", "soft_max_weighted", "soft_recovery", "synthetic_target", "trajectory_calibration",
+    "write_synthetic_target",
+]

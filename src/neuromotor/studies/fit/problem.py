@@ -1,0 +1,150 @@
+"""The fit problem: gains x = (log ks, log kd) -> model output y(x) over C perturbation cases,
+simulated jointly by one ``vmap`` over the case axis of a
+:class:`~neuromotor.physics.perturbation.ForcePulses`."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from neuromotor.config.specs import FEATURE_NAMES, TARGET_KINDS as KINDS, Surrogate
+from neuromotor.errors import ConfigError
+from neuromotor.model.skeleton import Model
+from neuromotor.physics.control import Gains
+from neuromotor.physics.dynamics import Reference, Rollout, SimConfig, rollout
+from neuromotor.physics.perturbation import ForcePulses
+from neuromotor.studies.fit.surrogate import acceleration_deg, deviation_deg, response_features
+from neuromotor.studies.gains import set_gains
+
+
+@dataclasses.dataclass(frozen=True)
+class ResponseSpec:
+    """What the model output y(x) is (static: it fixes shapes).
+
+    kind: joint_angles | body_positions | features. columns: DOF indices (joint angles, and the
+    DOFs of the deviation signal for features; empty = all) or body indices. Samples
+    ``i0 <= k < i1`` of the simulation grid form the window. Feature surrogates: ``beta``
+    (1/deg) sharpens the soft peak, ``width`` is the sigmoid width as a fraction of the
+    threshold, and the recovery threshold is ``max(fraction * peak, floor_deg)``.
+    ``accel_beta`` (s^2/deg) sharpens the softmax-weighted peak of the angular acceleration.
+    """
+
+    kind: str
+    columns: tuple[int, ...]
+    i0: int
+    i1: int
+    features: tuple[str, ...] = ()
+    beta: float = Surrogate.beta
+    width: float = Surrogate.width
+    fraction: float = Surrogate.fraction
+    floor_deg: float = Surrogate.floor_deg
+    accel_beta: float = Surrogate.accel_beta
+
+
+class FitProblem(eqx.Module):
+    """Model, reference, fixed gain scaling and a batch of C perturbation cases.
+
+    ``pulses`` has a leading case axis on every leaf; for feature targets its last member is
+    the unperturbed twin (magnitudes zero), so the batch holds C + 1 runs.
+    """
+
+    model: Model
+    gains: Gains
+    pulses: ForcePulses
+    ref: Reference
+    start: Float[Array, " C"]  # start of each case's (first) pulse, clip seconds
+    sim: SimConfig = eqx.field(static=True)
+    spec: ResponseSpec = eqx.field(static=True)
+
+    @property
+    def n_cases(self) -> int:
+        n = self.pulses.magnitude.shape[0]
+        return n - 1 if self.spec.kind == "features" else n
+
+    def gains_at(self, x: Float[Array, " 2"]) -> Gains:
+        return set_gains(self.gains, jnp.exp(x[0]), jnp.exp(x[1]))
+
+    def rollouts(self, x: Float[Array, " 2"]) -> Rollout:
+        """Every case's rollout at gains exp(x), one vmap over the case axis."""
+        gains = self.gains_at(x)
+        return jax.vmap(lambda p: rollout(self.model, gains, p, self.ref, self.sim))(self.pulses)
+
+    def outputs(self, x: Float[Array, " 2"]) -> tuple[Float[Array, " m"], Float[Array, "C T c"], Int[Array, " R"]]:
+        """Model output y (flat), the curves to plot per case, and each run's diverged step.
+
+        For feature targets the curves are, per case, the deviation d(t) (deg) and the
+        acceleration a(t) (deg/s^2) of :func:`acceleration_deg`.
+        """
+        runs = self.rollouts(x)
+        s = self.spec
+        if s.kind == "joint_angles":
+            cur = runs.theta[:, s.i0:s.i1][:, :, jnp.asarray(s.columns)]
+            return cur.reshape(-1), cur, runs.diverged_step
+        if s.kind == "body_positions":
+            cur = runs.states.pos[:, s.i0:s.i1][:, :, jnp.asarray(s.columns)]
+            return cur.reshape(-1), cur.reshape(cur.shape[0], cur.shape[1], -1), runs.diverged_step
+        time = runs.time[0, s.i0:s.i1]
+        base = runs.theta[-1, s.i0:s.i1]
+        dofs = jnp.asarray(s.columns) if s.columns else None
+        base_rate = runs.theta_dot[-1, s.i0:s.i1]
+        h = self.sim.h
+        feats, devs = [], []
+        for c in range(self.n_cases):
+            dev = deviation_deg(runs.theta[c, s.i0:s.i1], base, dofs)
+            acc = acceleration_deg(runs.theta_dot[c, s.i0:s.i1], base_rate, h, dofs)
+            f = response_features(time, dev, self.start[c], s, acc)
+            feats.append(jnp.stack([f[name] for name in s.features]))
+            devs.append(jnp.stack([dev, acc], axis=-1))
+        return jnp.concatenate(feats), jnp.stack(devs), runs.diverged_step
+
+    def residuals(self, x, target, weights) -> Float[Array, " m"]:
+        """Pure-JAX residual r(x) = w * (y(x) - target)."""
+        return weights * (self.outputs(x)[0] - target)
+
+
+def loss(problem: FitProblem, x, target, weights) -> Float[Array, ""]:
+    """The minimized objective L(x) = 1/2 ||w * (y(x) - target)||^2 (pure JAX)."""
+    r = problem.residuals(x, target, weights)
+    return 0.5 * jnp.sum(r**2)
+
+
+def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAMES, **surrogate) -> FitProblem:
+    """A :class:`FitProblem` over the perturbation cases of ``setup.config.perturbations``.
+
+    Each ``[[perturbation]]`` entry is one case (one rollout); all cases must share a pulse
+    shape (a static field: one shape per vmapped batch). ``window`` = (t0, t1) in clip
+    seconds (default: the whole simulation).
+    """
+    from neuromotor.physics.perturbation import pulses as make_pulses
+    from neuromotor.studies.simulate import body_lookup
+    from neuromotor.studies.targets import window_indices
+
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    cfg = setup.config
+    specs = cfg.perturbations
+    if not specs:
+        raise ConfigError(f"{cfg.source}: a fit needs at least one [[perturbation]] (one per case)")
+    index = body_lookup(setup.model, cfg.source)
+    per_case = [make_pulses([s], index) for s in specs]
+    shapes = {p.shape for p in per_case}
+    if len(shapes) > 1:
+        raise ConfigError(f"{cfg.source}: field 'perturbation[*].shape': the cases of one fit must share a "
+                          f"pulse shape (and kind), got {sorted(s[0] for s in shapes)}")
+    if kind == "features":
+        base = dataclasses.replace(per_case[0], magnitude=jnp.zeros_like(per_case[0].magnitude))
+        per_case = per_case + [base]
+    batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *per_case)
+    sim_time = np.asarray(setup.ref.time[: setup.sim.n_steps + 1])
+    if window is None:
+        window = (float(sim_time[0]), float(sim_time[-1]))
+    i0, i1 = window_indices(sim_time, window, cfg.source, "fit.window")
+    spec = ResponseSpec(kind, tuple(int(c) for c in columns), i0, i1,
+                        tuple(features) if kind == "features" else (), **surrogate)
+    start = jnp.asarray([float(s["start"]) for s in specs])
+    return FitProblem(setup.model, setup.gains, batch, setup.ref, start, setup.sim, spec)

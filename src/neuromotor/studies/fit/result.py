@@ -1,0 +1,81 @@
+"""What a fit reports, and the errors a failed fit raises."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from neuromotor.io.tables import json_safe as _json_safe
+
+
+class FitError(RuntimeError):
+    """The fit failed (no convergence, diverged rollout, non-finite iterate); carries the result.
+    Not a user error: ``neuromotor fit`` reports it with its own exit status (3)."""""
+
+    def __init__(self, message: str, result: "FitResult | None" = None):
+        super().__init__(message)
+        self.result = result
+
+
+LOSS_FLAT_RTOL = 1e-8  # relative change of the loss per iteration that counts as none
+
+
+LOSS_FLAT_ITERATIONS = 3  # ... over this many consecutive iterations
+
+
+CONVERGED_STATUSES = ("converged", "converged (loss flat)")
+
+
+def loss_is_flat(losses, rtol: float = LOSS_FLAT_RTOL, n: int = LOSS_FLAT_ITERATIONS) -> bool:
+    """True when each of the last ``n`` changes of the loss (a sequence over iterations) is
+    below ``rtol`` relative to the loss before it: the fit has converged in its objective even
+    if the solver's step-size test has not fired (the gains then move by round-off only)."""
+    vals = [float(v) for v in losses if v is not None]
+    if len(vals) < n + 1:
+        return False
+    tail = np.asarray(vals[-(n + 1):])
+    if not np.all(np.isfinite(tail)):
+        return False
+    return bool(np.all(np.abs(np.diff(tail)) <= rtol * np.maximum(np.abs(tail[:-1]), 1e-300)))
+
+
+@dataclasses.dataclass
+class FitResult:
+    """Everything the calibration reports (``to_json`` gives the JSON contract)."""
+
+    solver: str
+    status: str  # converged | max_steps | diverged | nonfinite
+    message: str
+    ks: float
+    kd: float
+    ks0: float
+    kd0: float
+    log_params: list[float]
+    covariance_log: list[list[float]]  # Gauss-Newton s^2 (J^T J)^-1 of (log ks, log kd)
+    se_log: list[float]
+    se_ks: float
+    se_kd: float
+    correlation: float
+    s2: float
+    residual_norm: float
+    residual_rms: float
+    loss: float
+    n_residuals: int
+    iterations: int
+    evaluations: int
+    wall_time_s: float
+    jacobian: str
+    diverged_evaluations: int
+    history: list[dict]
+
+    @property
+    def converged(self) -> bool:
+        return self.status in CONVERGED_STATUSES
+
+    @property
+    def x(self) -> np.ndarray:
+        return np.asarray(self.log_params)
+
+    def to_json(self) -> dict:
+        return _json_safe(dataclasses.asdict(self))

@@ -1,0 +1,156 @@
+"""Batch sweeps: many perturbed rollouts as one jitted computation, sharded over all devices.
+
+A sweep is a flat list of runs. Each run is a :class:`~neuromotor.physics.control.Gains` and a
+:class:`~neuromotor.physics.perturbation.ForcePulses` (same static layout for all runs; the first pulse
+is the one a grid varies). Runs go through the device(s) in chunks:
+
+* the batch axis of a chunk is sharded over ``jax.devices()`` with a 1-D
+  :class:`jax.sharding.Mesh` and :func:`jax.shard_map`; the same code spreads over several
+  GPUs, or several hosts after ``jax.distributed.initialize()`` (see experiments/README.md);
+* inside each shard the rollouts run under :func:`jax.lax.map` (``inner_batch`` > 1 vmaps
+  groups of that size inside the loop). A batched ``jnp.linalg.solve`` under a plain vmap
+  spread over two host CPU devices deadlocks in XLA:CPU; a loop of rollouts per shard does not;
+* only a deviation curve d(t) (S+1 floats) and four diagnostics come back per run; the exact
+  recovery metrics (:func:`neuromotor.studies.metrics.recovery_metrics`) are computed on the host per
+  chunk, so memory stays bounded by the chunk size whatever the grid size.
+
+The deviation of a run is measured against its unperturbed twin: the same gains without any
+pulse. Twins are shared: one baseline rollout per distinct gain setting, simulated first with
+the same compiled program; their joint angles ((S+1) x n floats each) are the only per-setting
+arrays kept for the whole sweep.
+
+Runs that blow up (or whose baseline does) are kept and flagged: ``diverged`` is true, the
+step, time and body are recorded, and the metric columns hold NaN.
+
+Config (``[sweep]`` table of a simulation config; the grid is the Cartesian product)::
+
+    [sweep]
+    magnitudes = {start = 0.0, stop = 800.0, num = 9}   # or a list; N (or N s for impulses)
+    directions = [[0.0, 0.0, 1.0]]    # default: perturbation[0].direction
+    bodies = ["Chest2"]               # default: perturbation[0].body
+    starts = [1.0]                    # default: perturbation[0].start
+    ks = [400.0]                      # 1/s^2; a list or {start, stop, num, log = true}
+    kd = [20.0]                       # 1/s; the gains grid is ks x kd ...
+    # ... or explicit gain settings instead of ks x kd:
+    # [[sweep.gains]]
+    # label = "feedforward + low gain"; ks = 400.0; kd = 20.0; controller = "neuromotor"  # or "pd"
+    chunk = 64                        # runs per device call (rounded up to a multiple of devices)
+    inner_batch = 1                   # rollouts vmapped together inside each shard's loop
+    output = "out/sweep"              # folder for sweep.csv and the plots (relative to the config)
+    fitted = "fit.json"               # optional: fitted (ks, kd) to mark on the gains map, or [ks, kd]
+
+Ball-speed sweeps: when the config has a ``[ball]`` table, ``magnitudes`` are ball
+speeds (m/s) and every run is a contact rollout (:mod:`neuromotor.studies.sweep.ball`) of that ball at that
+speed; its twin is the same gains with the ball never launched. A ball aimed at ``ball.target``
+is re-aimed for every speed, so each row equals ``neuromotor simulate`` of the config with
+``ball.speed`` set to the row's magnitude. ``bodies``, ``directions`` and ``starts`` do not
+apply (the aim and launch time come from ``[ball]``), and the config may not also hold
+``[[perturbation]]`` tables. The gains grid, ``chunk``, ``inner_batch``, ``output`` and
+``fitted`` work as for pulses. The table gets ``kind = "ball"``, the peak contact impulse on
+the character and the body that received it (:data:`BALL_COLUMNS`).
+
+Modules: :mod:`.grid` (the batch of a grid), :mod:`.runner` (sharded execution),
+:mod:`.ball` (ball-speed sweeps); the ``[sweep]`` table is parsed by
+:func:`neuromotor.config.sweep_spec`, the CSV is written by :mod:`neuromotor.io.tables` and the
+figures drawn by :mod:`neuromotor.viz.sweep_plots`.
+"""
+
+from __future__ import annotations
+
+import pathlib
+from typing import Sequence
+
+import jax
+
+from neuromotor.config.parse import load_sweep_config, read_fitted, sweep_spec
+from neuromotor.config.specs import CONTROLLERS, GainSetting, SweepSpec
+from neuromotor.errors import ConfigError
+from neuromotor.io import tables
+from neuromotor.io.tables import read_csv
+from neuromotor.studies.gains import apply_gains as gains_for
+from neuromotor.studies.sweep.ball import BallBatch, BallRunOut, BallSweeper, run_ball_sweep
+from neuromotor.studies.sweep.grid import BALL_COLUMNS, COLUMNS, METRIC_KEYS, RunBatch, RunOut, build_batch, gain_keys
+from neuromotor.studies.sweep.runner import AXIS, Sweeper, SweepResult, device_mesh, run_sweep, sweep_batches
+from neuromotor.viz.sweep_plots import plot_gains_map, plot_sweep, save_figure
+
+
+def write_csv(rows: list[dict], path, columns: Sequence[str] = COLUMNS) -> pathlib.Path:
+    """One row per run (``columns``: COLUMNS, or BALL_COLUMNS for a ball-speed sweep), written
+    through a temporary file and renamed."""
+    return tables.write_csv(rows, path, columns)
+
+
+def _simulate(cfg, spec: SweepSpec, setup, *, devices, chunk, inner_batch, progress: bool) -> SweepResult:
+    """Every run of the grid: force pulses, or (``spec.kind == "ball"``) ball speeds."""
+    from neuromotor.studies.ball import balls_at_speeds
+    from neuromotor.studies.simulate import body_lookup
+
+    model = setup.model
+    mesh = None if devices is None else device_mesh(devices)
+    sizes = dict(chunk=chunk or spec.chunk, inner_batch=inner_batch or spec.inner_batch, mesh=mesh)
+    if spec.kind == "ball":
+        try:  # aim every speed first: a speed that cannot reach the target is a config error
+            balls = balls_at_speeds(setup, spec.magnitudes)
+        except ConfigError:
+            raise
+        except ValueError as e:
+            raise ConfigError(f"{cfg.source}: field 'sweep.magnitudes': {e}") from None
+        sweeper = BallSweeper(model, setup.ref, setup.sim, setup.ball, setup.pulses, **sizes)
+        return run_ball_sweep(sweeper, setup, spec.magnitudes, spec.gains, balls=balls, progress=progress)
+    index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'")
+    for b in spec.bodies or []:
+        index(b)
+    sweeper = Sweeper(model, setup.ref, setup.sim, **sizes)
+    return run_sweep(sweeper, setup.gains, setup.pulses, spec.runs(cfg.perturbations[0]), index, model.body_names,
+                     progress=progress)
+
+
+def _gains_map_title(cfg, spec: SweepSpec, name: str) -> str:
+    if len(spec.magnitudes) == 1 and spec.kind == "ball":
+        aim = f"at {cfg.ball.target}" if cfg.ball.target is not None else "thrown"
+        return name + f": {spec.magnitudes[0]:g} m/s ball {aim}, launched at {cfg.ball.launch:g} s"
+    if len(spec.magnitudes) == 1:
+        hit = cfg.perturbations[0]
+        return name + f": {spec.magnitudes[0]:g} N {hit.shape} pulse on {hit.body} at {hit.start:g} s"
+    return name
+
+
+def write_outputs(cfg, spec: SweepSpec, result: SweepResult, out: pathlib.Path, name: str) -> dict[str, pathlib.Path]:
+    """sweep.csv, sweep.png (several magnitudes) and gains_map.png (ks and kd both vary)."""
+    files = {"csv": write_csv(result.rows, out / "sweep.csv", BALL_COLUMNS if spec.kind == "ball" else COLUMNS)}
+    if len(spec.magnitudes) > 1:
+        files["plot"] = plot_sweep(result.rows, out / "sweep.png", title=name)
+    if len({g.ks for g in spec.gains}) > 1 and len({g.kd for g in spec.gains}) > 1:
+        files["gains_map"] = plot_gains_map(result.rows, out / "gains_map.png", spec.fitted,
+                                            title=_gains_map_title(cfg, spec, name))
+    return files
+
+
+def sweep_from_config(path, output=None, *, devices=None, chunk=None, inner_batch=None, fitted=None,
+                      progress: bool = True) -> tuple[SweepResult, dict[str, pathlib.Path]]:
+    """Run the sweep of a config file; write ``sweep.csv``, ``sweep.png`` and, when ks and kd
+    both vary, ``gains_map.png`` into ``output`` (default: the config's ``sweep.output``).
+    A config with a ``[ball]`` table sweeps the ball speed (see the module docstring)."""
+    import dataclasses
+
+    from neuromotor.studies.simulate import prepare
+
+    cfg, spec = load_sweep_config(path)
+    out = pathlib.Path(output or spec.output or pathlib.Path("out") / "sweep" / pathlib.Path(path).stem)
+    if fitted is not None:
+        spec = dataclasses.replace(spec, fitted=read_fitted(fitted, "--fitted"))
+    lead = jax.process_index() == 0  # with several hosts, every process computes, one writes
+    result = _simulate(cfg, spec, prepare(cfg), devices=devices, chunk=chunk, inner_batch=inner_batch,
+                       progress=progress and lead)
+    if not lead:
+        return result, {}
+    return result, write_outputs(cfg, spec, result, out, pathlib.Path(path).stem)
+
+
+__all__ = [
+    "AXIS", "BALL_COLUMNS", "BallBatch", "BallRunOut", "BallSweeper", "COLUMNS", "CONTROLLERS", "GainSetting",
+    "METRIC_KEYS", "RunBatch", "RunOut", "SweepResult", "SweepSpec", "Sweeper", "build_batch", "device_mesh",
+    "gain_keys", "gains_for", "load_sweep_config", "plot_gains_map", "plot_sweep", "read_csv", "read_fitted",
+    "run_ball_sweep", "run_sweep", "save_figure", "sweep_batches", "sweep_from_config", "sweep_spec",
+    "write_csv", "write_outputs",
+]
