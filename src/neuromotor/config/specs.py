@@ -162,7 +162,7 @@ class SimulationConfig:
     duration: float | None = None  # None: to the clip's end
     implicit: bool = True
     driven_joints: list[str] = dataclasses.field(default_factory=list)
-    stabilization_steps: int = 2  # Newton steps of post-stabilization (SimConfig.stab_iters)
+    stabilization_steps: int = 2  # Newton steps of post-stabilization (SimConfig.stabilization_steps)
     ks: float = DEFAULT_KS
     kd: float = DEFAULT_KD
     tau_floor: float = DEFAULT_TAU_FLOOR

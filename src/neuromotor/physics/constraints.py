@@ -88,10 +88,10 @@ def apply_inverse_mass(model: Model, rot, g: Float[Array, "... 6B"]) -> Float[Ar
 
 
 def post_stabilize(model: Model, cfg, solver, pos, quat, targets: PoseTargets):
-    """Project positions onto the constraint manifold by ``cfg.stab_iters`` Newton steps, each
+    """Project positions onto the constraint manifold by ``cfg.stabilization_steps`` Newton steps, each
     ``dx = M^-1 J^T mu`` with ``J dx = -C(x)`` solved by ``solver``; full Newton (refactored at
     every iterate). Returns the positions, orientations and the constraint error left."""
-    for _ in range(cfg.stab_iters):  # a fixed, small number of Newton steps (unrolled)
+    for _ in range(cfg.stabilization_steps):  # a fixed, small number of Newton steps (unrolled)
         rot = quat_to_matrix(quat)
         c = full_constraint_error(model, cfg.driven, pos, rot, targets, cfg.free_root)
         pos, quat = retract(pos, quat, solver.projection_step(model, cfg, rot, c))

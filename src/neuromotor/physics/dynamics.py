@@ -9,7 +9,7 @@ with k = f_ext + H^T (tau + feedback) + perturbations, K = dk/dx over the positi
 and D = dk/dv, both by ``jax.jacfwd`` (:mod:`neuromotor.physics.stiffness`). b carries the
 driven root's (and driven joints') velocity. Positions then move with v+ (quaternions by the
 exponential map) and are projected back onto the constraint manifold (Cline & Pai 2003) by
-``SimConfig.stab_iters`` Newton steps (:func:`neuromotor.physics.constraints.post_stabilize`).
+``SimConfig.stabilization_steps`` Newton steps (:func:`neuromotor.physics.constraints.post_stabilize`).
 Two by default: one leaves up to 3.6e-8 m of violation on the default hit, two leave 1e-14 m
 and give the same motion as three to 1e-13.
 
@@ -77,7 +77,7 @@ class SimConfig(eqx.Module):
     driven: tuple[int, ...] = eqx.field(static=True, default=())  # bodies driven along the mocap
     implicit: bool = eqx.field(static=True, default=True)  # False: K = D = 0 (explicit forces)
     # Newton steps of post-stabilization: 2 reach round-off (see the module docstring)
-    stab_iters: int = eqx.field(static=True, default=2)
+    stabilization_steps: int = eqx.field(static=True, default=2)
     max_speed: float = eqx.field(static=True, default=200.0)  # rad/s or m/s: beyond it, diverged
     free_root: bool = eqx.field(static=True, default=False)  # drop the 6 driven-root rows
     # The solver of Eq. 2 (a Solver or its string): null-space (default, fastest), tree, dense.

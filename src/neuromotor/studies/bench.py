@@ -207,12 +207,12 @@ def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     progs = {}
     for n in steps:
-        c = dataclasses.replace(cfg, stab_iters=n)
+        c = dataclasses.replace(cfg, stabilization_steps=n)
         progs[n] = compiler.jit(lambda m, g, p, ref, c=c: dy.rollout(m, g, p, ref, c)).lower(m, g, p, ref).compile()
     runs = {n: progs[n](m, g, p, ref) for n in steps}
     best = _interleaved({k: (lambda c=c: c(m, g, p, ref)) for k, c in progs.items()}, repeats)
     last = runs[steps[-1]]
-    return [{"stab_iters": n, "step_us": best[n] / cfg.n_steps * 1e6,
+    return [{"stabilization_steps": n, "step_us": best[n] / cfg.n_steps * 1e6,
              "max_violation": float(runs[n].violation.max()),
              "max_theta_diff_rad": float(jnp.max(jnp.abs(runs[n].theta - last.theta)))} for n in steps]
 
@@ -353,7 +353,7 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
         f"with XLA defaults -> {ab['speedup']:.2f}x; max |theta difference| {ab['max_theta_diff_rad']:.1e} rad")
     res["stabilization"] = stabilization_ab(setup, 2 * repeats)
     for r in res["stabilization"]:
-        log(f"post-stabilization, {r['stab_iters']} Newton step(s): {r['step_us']:.1f} us/step, max violation "
+        log(f"post-stabilization, {r['stabilization_steps']} Newton step(s): {r['step_us']:.1f} us/step, max violation "
             f"{r['max_violation']:.1e} m, max |theta - theta(2 steps)| {r['max_theta_diff_rad']:.1e} rad")
     res["jacfwd"] = gain_jacobian(setup, repeats)
     j = res["jacfwd"]

@@ -303,7 +303,7 @@ def test_cli_sweep_writes_table_and_plot(bank_sweep, tmp_path):
 def test_experiment_configs_parse_and_errors_name_the_field(tmp_path):
     from neuromotor.studies.experiments import experiment_spec, load_experiment
 
-    repo = TESTS.parent
+    repo = TESTS.parents[1]
     for name, kind in (("exp_arm", "arm"), ("exp_full_body", "full_body"), ("exp_high_gain", "contrast")):
         cfg, exp = load_experiment(repo / "configs" / f"{name}.toml")
         assert exp.kind == kind and cfg.perturbations

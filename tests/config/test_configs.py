@@ -6,7 +6,7 @@ import pytest
 
 from neuromotor.config import DEFAULT_HIT, ConfigError, load_simulation_config, simulation_config
 
-CONFIGS = sorted((pathlib.Path(__file__).resolve().parents[1] / "configs").glob("*.toml"))
+CONFIGS = sorted((pathlib.Path(__file__).resolve().parents[2] / "configs").glob("*.toml"))
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)

@@ -107,5 +107,5 @@ def test_ball_sweep_config_errors_name_the_field(tmp_path):
     path.write_text(CONFIG.replace("[5.0, 8.0, 11.0]", "[0.0, 8.0]"))
     with pytest.raises(ConfigError, match=r"field 'sweep\.magnitudes' ball speeds must be > 0"):
         sw.load_sweep_config(path)
-    cfg, spec = sw.load_sweep_config(pathlib.Path(__file__).resolve().parents[1] / "configs" / "sweep_ball_speed.toml")
+    cfg, spec = sw.load_sweep_config(pathlib.Path(__file__).resolve().parents[2] / "configs" / "sweep_ball_speed.toml")
     assert spec.kind == "ball" and spec.magnitudes == [4.0, 8.0, 12.0, 16.0] and cfg.ball["target"] == "Chest2"

@@ -21,8 +21,8 @@ STEP = {"bandai_kick_22joint_6ch": 1.0 / 360.0}
 KICK = {"bandai_kick_22joint_6ch"}
 
 
-# MocapBank and walk replay and recover in tests/test_forward_dynamics.py (whole clips, the
-# default hit) and the chest keyword resolves on them in tests/test_massmodel.py: here the clips
+# MocapBank and walk replay and recover in tests/physics/test_forward_dynamics.py (whole clips, the
+# default hit) and the chest keyword resolves on them in tests/model/test_massmodel.py: here the clips
 # that nothing else simulates, to keep the suite's time.
 OTHERS = sorted(name for name, path in ALL_CLIPS.items() if path not in CLIPS.values())
 

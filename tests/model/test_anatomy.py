@@ -15,7 +15,7 @@ from neuromotor.model.bvh import parse_bvh, read_bvh
 
 from synthetic_rigs import make_rig
 
-MOCAP = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "mocap"
+MOCAP = pathlib.Path(__file__).resolve().parents[2].parent / "shared" / "mocap"
 FILES = {
     "mocapbank": "mocapbank_19joint.bvh",
     "walk": "walk_22joint_zyx.bvh",

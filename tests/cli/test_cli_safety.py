@@ -24,7 +24,7 @@ from neuromotor.cli import main
 from neuromotor.config import ConfigError, simulation_config
 from neuromotor.studies.simulate import default_clip_path
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
+REPO = pathlib.Path(__file__).resolve().parents[2]
 HIT = """
 [[perturbation]]
 body = "chest"

@@ -50,7 +50,7 @@ def test_one_newton_step_of_post_stabilization(bank, hit_setup, hit_result):
     (each step projects again), and the motion matches two steps far below a degree."""
     cfg = SimulationConfig(duration=2.0, perturbations=[hit()], stabilization_steps=1)
     one = prepare(cfg, *bank)
-    assert one.sim.stab_iters == 1 and hit_setup.sim.stab_iters == 2
+    assert one.sim.stabilization_steps == 1 and hit_setup.sim.stabilization_steps == 2
     r1 = check_rollout(one.model, simulate_jit(one.model, one.gains, one.pulses, one.ref, one.sim))
     r2 = hit_result.perturbed
     v1 = np.asarray(r1.violation)
@@ -68,7 +68,7 @@ def test_unperturbed_replay_tracks_whole_clip(name):
     r = check_rollout(setup.model, simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim))
     err = mx.rms_error_deg(r.theta, setup.ref.theta)
     assert err < 2.0, err
-    # Over the first 3 s (issue 14's replay bounds, the window tests/test_every_clip.py uses for the
+    # Over the first 3 s (issue 14's replay bounds, the window tests/studies/test_every_clip.py uses for the
     # other clips): under 1 deg RMS and every DOF under 3 deg RMS.
     k = int(round(3.0 / setup.sim.h)) + 1
     diff = np.degrees(np.angle(np.exp(1j * (np.asarray(r.theta)[:k] - np.asarray(setup.ref.theta)[:k]))))
