@@ -22,7 +22,9 @@ def test_readme_python_examples_run(tmp_path, monkeypatch):
     exec(blocks[0].replace("duration=2.0", "duration=1.2"), scope)
     assert (tmp_path / "run.npz").is_file()
     assert scope["result"].metrics["peak_deviation_deg"] > 0.1
-    exec(blocks[1] + "\nJAC = jax.jacfwd(peak)(jnp.log(jnp.array([400.0, 20.0])))\n", scope)
+    call = "jax.jacfwd(peak)(jnp.log(jnp.array([400.0, 20.0])))"
+    assert blocks[1].rstrip().endswith(call)
+    exec(blocks[1].replace(call, "JAC = " + call), scope)
     jac = np.asarray(scope["JAC"])
     # Stiffer feedback lowers the peak deviation of the hit.
     assert jac.shape == (2,) and np.all(np.isfinite(jac)) and jac[0] < 0

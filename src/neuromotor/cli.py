@@ -259,7 +259,7 @@ def cmd_sweep(args) -> int:
 
     fitted = tuple(args.fitted) if args.fitted else args.fitted_json
     result, files = sweep_from_config(args.config, args.output, chunk=args.chunk, inner_batch=args.inner_batch,
-                                      fitted=fitted, progress=not args.no_progress)
+                                      fitted=fitted, progress=not args.quiet)
     bad = sum(r["diverged"] for r in result.rows)
     print(f"{len(result.rows)} runs ({bad} diverged); wrote " + ", ".join(str(f) for f in files.values()))
     return 0
@@ -275,7 +275,7 @@ def cmd_fit(args) -> int:
             print(f"wrote {path}")
             return 0
         res, _ = calibrate(load_calibration(args.config, solver=args.solver), args.output,
-                           progress=not args.no_progress)
+                           progress=not args.quiet)
     except FitError as e:  # the fit ran and failed: not bad input, a status of its own
         print(f"neuromotor fit: error: {e}", file=sys.stderr)
         return 3
@@ -293,7 +293,7 @@ def cmd_fit(args) -> int:
 def cmd_experiment(args) -> int:
     from neuromotor.studies.experiments import run_experiment
 
-    numbers = run_experiment(args.config, output=args.output, progress=not args.no_progress)
+    numbers = run_experiment(args.config, output=args.output, progress=not args.quiet)
     print(json.dumps(_strict_json(numbers), indent=2, default=float))
     return 0
 
@@ -452,7 +452,7 @@ def _count_arg(text: str) -> int:
 
 
 RUN_HELP = "RUN.npz written by simulate"
-PROGRESS_HELP = "no progress bar"
+PROGRESS_HELP = "no progress bar on stderr (--no-progress is the same)"
 
 
 def _body_args(sp, defaults=True) -> None:
@@ -523,7 +523,7 @@ def _add_sweep_command(sub) -> None:
     sp.add_argument("--inner-batch", type=_count_arg, help="rollouts vmapped together inside each shard")
     sp.add_argument("--fitted", type=_gain_arg, nargs=2, metavar=("KS", "KD"), help="fitted pair to mark on the gains map")
     sp.add_argument("--fitted-json", help="JSON file with the fitted ks and kd")
-    sp.add_argument("--no-progress", action="store_true", help=PROGRESS_HELP)
+    sp.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help=PROGRESS_HELP)
     _command(sub, "export-bvh", cmd_export_bvh, "write the perturbed motion as BVH", ("run", RUN_HELP, None),
              "BVH in the source clip's skeleton, channel orders and units")
 
@@ -534,7 +534,7 @@ def _add_study_commands(sub) -> None:
                   default="out/fit")
     sp.add_argument("--solver", default=None, help="override fit.solver (optimistix_lm, optimistix_gn, "
                     "optimistix_bfgs, jaxopt_lm, jaxopt_lbfgs)")
-    sp.add_argument("--no-progress", action="store_true", help=PROGRESS_HELP)
+    sp.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help=PROGRESS_HELP)
     sp.add_argument("--write-synthetic", nargs=2, type=_gain_arg, metavar=("KS", "KD"),
                     help="instead of fitting, simulate the config's target file at these gains")
     sp.add_argument("--noise-deg", type=_nonneg_arg, default=0.0,
@@ -544,7 +544,7 @@ def _add_study_commands(sub) -> None:
                   ("config", "TOML config with an [experiment] table whose kind picks the experiment", None),
                   "folder for run*.npz, metrics.json and the figures (default: the config's experiment.output)",
                   default=None)
-    sp.add_argument("--no-progress", action="store_true", help=PROGRESS_HELP)
+    sp.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help=PROGRESS_HELP)
 
 
 def _add_other_commands(sub) -> None:
