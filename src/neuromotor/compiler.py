@@ -10,13 +10,12 @@ time at this size:
 * ``xla_cpu_use_fusion_emitters``: the newer fusion emitters generate slower code for these
   tiny fusions (and take longer to compile).
 
-Switching the three off made the rollout 1.13x to 1.30x faster in interleaved timings of the same
-program in one process (``docs/benchmarks.md``); results agree with the default build to
-3e-14 rad. The options are passed to ``jax.jit(..., compiler_options=...)`` of the rollout
-programs only, so other JAX code in the user's process is untouched. They are given only when
-the default backend is the CPU, decided at a program's first use (wrapping a program at import
-touches no backend, so a device count forced later still takes effect). Set
-``NEUROMOTOR_XLA_TUNING=0`` to compile with XLA's defaults.
+Switching the three off makes the rollout faster with the same results to round-off (figures and
+commands: ``docs/benchmarks.md``, "Compiler options"). The options are passed to ``jax.jit(...,
+compiler_options=...)`` of the rollout programs only, so other JAX code in the user's process is
+untouched. They are given only when the default backend is the CPU, decided at a program's first
+use (wrapping a program at import touches no backend, so a device count forced later still takes
+effect). Set ``NEUROMOTOR_XLA_TUNING=0`` to compile with XLA's defaults.
 """
 
 from __future__ import annotations
