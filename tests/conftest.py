@@ -5,6 +5,12 @@ import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+# The suite is mostly XLA compilation of programs that then run for a second or less: LLVM's
+# backend optimizations cost more compile time than they save here (same results; no timing is
+# tested). NEUROMOTOR_TEST_FAST_COMPILE=0 compiles as users do. Subprocesses inherit it.
+if os.environ.get("NEUROMOTOR_TEST_FAST_COMPILE", "1") != "0" and "xla_backend_optimization_level" not in \
+        os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
 # Persistent compilation cache: rollouts compile once per shape, also across CLI subprocesses.
 _CACHE = pathlib.Path(__file__).resolve().parents[1] / ".jax_cache"
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(_CACHE))

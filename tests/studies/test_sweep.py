@@ -103,7 +103,8 @@ SHARDED_SCRIPT = textwrap.dedent("""\
 @pytest.fixture(scope="module")
 def sharded(tmp_path_factory):
     clip = tiny_bvh(tmp_path_factory.mktemp("tiny") / "tiny.bvh")
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    flags = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     proc = subprocess.run([sys.executable, "-c", SHARDED_SCRIPT, str(clip)], env=env, cwd=TESTS,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
