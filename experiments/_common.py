@@ -14,14 +14,29 @@ jax.config.update("jax_enable_x64", True)
 
 
 def add_distributed_args(ap) -> None:
-    """Multi-host flags shared by the sweep scripts (experiments/README.md)."""
-    ap.add_argument("--distributed", action="store_true",
-                    help="jax.distributed.initialize() first: one process per host (experiments/README.md)")
-    ap.add_argument("--coordinator", help="HOST:PORT of process 0 (default: detected from SLURM/MPI/K8s)")
-    ap.add_argument("--num-processes", type=int)
-    ap.add_argument("--process-id", type=int)
+    """Multi-process flags shared by the sweep scripts (neuromotor.distributed; README: sweeps
+    across processes and hosts)."""
+    from neuromotor.distributed import add_arguments
+
+    add_arguments(ap)
 
 
 def init_distributed(args) -> None:
-    if args.distributed:
-        jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    """Join the multi-process job the flags describe; with ``--local-processes N``, run this
+    script as N local processes instead and exit with their status."""
+    import sys
+
+    from neuromotor import distributed
+    from neuromotor.errors import UserError
+
+    try:
+        procs = distributed.from_args(args)
+        if (args.local_processes or 1) > 1:
+            argv = distributed.without_option(sys.argv[1:], "--local-processes")
+            sys.exit(distributed.launch_local(argv, args.local_processes, args.process_timeout,
+                                              program=[sys.executable, sys.argv[0]]))
+        if procs is not None:
+            distributed.initialize(procs)
+    except UserError as e:
+        print(f"{pathlib.Path(sys.argv[0]).stem}: error: {e}", file=sys.stderr)
+        sys.exit(2)

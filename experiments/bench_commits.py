@@ -12,6 +12,7 @@ best of each is printed, in microseconds per trajectory-step, and their ratio.
 
 import argparse
 import importlib
+import re
 import subprocess
 import sys
 import tempfile
@@ -26,7 +27,13 @@ def _extract(rev: str, dest: Path) -> str:
     archive = subprocess.run(["git", "-C", str(REPO), "archive", rev, "src/neuromotor"], check=True,
                              capture_output=True).stdout
     subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
-    (dest / "src" / "neuromotor").rename(dest / "neuromotor_at_rev")
+    pkg = dest / "neuromotor_at_rev"
+    (dest / "src" / "neuromotor").rename(pkg)
+    # Absolute imports inside the copy must resolve to the copy, not to the working tree.
+    for path in pkg.rglob("*.py"):
+        text = path.read_text()
+        text = re.sub(r"\b(from|import) neuromotor\b", r"\1 neuromotor_at_rev", text)
+        path.write_text(re.sub(r"\bneuromotor\.(?=[a-z_])", "neuromotor_at_rev.", text))
     return "neuromotor_at_rev"
 
 

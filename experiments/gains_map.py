@@ -31,6 +31,8 @@ def main(argv=None) -> int:
     except (UserError, OSError) as e:
         print(f"gains_map: error: {e}", file=sys.stderr)
         return 2
+    if _common.jax.process_index() != 0:  # process 0 wrote the table and reports it
+        return 0
     if "gains_map" not in files:
         print("gains_map: error: the config's grid must vary both ks and kd", file=sys.stderr)
         return 2

@@ -28,6 +28,8 @@ def main(argv=None) -> int:
     except (UserError, OSError) as e:
         print(f"sweep_magnitude: error: {e}", file=sys.stderr)
         return 2
+    if _common.jax.process_index() != 0:  # process 0 wrote the table and reports it
+        return 0
     for r in result.rows:
         flag = f"  DIVERGED at step {r['diverged_step']} in {r['diverged_body']}" if r["diverged"] else ""
         print(f"{r['label']:<32} {r['magnitude']:8.1f} N  peak {r['peak_deviation_deg']:7.2f} deg  "

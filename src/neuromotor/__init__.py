@@ -57,6 +57,7 @@ _API = {
     "ForcePulses": "neuromotor.physics.perturbation",
     "State": "neuromotor.physics.system",
     "Solver": "neuromotor.physics.solvers",
+    "Precision": "neuromotor.physics.precision",
     "SimConfig": "neuromotor.physics.dynamics",
     "Reference": "neuromotor.physics.dynamics",
     "make_reference": "neuromotor.physics.dynamics",

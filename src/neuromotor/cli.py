@@ -7,6 +7,7 @@
     neuromotor plot RUN.npz -o OUT.png    # deviation and joint angles vs time (matplotlib)
     neuromotor export-bvh RUN.npz -o OUT.bvh
     neuromotor sweep CONFIG.toml [-o DIR] [--fitted KS KD | --fitted-json FIT.json]  # batch grid -> CSV + plots
+        [--local-processes N | --coordinator HOST:PORT --num-processes N --process-id I | --distributed]
     neuromotor fit CONFIG.toml [-o DIR] [--solver NAME]   # calibrate (ks, kd) -> fit.json + fit.png
     neuromotor experiment CONFIG.toml [-o DIR]   # one of the paper's experiments ([experiment] kind)
     neuromotor demo [-o DIR]        # the main job: simulate the default hit, render it
@@ -255,13 +256,21 @@ def cmd_plot(args) -> int:
 
 
 def cmd_sweep(args) -> int:
+    from neuromotor import distributed
     from neuromotor.studies.sweep import sweep_from_config
 
+    procs = distributed.from_args(args)  # bad multi-process options: exit 2 before anything starts
+    if (args.local_processes or 1) > 1:  # N copies of this command, one rank each
+        argv = distributed.without_option(args.argv, "--local-processes")
+        return distributed.launch_local(argv, args.local_processes, args.process_timeout)
+    if procs is not None:
+        distributed.initialize(procs)
     fitted = tuple(args.fitted) if args.fitted else args.fitted_json
     result, files = sweep_from_config(args.config, args.output, chunk=args.chunk, inner_batch=args.inner_batch,
                                       fitted=fitted, progress=not args.quiet)
-    bad = sum(r["diverged"] for r in result.rows)
-    print(f"{len(result.rows)} runs ({bad} diverged); wrote " + ", ".join(str(f) for f in files.values()))
+    if distributed.is_lead():  # the other processes computed their shares; process 0 wrote the table
+        bad = sum(r["diverged"] for r in result.rows)
+        print(f"{len(result.rows)} runs ({bad} diverged); wrote " + ", ".join(str(f) for f in files.values()))
     return 0
 
 
@@ -524,6 +533,9 @@ def _add_sweep_command(sub) -> None:
     sp.add_argument("--fitted", type=_gain_arg, nargs=2, metavar=("KS", "KD"), help="fitted pair to mark on the gains map")
     sp.add_argument("--fitted-json", help="JSON file with the fitted ks and kd")
     sp.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help=PROGRESS_HELP)
+    from neuromotor.distributed import add_arguments
+
+    add_arguments(sp)
     _command(sub, "export-bvh", cmd_export_bvh, "write the perturbed motion as BVH", ("run", RUN_HELP, None),
              "BVH in the source clip's skeleton, channel orders and units")
 
@@ -559,6 +571,7 @@ def _add_other_commands(sub) -> None:
     sp.add_argument("--plot", default=None, help="PNG of throughput against batch size")
     sp.add_argument("--json", default=None, help="write all figures as JSON")
     sp.add_argument("--no-dense", action="store_true", help="skip the dense reference path")
+    sp.add_argument("--no-mjx", action="store_true", help="skip MuJoCo MJX (optional extra; compiles six programs)")
     sp = _clip_command(sub, "export-mjcf", cmd_export_mjcf,
                        "write the character as MuJoCo MJCF (hinges, position servos)", "MJCF XML file")
     sp.add_argument("--timestep", type=_positive_arg, default=1.0 / 120.0, help="MuJoCo time step (s, > 0)")
@@ -643,6 +656,7 @@ def _preflight(args) -> None:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # for `sweep --local-processes`
     from neuromotor.compiler import enable_compile_cache
 
     if args.command != "bench":  # bench reports compile times: it compiles for real

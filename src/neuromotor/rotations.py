@@ -209,7 +209,7 @@ def matrix_to_quat(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4"]:
     best = jnp.argmax(diag, -1)
     q = jnp.take_along_axis(cands, best[..., None, None], -2)[..., 0, :]
     q = quat_normalize(q)
-    return q * jnp.where(q[..., :1] < 0, -1.0, 1.0)
+    return jnp.where(q[..., :1] < 0, -q, q)  # (a select of +-q, not of +-1.0: no float64 constant in float32)
 
 
 def quat_exp(w: Float[Array, "... 3"]) -> Float[Array, "... 4"]:
@@ -230,8 +230,8 @@ def quat_turn(q: Float[Array, "... 4"], w: Float[Array, "... 3"]) -> Float[Array
 
 def quat_log(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
     """Rotation vector of a unit quaternion (shortest rotation: q and -q give the same)."""
-    sign = jnp.where(q[..., 0] < 0, -1.0, 1.0)
-    w, v = sign * q[..., 0], sign[..., None] * q[..., 1:]
+    q = jnp.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., 0], q[..., 1:]
     s2 = dot(v, v)
     s = jnp.sqrt(jnp.where(s2 > 1e-24, s2, 1.0))
     angle = 2.0 * jnp.arctan2(s, w)

@@ -19,6 +19,7 @@ Simulation config (every table and key optional)::
     stabilization_steps = 2        # Newton steps of post-stabilization per step (1..5): 2 reach
                                    # round-off; 1 (one projection, as Cline & Pai) is faster
                                    # and leaves up to ~4e-8 m at the joints
+    dtype = "float64"              # float64 | float32 (sweeps, accelerators; docs/float32.md)
 
     [gains]
     ks = 400.0                     # 1/s^2 (see neuromotor.physics.control for the scaling)

@@ -19,6 +19,7 @@ from neuromotor.config.specs import (
     SimulationConfig, SolverOptions, Surrogate, SweepSpec, default,
 )
 from neuromotor.errors import ConfigError
+from neuromotor.physics.precision import Precision
 
 TABLES = ("fit", "sweep", "experiment", "ball")  # top-level tables beside [sim], [gains], [[perturbation]]
 
@@ -121,6 +122,7 @@ def _sim_fields(top: Fields) -> dict:
     if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 5:
         sim.fail("stabilization_steps", f"must be an integer from 1 to 5, got {steps!r}")
     out["stabilization_steps"] = steps
+    out["dtype"] = Precision(sim.choice("dtype", d("dtype").value, [p.value for p in Precision]))
     sim.done()
     gains = top.sub("gains")
     for key in ("ks", "kd", "tau_floor"):

@@ -13,7 +13,7 @@ import numpy as np
 
 from neuromotor.io.atomic import atomic_path
 
-TEXT_COLUMNS = {"label", "controller", "body", "diverged_body", "kind", "hit_body"}
+TEXT_COLUMNS = {"label", "controller", "body", "diverged_body", "kind", "hit_body", "dtype"}
 INT_COLUMNS = {"run", "diverged_step"}
 
 

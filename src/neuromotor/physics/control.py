@@ -308,7 +308,7 @@ def joint_torques(model: Model, gains: Gains, inputs: ControllerInputs, rot, ome
 def body_torques(model: Model, joint_torque: Float[Array, "C 3"]) -> Float[Array, "B 3"]:
     """+T_j on each joint's child, -T_j on its parent (static one-hot selectors, no scatter)."""
     topo = model.topology
-    return jnp.einsum("cb,ci->bi", topo.sel_child - topo.sel_parent, joint_torque)
+    return jnp.einsum("cb,ci->bi", jnp.asarray(topo.sel_child - topo.sel_parent, joint_torque.dtype), joint_torque)
 
 
 def _local_axes(theta: Float[Array, "C 3"], order: str) -> Float[Array, "C 3 3"]:

@@ -55,6 +55,7 @@ from neuromotor.physics.control import (ControllerInputs, Gains, controller_inpu
 from neuromotor.physics.inverse import inverse_dynamics, sim_columns
 from neuromotor.physics.perturbation import ForcePulses, generalized_forces, no_pulses
 from neuromotor.physics.solvers import Solver
+from neuromotor.physics.precision import Precision, cast
 from neuromotor.physics.stiffness import DenseStiffness, StiffBlocks, explicit_forces, stiff_blocks, stiff_jacobians
 from neuromotor.physics.system import (State, dof_axes, gravity_forces, joint_angles, joint_rates, mass_times,
                                        retract, world_inertia)
@@ -82,6 +83,8 @@ class SimConfig(eqx.Module):
     free_root: bool = eqx.field(static=True, default=False)  # drop the 6 driven-root rows
     # The solver of Eq. 2 (a Solver or its string): null-space (default, fastest), tree, dense.
     solver: Solver = eqx.field(static=True, default=Solver.NULLSPACE, converter=Solver)
+    # The dtype of the rollout's arrays (a Precision or its string): float64, or float32 (docs/float32.md).
+    dtype: Precision = eqx.field(static=True, default=Precision.FLOAT64, converter=Precision)
 
 
 class Reference(eqx.Module):
@@ -373,7 +376,9 @@ def rollout_of(sim: SimModel, data0, out, bad_step, bad_body) -> Rollout:
 
 
 def simulate(sim: SimModel, params: Params) -> Rollout:
-    """``sim.cfg.n_steps`` steps of :func:`step` from the reference's initial state (one ``lax.scan``)."""
+    """``sim.cfg.n_steps`` steps of :func:`step` from the reference's initial state (one ``lax.scan``),
+    in the precision ``sim.cfg.dtype`` (the model, reference and parameters are cast to it)."""
+    sim, params = cast((sim, params), sim.cfg.dtype)
     data0 = init_data(sim, params)
     return rollout_of(sim, data0, *scan_steps(sim, params, data0))
 

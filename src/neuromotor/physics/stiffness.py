@@ -84,8 +84,9 @@ def tree_matvec(topo: Topology, diag: Float[Array, "B 3 3"], up: Float[Array, "C
     """An angular block-tree matrix times w: diagonal, body <- parent and parent <- child blocks
     (one-hot sums, no scatter under vmap)."""
     c, p = topo.child, topo.parent
-    return (jnp.einsum("bij,bj->bi", diag, w) + jnp.einsum("cb,cij,cj->bi", topo.sel_child, up, w[p])
-            + jnp.einsum("cb,cij,cj->bi", topo.sel_parent, down, w[c]))
+    sel_c, sel_p = jnp.asarray(topo.sel_child, w.dtype), jnp.asarray(topo.sel_parent, w.dtype)  # keep w's precision
+    return (jnp.einsum("bij,bj->bi", diag, w) + jnp.einsum("cb,cij,cj->bi", sel_c, up, w[p])
+            + jnp.einsum("cb,cij,cj->bi", sel_p, down, w[c]))
 
 
 def stiff_jacobians(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> DenseStiffness:
@@ -145,8 +146,8 @@ def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: St
     jac = jnp.concatenate([jac[..., :6], -jac[..., 6:9], jac[..., 6:9]], -1)
     g, gj = _gyro_jacobians(model, state.quat, state.omega)
     # Child rows get +dT, parent rows -dT; diagonal blocks gather both ends of every joint.
-    diag = lambda dp, dc: (jnp.einsum("cb,cij->bij", topo.sel_child, dc)
-                           - jnp.einsum("cb,cij->bij", topo.sel_parent, dp))
+    sel_c, sel_p = jnp.asarray(topo.sel_child, jac.dtype), jnp.asarray(topo.sel_parent, jac.dtype)
+    diag = lambda dp, dc: jnp.einsum("cb,cij->bij", sel_c, dc) - jnp.einsum("cb,cij->bij", sel_p, dp)
     k_diag = gj[:, :, :3] + diag(jac[:, :, 0:3], jac[:, :, 3:6])
     d_diag = gj[:, :, 3:] + diag(jac[:, :, 6:9], jac[:, :, 9:12])
     torque = g + body_torques(model, tq)

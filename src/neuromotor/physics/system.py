@@ -138,7 +138,7 @@ def constraint_jacobian(model: Model, rot) -> Float[Array, "nc 6B"]:
     blk_parent, blk_child = joint_jacobian_blocks(model, rot)
     topo = model.topology
     # One-hot selectors (static) place every joint's two 3x6 blocks in one contraction.
-    sel_p, sel_c = topo.sel_parent, topo.sel_child
+    sel_p, sel_c = jnp.asarray(topo.sel_parent, dtype), jnp.asarray(topo.sel_child, dtype)
     rows = (jnp.einsum("cb,cij->cibj", sel_p, blk_parent) + jnp.einsum("cb,cij->cibj", sel_c, blk_child))
     return jnp.concatenate([root.reshape(6, 6 * n), rows.reshape(3 * (n - 1), 6 * n)], 0)
 

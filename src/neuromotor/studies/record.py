@@ -309,6 +309,7 @@ def provenance(setup: Setup) -> dict:
         "n_steps": int(sim.n_steps),
         "implicit": bool(cfg.implicit),
         "stabilization_steps": int(cfg.stabilization_steps),
+        "dtype": str(cfg.dtype),  # float64, or float32 (docs/float32.md)
         "driven_joints": [setup.model.body_names[b] for b in sim.driven],
         "perturbations": _perturbation_records(setup),
         "ball": _ball_record(setup),

@@ -140,7 +140,7 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     gains = _initial_gains(model, traj, jnp.asarray(config.start), ref.theta, ref.activation,
                            config.ks, config.kd, config.tau_floor)
     sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit,
-                    stabilization_steps=config.stabilization_steps)
+                    stabilization_steps=config.stabilization_steps, dtype=config.dtype)
     # An impulse is a one-step square pulse: it needs the step to know its force.
     specs = [dict(p, step=config.h) for p in config.perturbations]
     for s in specs:  # no point given: push at the body's centre of mass

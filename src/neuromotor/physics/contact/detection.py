@@ -56,14 +56,15 @@ def capsule_contact(a_w, b_w, rad, centre, ball_r):
     d = centre - q
     dist = safe_norm(d)
     # Ball centre on the axis (never in practice): any normal will do.
-    n = jnp.where(dist > _TINY, d / jnp.maximum(dist, _TINY), jnp.array([0.0, 1.0, 0.0]))
+    n = jnp.where(dist > _TINY, d / jnp.maximum(dist, _TINY), jnp.array([0.0, 1.0, 0.0], d.dtype))
     return dist - rad - ball_r, n, q + rad * n
 
 
 def up_direction(model: Model) -> Float[Array, " 3"]:
     """-gravity / |gravity|; +y (the clips' up axis) in zero gravity."""
     norm = safe_norm(model.gravity)
-    return jnp.where(norm > 0, -model.gravity / jnp.maximum(norm, _TINY), jnp.array([0.0, 1.0, 0.0]))
+    return jnp.where(norm > 0, -model.gravity / jnp.maximum(norm, _TINY),
+                     jnp.array([0.0, 1.0, 0.0], model.gravity.dtype))
 
 
 def detect(model: Model, caps: Capsules, settings: ContactSettings, ball_radius, centre, pos, rot):
@@ -98,7 +99,8 @@ def single_gap(model: Model, caps: Capsules, settings: ContactSettings, ball_rad
 
 def tangent_basis(n: Float[Array, "... 3"]) -> tuple[Float[Array, "... 3"], Float[Array, "... 3"]]:
     """Two unit tangents completing n to a right-handed frame (n, t1, t2)."""
-    helper = jnp.where(jnp.abs(n[..., :1]) < 0.57, jnp.array([1.0, 0.0, 0.0]), jnp.array([0.0, 0.0, 1.0]))
+    helper = jnp.where(jnp.abs(n[..., :1]) < 0.57, jnp.array([1.0, 0.0, 0.0], n.dtype),
+                       jnp.array([0.0, 0.0, 1.0], n.dtype))
     t1 = jnp.cross(n, helper)
     t1 = t1 / safe_norm(t1)[..., None]
     return t1, jnp.cross(n, t1)

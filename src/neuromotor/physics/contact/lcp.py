@@ -29,7 +29,7 @@ _TINY = 1e-12
 
 def project_polygon(p: Float[Array, " 2"], scale, sides: int) -> Float[Array, " 2"]:
     """Euclidean projection of p onto scale * Poly_N (regular N-gon, vertices (cos, sin)(2 pi j/N))."""
-    ang = 2.0 * jnp.pi * jnp.arange(sides) / sides
+    ang = 2.0 * jnp.pi * jnp.arange(sides, dtype=p.dtype) / sides
     verts = scale * jnp.stack([jnp.cos(ang), jnp.sin(ang)], -1)
     normals = jnp.stack([jnp.cos(ang + jnp.pi / sides), jnp.sin(ang + jnp.pi / sides)], -1)
     inside = jnp.max(normals @ p) <= scale * math.cos(math.pi / sides)

@@ -17,6 +17,7 @@ from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import (Params, Reference, Rollout, SimConfig, SimModel, SimulationDiverged,
                                          init_data, rollout_of, scan_steps)
 from neuromotor.physics.perturbation import ForcePulses, no_pulses
+from neuromotor.physics.precision import cast
 
 
 class ContactRollout(eqx.Module):
@@ -32,7 +33,8 @@ def contact_rollout(model: Model, gains: Gains, pulses: ForcePulses | None, ref:
     """``cfg.n_steps`` steps of :func:`~neuromotor.physics.contact.step.contact_step` in one ``lax.scan``."""
     sim = SimModel(model, ref, cfg)
     params = Params(gains, no_pulses() if pulses is None else pulses)
-    scene = ContactScene(ball, caps, settings)
+    # The precision of cfg.dtype for the character, the ball and the capsules alike.
+    sim, params, scene = cast((sim, params, ContactScene(ball, caps, settings)), cfg.dtype)
     data0 = initial_contact_data(model, scene, init_data(sim, params))
     out, bad_step, bad_body = scan_steps(sim, params, data0, lambda s, p, d: contact_step(s, p, scene, d))
     stack = lambda a, b: jnp.concatenate([a[None], b], 0)

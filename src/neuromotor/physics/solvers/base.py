@@ -26,7 +26,14 @@ import abc
 import enum
 from typing import Any, ClassVar
 
+import jax.numpy as jnp
 from jaxtyping import Array, Float
+
+
+def relative_residual(res: Float[Array, " m"], rhs_norm: Float[Array, ""]) -> Float[Array, ""]:
+    """``|res| / |rhs|``, the floor the smallest normal number of the dtype (a float64 floor such
+    as 1e-300 would round to 0 in float32)."""
+    return jnp.linalg.norm(res) / jnp.maximum(rhs_norm, jnp.finfo(res.dtype).tiny)
 
 
 class Solver(str, enum.Enum):

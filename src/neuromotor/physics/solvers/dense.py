@@ -13,7 +13,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from neuromotor.physics.constraints import apply_inverse_mass, full_constraints
-from neuromotor.physics.solvers.base import KKTSolver
+from neuromotor.physics.solvers.base import KKTSolver, relative_residual
 from neuromotor.physics.system import mass_matrix
 
 
@@ -40,7 +40,7 @@ class DenseSolver(KKTSolver):
 
     def multipliers(self, system, r, b, v, sol):
         rhs = jnp.concatenate([r.reshape(-1), b])
-        residual = jnp.linalg.norm(system.lhs @ sol - rhs) / jnp.maximum(jnp.linalg.norm(rhs), 1e-300)
+        residual = relative_residual(system.lhs @ sol - rhs, jnp.linalg.norm(rhs))
         return sol[r.size:], residual
 
     def projection_step(self, model, cfg, rot, c):

@@ -49,10 +49,11 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from neuromotor.model.topology import Topology
-from neuromotor.physics.solvers.base import KKTSolver
+from neuromotor.physics.solvers import branch
+from neuromotor.physics.solvers.base import KKTSolver, relative_residual
 from neuromotor.physics.stiffness import tree_matvec
 from neuromotor.physics.system import joint_levers, root_lever, world_inertia
-from neuromotor.rotations import cross, skew
+from neuromotor.rotations import cross, mv, skew
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -66,6 +67,12 @@ class Structure:
     order: np.ndarray  # u = concat(u_free, u_known)[order]
     driven: tuple[int, ...]
     free_root: bool
+    tree: branch.Schedule  # elimination order of the joint-space matrix (common case)
+
+    @property
+    def by_tree(self) -> bool:
+        """Driven root, every joint free: H is factored along the tree (:mod:`.branch`)."""
+        return not (self.free_root or self.driven)
 
 
 def _structure(topo: Topology, driven: tuple[int, ...], free_root: bool) -> Structure:
@@ -77,7 +84,7 @@ def _structure(topo: Topology, driven: tuple[int, ...], free_root: bool) -> Stru
     known = np.array([3 * blk + j for blk in known_blocks for j in range(3)], dtype=np.int64)
     free = np.setdiff1d(np.arange(3 * (n + 1)), known)
     order = np.argsort(np.concatenate([free, known]))
-    return Structure(anc, strict_up, free, known, order, tuple(driven), free_root)
+    return Structure(anc, strict_up, free, known, order, tuple(driven), free_root, branch.schedule(topo))
 
 
 def structure(topo: Topology, driven: tuple[int, ...] = (), free_root: bool = False) -> Structure:
@@ -280,18 +287,55 @@ def multipliers(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[A
 def solve_kkt(st: Structure, geo: Geometry, mass: Float[Array, " B"], inertia_world: Float[Array, "B 3 3"],
               g_diag, g_up, g_down, r: Float[Array, "B 6"], b: Float[Array, " nc"]) -> Float[Array, "B 6"]:
     """v+ of Eq. 2 with ``A = M - G`` (G = h D + h^2 K, angular blocks on the tree)."""
+    if st.by_tree:
+        return solve_reduced(st, geo, reduce_tree(st, geo, mass, inertia_world, g_diag, g_up, g_down), r, b)
+    # Free root or driven joints: one dense LU of the free block of H.
     rhs, u_known = project_forces(st, geo, r), known_velocities(st, geo.r0, b)
-    if st.free_root or st.driven:
-        h = reduced_inertia(st, geo, mass, inertia_world) - reduced_stiffness(st, g_diag, g_up, g_down)
-        return apply_basis(st, geo, _split(st, h, rhs, u_known))
-    # Driven root, every joint free (the common case): only the joints' blocks are assembled,
-    # and the known root motion enters through its two block columns.
-    blocks, first = inertia_blocks(st, geo, mass, inertia_world)
-    blocks = blocks - stiffness_blocks(st, g_diag, g_up, g_down)
+    h = reduced_inertia(st, geo, mass, inertia_world) - reduced_stiffness(st, g_diag, g_up, g_down)
+    return apply_basis(st, geo, _split(st, h, rhs, u_known))
+
+
+class Reduced(eqx.Module):
+    """Eq. 2 projected on the joints (driven root, every joint free): H = S^T A S factored
+    along the tree (:mod:`.branch`), and the root's two block columns of H, through which the
+    known root motion enters."""
+
+    factor: branch.Factor
+    root_rot: Float[Array, "B 3 3"]  # H_{k, u0}
+    first: Float[Array, "B 3"]  # H_{k, v0} v0 = first_k x v0
+
+
+def reduce_tree(st: Structure, geo: Geometry, mass, inertia_world, g_diag, g_up, g_down) -> Reduced:
+    """:class:`Reduced` at one state, ``A = M - G``."""
+    sch = st.tree
+    c_blocks, first = _moments(st, geo, mass, inertia_world)
+    inner, up, down = _stiff_subtrees(st, g_diag, g_up, g_down)
+    paths = branch.subtract(branch.inertia_paths(sch, c_blocks, first, geo.pivot),
+                            branch.stiffness_paths(sch, inner, up, down))
+    return Reduced(branch.factor(sch, paths), c_blocks - inner - up, first)
+
+
+def solve_reduced(st: Structure, geo: Geometry, red: Reduced, r: Float[Array, "B 6"],
+                  b: Float[Array, " nc"]) -> Float[Array, "B 6"]:
+    """v+ of Eq. 2 from the factored :class:`Reduced` (any number of right-hand sides reuse it)."""
+    rhs, u_known = project_forces(st, geo, r), known_velocities(st, geo.r0, b)
     v0, w0 = u_known[:3], u_known[3:6]
-    known = jnp.einsum("kij,j->ki", blocks[1:, :, 0], w0) + cross(first[1:], v0)  # H_{k,u0} w0 + H_{k,v0} v0
-    u_free = jnp.linalg.solve(_flat(blocks[1:, :, 1:]), rhs[6:] - known.reshape(-1))
-    return apply_basis(st, geo, jnp.concatenate([u_known, u_free]))
+    known = mv(red.root_rot, w0) + cross(red.first, v0)
+    u = branch.solve(st.tree, red.factor, rhs[3:].reshape(-1, 3) - known)
+    return apply_basis(st, geo, jnp.concatenate([u_known, u[1:].reshape(-1)]))
+
+
+def _moments(st: Structure, geo: Geometry, mass, inertia_world):
+    """``(C_k, a_k)`` of every body (:func:`branch.pivot_blocks`)."""
+    return branch.pivot_blocks(*branch.subtree_moments(st.anc.T, mass, inertia_world, geo.com), geo.pivot)
+
+
+def _stiff_subtrees(st: Structure, g_diag, g_up, g_down):
+    """G's blocks summed within each subtree, and its body/parent couplings (root rows zero)."""
+    zero = jnp.zeros((1, 3, 3), g_diag.dtype)
+    up, down = jnp.concatenate([zero, g_up], 0), jnp.concatenate([zero, g_down], 0)
+    strict_desc = st.anc.T - np.eye(st.anc.shape[0])
+    return _tree_sum(st.anc.T, g_diag) + _tree_sum(strict_desc, up + down), up, down
 
 
 def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) -> Float[Array, "B 6"]:
@@ -324,12 +368,16 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
     """One Newton step of post-stabilization: ``dx`` (B, 6) with ``J dx = -C`` of least M-norm,
     ``dx = dx_p + S w`` with ``(S^T M S) w = -S^T M dx_p``."""
     x_p = particular_correction(st, geo, c)
-    if st.free_root or st.driven:
-        h_free = _free_block(st, reduced_inertia(st, geo, mass, inertia_world))
-    else:  # driven root, free joints: the joints' blocks only
-        h_free = _flat(inertia_blocks(st, geo, mass, inertia_world)[0][1:, :, 1:])
     mx = jnp.concatenate([mass[:, None] * x_p[:, :3], jnp.einsum("bij,bj->bi", inertia_world, x_p[:, 3:])], -1)
-    w = spd_solve(h_free, -_take(project_forces(st, geo, mx), st.free))
+    rhs = -project_forces(st, geo, mx)
+    if st.by_tree:
+        sch = st.tree
+        c_blocks, first = _moments(st, geo, mass, inertia_world)
+        w = branch.solve(sch, branch.factor(sch, branch.inertia_paths(sch, c_blocks, first, geo.pivot)),
+                         rhs[3:].reshape(-1, 3))
+        u = jnp.concatenate([jnp.zeros(6, c.dtype), w[1:].reshape(-1)])
+        return x_p + apply_basis(st, geo, u)
+    w = spd_solve(_free_block(st, reduced_inertia(st, geo, mass, inertia_world)), _take(rhs, st.free))
     u = _assemble(st, w, jnp.zeros(st.known.size, c.dtype))
     return x_p + apply_basis(st, geo, u)
 
@@ -377,6 +425,7 @@ class NullSpaceKKT(eqx.Module):
     g_down: Float[Array, "C 3 3"]
     r_parent: Float[Array, "C 3"]  # joint levers (the rows of J)
     r_child: Float[Array, "C 3"]
+    reduced: Reduced | None  # factored once per step where the tree allows (Structure.by_tree)
 
     def a_times(self, v: Float[Array, "B 6"]) -> Float[Array, "B 6"]:
         """A v = M v - G v."""
@@ -395,10 +444,14 @@ class NullSpaceSolver(KKTSolver):
         st = structure(model.topology, cfg.driven, cfg.free_root)
         r_par, r_chi = joint_levers(model, rot)
         geo = geometry(st, r_par, r_chi, root_lever(model, rot))
-        return NullSpaceKKT(st, model.topology, geo, model.mass, inertia, *stiff.g_blocks(h), r_par, r_chi)
+        g = stiff.g_blocks(h)
+        red = reduce_tree(st, geo, model.mass, inertia, *g) if st.by_tree else None
+        return NullSpaceKKT(st, model.topology, geo, model.mass, inertia, *g, r_par, r_chi, red)
 
     def solve(self, system, r, b):
         s = system
+        if s.reduced is not None:
+            return solve_reduced(s.st, s.geo, s.reduced, r, b), None
         return solve_kkt(s.st, s.geo, s.mass, s.inertia, s.g_diag, s.g_up, s.g_down, r, b), None
 
     def multipliers(self, system, r, b, v, aux):
@@ -408,7 +461,7 @@ class NullSpaceSolver(KKTSolver):
         lam = multipliers(s.st, s.geo, f)
         res = jnp.concatenate(kkt_residual(s.st, s.geo, s.r_parent, s.r_child, f, v, lam, b, s.topo.parent))
         rhs_norm = jnp.sqrt(jnp.sum(r**2) + jnp.sum(b**2))
-        return lam, jnp.linalg.norm(res) / jnp.maximum(rhs_norm, 1e-300)
+        return lam, relative_residual(res, rhs_norm)
 
     def projection_step(self, model, cfg, rot, c):
         st = structure(model.topology, cfg.driven, cfg.free_root)

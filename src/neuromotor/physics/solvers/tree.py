@@ -35,7 +35,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from neuromotor.model.topology import Topology
-from neuromotor.physics.solvers.base import KKTSolver
+from neuromotor.physics.solvers.base import KKTSolver, relative_residual
 from neuromotor.physics.system import embed_angular, joint_jacobian_blocks, mass_blocks, root_lever, world_inertia
 from neuromotor.rotations import skew
 
@@ -108,7 +108,7 @@ def solve(sys: TreeKKT, topo: Topology, r: Float[Array, "B 6"], s_root: Float[Ar
               jnp.concatenate([a_up[rows], j_par[rows]], -2),  # (L, W, 6+m, 6)
               jnp.concatenate([a_down[rows], -jnp.swapaxes(j_par[rows], -1, -2)], -1))  # (L, W, 6, 6+m)
 
-    sel_node, sel_par, sel_row = topo.derived(_selectors)
+    sel_node, sel_par, sel_row = (jnp.asarray(x, dtype) for x in topo.derived(_selectors))
     take = lambda sel, x: jnp.einsum("wb,b...->w...", sel, x)  # x[index] as a product
     put = lambda sel, x: jnp.einsum("wb,w...->b...", sel, x)  # zeros.at[index].add(x)
 
@@ -144,7 +144,8 @@ def solve(sys: TreeKKT, topo: Topology, r: Float[Array, "B 6"], s_root: Float[Ar
 def matvec(sys: TreeKKT, topo: Topology, v, lam_root, lam):
     """The system's left-hand side applied to ``(v, lam_root, lam)`` (for residuals)."""
     child, parent = topo.child, topo.parent
-    sel_c, sel_p = topo.sel_child, topo.sel_parent  # (C, B) one-hot: no scatter under vmap
+    # (C, B) one-hot: no scatter under vmap; in v's precision
+    sel_c, sel_p = jnp.asarray(topo.sel_child, v.dtype), jnp.asarray(topo.sel_parent, v.dtype)
     put = lambda sel, x: jnp.einsum("cb,c...->b...", sel, x)
     mv = lambda a, x: jnp.einsum("...ij,...j->...i", a, x)
     mtv = lambda a, x: jnp.einsum("...ji,...j->...i", a, x)
@@ -232,7 +233,7 @@ class TreeSolver(KKTSolver):
         top, bot_root, bot = matvec(system.kkt, system.topo, v, *aux)
         res = jnp.concatenate([(top - r).reshape(-1), bot_root - s_root, (bot - s_joint).reshape(-1)])
         rhs_norm = jnp.sqrt(jnp.sum(r**2) + jnp.sum(s_root**2) + jnp.sum(s_joint**2))
-        return join_rows(system.driven, *aux), jnp.linalg.norm(res) / jnp.maximum(rhs_norm, 1e-300)
+        return join_rows(system.driven, *aux), relative_residual(res, rhs_norm)
 
     def projection_step(self, model, cfg, rot, c):
         # [M -J^T; J 0][dx; mu] = [0; -C]: the same projection, dx = M^-1 J^T mu, J dx = -C.

@@ -4,15 +4,19 @@ A sweep is a flat list of runs. Each run is a :class:`~neuromotor.physics.contro
 :class:`~neuromotor.physics.perturbation.ForcePulses` (same static layout for all runs; the first pulse
 is the one a grid varies). Runs go through the device(s) in chunks:
 
-* the batch axis of a chunk is sharded over ``jax.devices()`` with a 1-D
-  :class:`jax.sharding.Mesh` and :func:`jax.shard_map`; the same code spreads over several
-  GPUs, or several hosts after ``jax.distributed.initialize()`` (see experiments/README.md);
+* the batch axis of a chunk is sharded over the process's devices (``jax.local_devices()``)
+  with a 1-D :class:`jax.sharding.Mesh` and :func:`jax.shard_map`, so the same code spreads
+  over several GPUs;
+* with several processes (one per host or GPU, or several on one machine, after
+  :func:`neuromotor.distributed.initialize`) each simulates its contiguous share of the runs
+  and the shares are gathered with ``multihost_utils.process_allgather``; every process gets
+  the rows in grid order and process 0 writes the files (:mod:`neuromotor.distributed`);
 * inside each shard the rollouts run under :func:`jax.lax.map` (``inner_batch`` > 1 vmaps
   groups of that size inside the loop). A batched ``jnp.linalg.solve`` under a plain vmap
   spread over two host CPU devices deadlocks in XLA:CPU; a loop of rollouts per shard does not;
-* only a deviation curve d(t) (S+1 floats) and four diagnostics come back per run; the exact
-  recovery metrics (:func:`neuromotor.studies.metrics.recovery_metrics`) are computed on the host per
-  chunk, so memory stays bounded by the chunk size whatever the grid size.
+* only a deviation curve d(t) (S+1 floats) and four diagnostics come back per run, so device
+  memory stays bounded by the chunk size whatever the grid size; the exact recovery metrics
+  (:func:`neuromotor.studies.metrics.recovery_metrics`) are computed on the host from them.
 
 The deviation of a run is measured against its unperturbed twin: the same gains without any
 pulse. Twins are shared: one baseline rollout per distinct gain setting, simulated first with
@@ -116,8 +120,10 @@ def _gains_map_title(cfg, spec: SweepSpec, name: str) -> str:
 
 
 def write_outputs(cfg, spec: SweepSpec, result: SweepResult, out: pathlib.Path, name: str) -> dict[str, pathlib.Path]:
-    """sweep.csv, sweep.png (several magnitudes) and gains_map.png (ks and kd both vary)."""
-    files = {"csv": write_csv(result.rows, out / "sweep.csv", BALL_COLUMNS if spec.kind == "ball" else COLUMNS)}
+    """sweep.csv (with the precision of its runs, ``[sim] dtype``), sweep.png (several magnitudes)
+    and gains_map.png (ks and kd both vary)."""
+    rows = [dict(r, dtype=str(cfg.dtype)) for r in result.rows]
+    files = {"csv": write_csv(rows, out / "sweep.csv", (*(BALL_COLUMNS if spec.kind == "ball" else COLUMNS), "dtype"))}
     if len(spec.magnitudes) > 1:
         files["plot"] = plot_sweep(result.rows, out / "sweep.png", title=name)
     if len({g.ks for g in spec.gains}) > 1 and len({g.kd for g in spec.gains}) > 1:
@@ -139,7 +145,7 @@ def sweep_from_config(path, output=None, *, devices=None, chunk=None, inner_batc
     out = pathlib.Path(output or spec.output or pathlib.Path("out") / "sweep" / pathlib.Path(path).stem)
     if fitted is not None:
         spec = dataclasses.replace(spec, fitted=read_fitted(fitted, "--fitted"))
-    lead = jax.process_index() == 0  # with several hosts, every process computes, one writes
+    lead = jax.process_index() == 0  # with several processes, each computes its share, one writes
     result = _simulate(cfg, spec, prepare(cfg), devices=devices, chunk=chunk, inner_batch=inner_batch,
                        progress=progress and lead)
     if not lead:

@@ -15,6 +15,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from neuromotor import compiler
+from neuromotor.distributed import gather_shares, share
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Reference, SimConfig, rollout
@@ -27,23 +28,16 @@ AXIS = "runs"
 
 
 def device_mesh(devices=None) -> Mesh:
-    """A 1-D mesh over ``devices`` (default: every device of every process)."""
-    devices = jax.devices() if devices is None else list(devices)
+    """A 1-D mesh over ``devices`` (default: this process's devices; with several processes each
+    runs its own share of a sweep, see :mod:`neuromotor.distributed`)."""
+    devices = jax.local_devices() if devices is None else list(devices)
     return Mesh(np.array(devices), (AXIS,))
 
 
 def _put(x, mesh: Mesh, spec: P):
-    """A global array from host data that every process holds in full (works multi-host)."""
+    """A device array from host data, laid out by ``spec`` over ``mesh``."""
     x = np.asarray(x)
     return jax.make_array_from_callback(x.shape, NamedSharding(mesh, spec), lambda idx: x[idx])
-
-
-def _gather(x) -> np.ndarray:
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
-
-        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
-    return np.asarray(x)
 
 
 class Sweeper:
@@ -106,8 +100,8 @@ def _simulate_baselines(sweeper, base_batch, n_base: int, bar):
     for lo in range(0, n_base, sweeper.chunk):
         hi = min(lo + sweeper.chunk, n_base)
         out = sweeper.simulate_chunk(sweeper.pad(base_batch, lo, hi))
-        theta.append(_gather(out.theta)[: hi - lo])
-        bad.append(_gather(out.diverged_step)[: hi - lo])
+        theta.append(np.asarray(out.theta)[: hi - lo])
+        bad.append(np.asarray(out.diverged_step)[: hi - lo])
         bar.update(hi - lo)
     return jnp.asarray(np.concatenate(theta)), np.concatenate(bad)
 
@@ -153,28 +147,44 @@ def flag_divergence(row: dict, step: int, base_step: int, time, body) -> dict:
     return row
 
 
+def _simulate_share(sweeper: Sweeper, batch, base_batch, slot, lo: int, hi: int, bar) -> dict[str, np.ndarray]:
+    """Runs lo:hi of ``batch`` and the twins they need: per run, the deviation curve ``dev``,
+    the outputs but theta, and ``base_step`` (the twin's diverged step)."""
+    c = sweeper.chunk
+    need, local_slot = np.unique(slot[lo:hi], return_inverse=True)
+    base = jax.tree_util.tree_map(lambda x: np.asarray(x)[need], base_batch)
+    bar.reset(total=len(need) + hi - lo)
+    base_theta, base_step = _simulate_baselines(sweeper, base, len(need), bar)
+    parts = []
+    for a in range(lo, hi, c):
+        b = min(a + c, hi)
+        out = sweeper.simulate_chunk(sweeper.pad(batch, a, b))
+        slot_c = local_slot.reshape(-1)[np.minimum(np.arange(a, a + c), b - 1) - lo]
+        part = {f.name: np.asarray(getattr(out, f.name))[: b - a] for f in dataclasses.fields(out) if f.name != "theta"}
+        part["dev"] = np.asarray(_chunk_deviation(out.theta, base_theta, jnp.asarray(slot_c)))[: b - a]
+        part["base_step"] = base_step[slot_c[: b - a]]
+        parts.append(part)
+        bar.update(b - a)
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
 def sweep_batches(sweeper: Sweeper, batch, base_batch, slot, make_row, body_name, bar,
                   keep_curves: bool = False) -> SweepResult:
-    """Baselines first, then every run of ``batch`` in chunks: ``make_row(i, outputs, d(t), time)``
-    gives run i's row, ``body_name(outputs)`` the body a diverged run blew up in."""
-    n, c = len(slot), sweeper.chunk
-    n_base = len(np.asarray(jax.tree_util.tree_leaves(base_batch)[0]))
+    """Every run of ``batch`` in chunks, after the twins they need:
+    ``make_row(i, outputs, d(t), time)`` gives run i's row, ``body_name(outputs)`` the body a
+    diverged run blew up in. With several processes (``jax.distributed``) each simulates its
+    share of the runs and every process gets all rows in grid order (:mod:`neuromotor.distributed`)."""
+    n = len(slot)
     time = np.asarray(sweeper.shared[1].time)[: sweeper.n_steps + 1]
-    base_theta, base_step = _simulate_baselines(sweeper, base_batch, n_base, bar)
-    rows, curves = [], []
-    for lo in range(0, n, c):
-        hi = min(lo + c, n)
-        out = sweeper.simulate_chunk(sweeper.pad(batch, lo, hi))
-        slot_c = np.minimum(np.arange(lo, lo + c), hi - 1)
-        dev = _gather(_chunk_deviation(out.theta, base_theta, jnp.asarray(slot[slot_c])))[: hi - lo]
-        host = {f.name: _gather(getattr(out, f.name))[: hi - lo] for f in dataclasses.fields(out) if f.name != "theta"}
-        for j in range(hi - lo):
-            h = {k: v[j] for k, v in host.items()}
-            row = make_row(lo + j, h, dev[j], time)
-            rows.append(flag_divergence(row, int(h["diverged_step"]), int(base_step[slot[lo + j]]), time,
-                                        lambda: body_name(h)))
-        if keep_curves:
-            curves.append(dev)
-        bar.update(hi - lo)
+    lo, hi = share(n)
+    # An empty share (more processes than runs) simulates one run for the shapes; the gather drops it.
+    local = _simulate_share(sweeper, batch, base_batch, slot, min(lo, n - 1), max(hi, min(lo + 1, n)), bar)
+    full = gather_shares(local, n)
+    rows = []
+    for i in range(n):
+        h = {k: v[i] for k, v in full.items() if k not in ("dev", "base_step")}
+        row = make_row(i, h, full["dev"][i], time)
+        rows.append(flag_divergence(row, int(h["diverged_step"]), int(full["base_step"][i]), time,
+                                    lambda: body_name(h)))
     bar.close()
-    return SweepResult(rows, np.concatenate(curves) if keep_curves else None, time)
+    return SweepResult(rows, full["dev"] if keep_curves else None, time)

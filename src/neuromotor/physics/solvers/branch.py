@@ -1,0 +1,201 @@
+"""The joint-space matrix of the null-space method, factored along the body tree.
+
+The null-space form of Eq. 2 (:mod:`neuromotor.physics.solvers.nullspace`) solves
+``H u = f`` with ``H = S^T A S`` over one rotation column per non-root body. ``H_kl`` is zero
+unless k is l or one of its ancestors, or the other way round: H has *branch-induced sparsity*
+(Featherstone 2005, "Efficient factorization of the joint-space inertia matrix for branched
+kinematic trees"). Eliminating the deepest bodies first then creates no fill-in: eliminating
+body k only changes the blocks ``H_ab`` between its ancestors a and b.
+
+So H is never assembled. Each body k keeps its *path*: the blocks of its row and column against
+each ancestor l (and itself), ``R[k, l] = H_kl`` and ``U[k, l] = H_lk``, indexed by the depth of l.
+The factorization visits the tree level by level, deepest first; all bodies of one depth are
+independent and are eliminated together by elementwise 3x3 arithmetic (no LAPACK call, so a
+``vmap`` over trajectories vectorizes along the batch instead of looping over small
+factorizations). Pivots need no exchange: the diagonal blocks of ``S^T M S`` are positive definite
+and the stiff part is a small perturbation of it (the same assumption as the dense LU's).
+
+Path blocks in closed form (pivot p_l of column l, subtree quantities of k from
+:func:`subtree_moments`: mass m_k, first moment s_k, inertia about the root COM J_k):
+
+    M part:  H_kl = C_k + [a_k]x [p_l]x,    C_k = J_k - (p_k . s_k) 1 + s_k p_k^T,  a_k = s_k - m_k p_k
+    G part:  (S^T G S)_kl = inner_k + up_k  (l a strict ancestor),  inner_k on the diagonal,
+             (S^T G S)_lk = inner_k + down_k
+
+with ``inner_k`` the sum of G's blocks within the subtree of k and up/down its blocks between k
+and its parent (G = h D + h^2 K, angular blocks on the tree, as in ``stiffness.StiffBlocks``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from neuromotor.model.topology import Topology
+from neuromotor.rotations import dot, inv3, mm, mv
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Schedule:
+    """Static (numpy) layout of the elimination; see :func:`schedule`. Level t holds the bodies
+    at depth t (t = 1..t_max, entry t - 1 of the tuples); blocks and vectors are stored per level."""
+
+    t_max: int  # depth of the deepest body
+    levels: tuple[np.ndarray, ...]  # bodies at each depth
+    anc_at: np.ndarray  # (B, t_max + 1): ancestor of each body at depth t (0 past its own depth)
+    valid: np.ndarray  # (B, t_max): slot t - 1 holds a block (t <= depth)
+    strict: np.ndarray  # (B, t_max): slot t - 1 is a strict ancestor (t < depth)
+    # gather[d - 1][t - 1] = (index, mask), each (w_t, c): the level-d descendants of each level-t
+    # body, as positions in level d (sums over them replace a scatter, which is slow batched)
+    gather: tuple[tuple[tuple[np.ndarray, np.ndarray], ...], ...]
+    anc_pos: tuple[tuple[np.ndarray, ...], ...]  # [d - 1][t - 1]: (w_d,) position of anc_t in level t
+    order: np.ndarray  # (B,): position of each body in the levels' concatenation (root: 0, masked)
+
+
+def _descendants_at(anc_at, level_d, level_t, t):
+    """Per body of ``level_t``, the positions in ``level_d`` of its descendants (padded)."""
+    owners = [np.flatnonzero(anc_at[level_d, t] == b) for b in level_t]
+    width = max(1, max(len(o) for o in owners))
+    index, mask = np.zeros((len(level_t), width), np.int64), np.zeros((len(level_t), width))
+    for i, o in enumerate(owners):
+        index[i, : len(o)], mask[i, : len(o)] = o, 1.0
+    return index, mask
+
+
+def _schedule(topo: Topology) -> Schedule:
+    n, depth = topo.n_bodies, np.asarray(topo.depth)
+    t_max = int(depth.max())
+    anc_at = np.zeros((n, t_max + 1), np.int64)
+    for b in range(n):
+        k = b
+        while True:
+            anc_at[b, depth[k]] = k
+            if k == 0:
+                break
+            k = topo.body_parent[k]
+    t = np.arange(1, t_max + 1)
+    levels = tuple(np.flatnonzero(depth == d) for d in t)
+    pos = np.zeros(n, np.int64)
+    for lv in levels:
+        pos[lv] = np.arange(len(lv))
+    gather = tuple(tuple(_descendants_at(anc_at, levels[d - 1], levels[u - 1], u) for u in range(1, d)) for d in t)
+    anc_pos = tuple(tuple(pos[anc_at[levels[d - 1], u]] for u in range(1, d)) for d in t)
+    order = np.zeros(n, np.int64)
+    order[np.concatenate(levels)] = np.arange(n - 1)
+    return Schedule(t_max, levels, anc_at, (t[None] <= depth[:, None]).astype(float),
+                    (t[None] < depth[:, None]).astype(float), gather, anc_pos, order)
+
+
+def schedule(topo: Topology) -> Schedule:
+    """The elimination schedule of a tree (built once per topology)."""
+    return topo.derived(_schedule)
+
+
+def _gather_sum(x, index_mask):
+    """For each target of ``index_mask`` (see ``Schedule.gather``), the sum of its entries of x."""
+    index, mask = index_mask
+    picked = jnp.take(x, index, axis=0) * jnp.asarray(mask, x.dtype).reshape(mask.shape + (1,) * (x.ndim - 1))
+    return jnp.sum(picked, 1)
+
+
+class Paths(eqx.Module):
+    """Each non-root body's row and column blocks of H against its ancestors and itself, slot
+    ``t - 1`` for the ancestor at depth t (the diagonal at the body's own depth; zero beyond)."""
+
+    row: Float[Array, "B T 3 3"]  # H[k, anc_t(k)]
+    col: Float[Array, "B T 3 3"]  # H[anc_t(k), k] (the diagonal slot is unused)
+
+
+def _times_skew(a: Float[Array, "... 3"], p: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+    """[a]x [p]x = p a^T - (a . p) 1."""
+    eye = jnp.eye(3, dtype=a.dtype)
+    return p[..., :, None] * a[..., None, :] - dot(a, p)[..., None, None] * eye
+
+
+def inertia_paths(sch: Schedule, c_blocks: Float[Array, "B 3 3"], first: Float[Array, "B 3"],
+                  pivot: Float[Array, "B 3"]) -> Paths:
+    """Paths of ``S^T M S`` (symmetric): ``H_kl = C_k + [a_k]x [p_l]x`` (module docstring)."""
+    p_anc = jnp.take(pivot, sch.anc_at[:, 1:], axis=0)  # (B, T, 3)
+    row = jnp.asarray(sch.valid, pivot.dtype)[..., None, None] * (c_blocks[:, None] + _times_skew(first[:, None], p_anc))
+    return Paths(row, jnp.swapaxes(row, -1, -2))
+
+
+def stiffness_paths(sch: Schedule, inner: Float[Array, "B 3 3"], up: Float[Array, "B 3 3"],
+                    down: Float[Array, "B 3 3"]) -> Paths:
+    """Paths of ``S^T G S`` from the subtree sums ``inner`` and the parent couplings (zero rows
+    for the root)."""
+    valid = jnp.asarray(sch.valid, inner.dtype)[..., None, None]
+    strict = jnp.asarray(sch.strict, inner.dtype)[..., None, None]
+    return Paths(valid * inner[:, None] + strict * up[:, None], valid * inner[:, None] + strict * down[:, None])
+
+
+def subtract(a: Paths, b: Paths) -> Paths:
+    return Paths(a.row - b.row, a.col - b.col)
+
+
+class Factor(eqx.Module):
+    """The factored H, per level (deepest first): inverse pivots, ``X = P^-1 R`` against the
+    strict ancestors, and the column blocks used by the forward substitution."""
+
+    pinv: tuple[Float[Array, "w 3 3"], ...]
+    x: tuple[Float[Array, "w d 3 3"], ...]
+    col: tuple[Float[Array, "w d 3 3"], ...]
+
+
+def factor(sch: Schedule, paths: Paths) -> Factor:
+    """Block LDU of H without fill-in, deepest level first (module docstring)."""
+    rows = [jnp.take(paths.row, lv, axis=0)[:, :t] for t, lv in enumerate(sch.levels, 1)]
+    cols = [jnp.take(paths.col, lv, axis=0)[:, : t - 1] for t, lv in enumerate(sch.levels, 1)]
+    pinv, xs, used = [], [], []
+    for d in range(sch.t_max, 0, -1):
+        rk, ck = rows[d - 1], cols[d - 1]
+        p_inv = inv3(rk[:, d - 1])
+        x = mm(p_inv[:, None], rk[:, : d - 1])
+        pinv.append(p_inv), xs.append(x), used.append(ck)
+        # Schur complement onto the ancestors: H_ab -= H_ak P^-1 H_kb for ancestors a, b of k;
+        # prod[k, a, b] = U[k, a] X[k, b] lands in the row of a (b <= a) or the column of b (a < b).
+        prod = mm(ck[:, :, None], x[:, None, :])
+        for t in range(1, d):
+            rows[t - 1] = rows[t - 1] - _gather_sum(prod[:, t - 1, :t], sch.gather[d - 1][t - 1])
+            if t > 1:
+                cols[t - 1] = cols[t - 1] - _gather_sum(prod[:, : t - 1, t - 1], sch.gather[d - 1][t - 1])
+    return Factor(tuple(pinv), tuple(xs), tuple(used))
+
+
+def solve(sch: Schedule, fac: Factor, rhs: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
+    """u with ``H u = rhs`` (rows of the non-root bodies; the root row is ignored and returned 0)."""
+    r = [jnp.take(rhs, lv, axis=0) for lv in sch.levels]
+    z = [None] * sch.t_max
+    for i, d in enumerate(range(sch.t_max, 0, -1)):  # forward: leaves first
+        z[d - 1] = mv(fac.pinv[i], r[d - 1])
+        for t in range(1, d):  # rhs_a -= H_ak z_k for the ancestors a of k
+            r[t - 1] = r[t - 1] - _gather_sum(mv(fac.col[i][:, t - 1], z[d - 1]), sch.gather[d - 1][t - 1])
+    u = [None] * sch.t_max
+    for d in range(1, sch.t_max + 1):  # back: root side first
+        x = fac.x[sch.t_max - d]
+        u[d - 1] = z[d - 1] - sum((mv(x[:, t - 1], jnp.take(u[t - 1], sch.anc_pos[d - 1][t - 1], axis=0))
+                                   for t in range(1, d)), jnp.zeros_like(z[d - 1]))
+    out = jnp.take(jnp.concatenate(u, 0), sch.order, axis=0)
+    return out * jnp.asarray(np.arange(len(sch.order)) > 0, rhs.dtype)[:, None]
+
+
+def subtree_moments(desc: np.ndarray, mass, inertia, com):
+    """Per body, sums over its subtree: mass m, first moment s = sum m c, and J = sum (I + m
+    (|c|^2 1 - c c^T)), the inertia about the origin of ``com`` (the root COM)."""
+    eye = jnp.eye(3, dtype=com.dtype)
+    own = inertia + mass[:, None, None] * (dot(com, com)[:, None, None] * eye - com[:, :, None] * com[:, None, :])
+    total = lambda x: jnp.tensordot(jnp.asarray(desc, x.dtype), x, axes=1)
+    return total(mass), total(mass[:, None] * com), total(own)
+
+
+def pivot_blocks(m_sub, s_sub, j_sub, pivot):
+    """``C_k = J_k - (p_k . s_k) 1 + s_k p_k^T`` and ``a_k = s_k - m_k p_k`` (module docstring);
+    ``C_k`` is also the block ``H_{k, root rotation}`` (the root's pivot is the origin)."""
+    eye = jnp.eye(3, dtype=pivot.dtype)
+    c_blocks = j_sub - dot(pivot, s_sub)[:, None, None] * eye + s_sub[:, :, None] * pivot[:, None, :]
+    return c_blocks, s_sub - m_sub[:, None] * pivot
+

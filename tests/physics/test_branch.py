@@ -1,0 +1,71 @@
+"""The tree factorization of the joint-space matrix (physics/solvers/branch.py) against dense
+linear algebra: paths equal the dense blocks of S^T M S and S^T G S, and factor + solve equal
+``numpy.linalg.solve`` on trees of every shape, with a non-symmetric stiffness part."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from neuromotor.model.topology import of_tree
+from neuromotor.physics.solvers import branch, nullspace
+
+from test_nullspace import PARENT, _random_tree
+
+
+def _random_parents(rng, n):
+    """A random tree: each body hangs from any earlier one (chains, stars and mixtures)."""
+    return (-1,) + tuple(int(rng.integers(0, b)) for b in range(1, n))
+
+
+def _dense_from_paths(sch, paths, n):
+    """H over the non-root bodies (3(n-1) square) from the per-body paths."""
+    h = np.zeros((3 * n, 3 * n))
+    row, col = np.asarray(paths.row), np.asarray(paths.col)
+    depth = sch.anc_at.shape[1] - 1
+    for k in range(1, n):
+        for t in range(1, depth + 1):
+            if not sch.valid[k, t - 1]:
+                continue
+            a = sch.anc_at[k, t]
+            h[3 * k:3 * k + 3, 3 * a:3 * a + 3] = row[k, t - 1]
+            if a != k:
+                h[3 * a:3 * a + 3, 3 * k:3 * k + 3] = col[k, t - 1]
+    return h[3:, 3:]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_factor_and_solve_equal_dense_solve_on_random_trees(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 24))
+    parents = PARENT if seed == 0 else _random_parents(rng, n)
+    n = len(parents)
+    sch = branch.schedule(of_tree(parents))
+    t = sch.anc_at.shape[1] - 1
+    # Random paths, made diagonally dominant so that no pivoting is needed (as for M - G).
+    row = rng.normal(size=(n, t, 3, 3)) * sch.valid[..., None, None]
+    col = rng.normal(size=(n, t, 3, 3)) * sch.strict[..., None, None]
+    depth = np.asarray(of_tree(parents).depth)
+    for k in range(1, n):
+        row[k, depth[k] - 1] += 6.0 * t * np.eye(3)
+    paths = branch.Paths(jnp.asarray(row), jnp.asarray(col))
+    h = _dense_from_paths(sch, paths, n)
+    rhs = rng.normal(size=(n, 3))
+    got = jax.jit(lambda p, r: branch.solve(sch, branch.factor(sch, p), r))(paths, jnp.asarray(rhs))
+    want = np.linalg.solve(h, rhs[1:].reshape(-1))
+    np.testing.assert_allclose(np.asarray(got)[1:].reshape(-1), want, rtol=0, atol=1e-12 * np.abs(want).max())
+    assert np.all(np.asarray(got)[0] == 0.0)
+
+
+def test_paths_are_the_blocks_of_the_reduced_matrices():
+    rng, n, mass, inertia, r_parent, r_child, r0 = _random_tree(3)
+    st = nullspace.structure(of_tree(PARENT))
+    geo = nullspace.geometry(st, jnp.asarray(r_parent), jnp.asarray(r_child), jnp.asarray(r0))
+    c_blocks, first = nullspace._moments(st, geo, jnp.asarray(mass), jnp.asarray(inertia))
+    inertia_h = _dense_from_paths(st.tree, branch.inertia_paths(st.tree, c_blocks, first, geo.pivot), n)
+    dense = np.asarray(nullspace.reduced_inertia(st, geo, jnp.asarray(mass), jnp.asarray(inertia)))[6:, 6:]
+    np.testing.assert_allclose(inertia_h, dense, atol=1e-12 * np.abs(dense).max())
+    g = [jnp.asarray(rng.normal(size=s)) for s in ((n, 3, 3), (n - 1, 3, 3), (n - 1, 3, 3))]
+    stiff_h = _dense_from_paths(st.tree, branch.stiffness_paths(st.tree, *nullspace._stiff_subtrees(st, *g)), n)
+    dense = np.asarray(nullspace.reduced_stiffness(st, *g))[6:, 6:]
+    np.testing.assert_allclose(stiff_h, dense, atol=1e-12 * np.abs(dense).max())
