@@ -66,7 +66,9 @@ def _program(pkg: str, batch: int):
         return jax.vmap(one)(scales) if batch > 1 else one(scales[0])[None]
 
     fn = compiler.jit(many)
+    start = time.perf_counter()
     theta = jax.block_until_ready(fn(scales, g, ref))
+    print(f"{pkg}: trace and compile {time.perf_counter() - start:.1f} s")
     return (lambda: fn(scales, g, ref)), theta, batch * cfg.n_steps
 
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -49,6 +50,7 @@ class Schedule:
     anc_at: np.ndarray  # (B, t_max + 1): ancestor of each body at depth t (0 past its own depth)
     valid: np.ndarray  # (B, t_max): slot t - 1 holds a block (t <= depth)
     strict: np.ndarray  # (B, t_max): slot t - 1 is a strict ancestor (t < depth)
+    onto: np.ndarray  # (B, t_max, B): one-hot of each strict ancestor (H x's column sums)
     # gather[d - 1][t - 1] = (index, mask), each (w_t, c): the level-d descendants of each level-t
     # body, as positions in level d (sums over them replace a scatter, which is slow batched)
     gather: tuple[tuple[tuple[np.ndarray, np.ndarray], ...], ...]
@@ -86,8 +88,10 @@ def _schedule(topo: Topology) -> Schedule:
     anc_pos = tuple(tuple(pos[anc_at[levels[d - 1], u]] for u in range(1, d)) for d in t)
     order = np.zeros(n, np.int64)
     order[np.concatenate(levels)] = np.arange(n - 1)
-    return Schedule(t_max, levels, anc_at, (t[None] <= depth[:, None]).astype(float),
-                    (t[None] < depth[:, None]).astype(float), gather, anc_pos, order)
+    strict = (t[None] < depth[:, None]).astype(float)
+    onto = np.eye(n)[anc_at[:, 1:]] * strict[..., None]
+    return Schedule(t_max, levels, anc_at, (t[None] <= depth[:, None]).astype(float), strict, onto, gather,
+                    anc_pos, order)
 
 
 def schedule(topo: Topology) -> Schedule:
@@ -198,4 +202,33 @@ def pivot_blocks(m_sub, s_sub, j_sub, pivot):
     eye = jnp.eye(3, dtype=pivot.dtype)
     c_blocks = j_sub - dot(pivot, s_sub)[:, None, None] * eye + s_sub[:, :, None] * pivot[:, None, :]
     return c_blocks, s_sub - m_sub[:, None] * pivot
+
+
+def matvec(sch: Schedule, paths: Paths, x: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
+    """H x from the paths (root row 0): each body's row against its ancestors and itself, plus
+    the columns of its strict descendants."""
+    x_anc = jnp.take(x, sch.anc_at[:, 1:], axis=0)  # (B, T, 3): x at each ancestor slot
+    own = jnp.sum(mv(paths.row, x_anc), 1)
+    below = jnp.einsum("jsa,jsi->ai", jnp.asarray(sch.onto, x.dtype), mv(paths.col, x[:, None]))
+    return (own + below) * jnp.asarray(np.arange(len(sch.order)) > 0, x.dtype)[:, None]
+
+
+def transposed(sch: Schedule, paths: Paths) -> Paths:
+    """The paths of H^T: a body's row against its strict ancestors is its column transposed."""
+    swap = lambda a: jnp.swapaxes(a, -1, -2)
+    strict = jnp.asarray(sch.strict, paths.row.dtype)[..., None, None]
+    diag = jnp.asarray(sch.valid - sch.strict, paths.row.dtype)[..., None, None]
+    return Paths(strict * swap(paths.col) + diag * swap(paths.row), swap(paths.row))
+
+
+def linear_solve(sch: Schedule, paths: Paths, fac: Factor, rhs: Float[Array, "B 3"],
+                 symmetric: bool = False) -> Float[Array, "B 3"]:
+    """``H^-1 rhs`` with derivatives by implicit differentiation (``lax.custom_linear_solve``):
+    a tangent costs one more solve with the same factor and one product with the tangent of H,
+    not the derivative of the factorization. ``fac`` must be ``factor(sch, stop_gradient(paths))``."""
+    def transpose_solve(_, y):
+        return solve(sch, factor(sch, jax.lax.stop_gradient(transposed(sch, paths))), y)
+
+    return jax.lax.custom_linear_solve(lambda v: matvec(sch, paths, v), rhs, lambda _, y: solve(sch, fac, y),
+                                       transpose_solve=None if symmetric else transpose_solve, symmetric=symmetric)
 

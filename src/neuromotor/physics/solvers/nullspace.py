@@ -300,7 +300,8 @@ class Reduced(eqx.Module):
     along the tree (:mod:`.branch`), and the root's two block columns of H, through which the
     known root motion enters."""
 
-    factor: branch.Factor
+    paths: branch.Paths
+    factor: branch.Factor  # of the paths without their tangents (see branch.linear_solve)
     root_rot: Float[Array, "B 3 3"]  # H_{k, u0}
     first: Float[Array, "B 3"]  # H_{k, v0} v0 = first_k x v0
 
@@ -312,7 +313,7 @@ def reduce_tree(st: Structure, geo: Geometry, mass, inertia_world, g_diag, g_up,
     inner, up, down = _stiff_subtrees(st, g_diag, g_up, g_down)
     paths = branch.subtract(branch.inertia_paths(sch, c_blocks, first, geo.pivot),
                             branch.stiffness_paths(sch, inner, up, down))
-    return Reduced(branch.factor(sch, paths), c_blocks - inner - up, first)
+    return Reduced(paths, branch.factor(sch, jax.lax.stop_gradient(paths)), c_blocks - inner - up, first)
 
 
 def solve_reduced(st: Structure, geo: Geometry, red: Reduced, r: Float[Array, "B 6"],
@@ -321,7 +322,7 @@ def solve_reduced(st: Structure, geo: Geometry, red: Reduced, r: Float[Array, "B
     rhs, u_known = project_forces(st, geo, r), known_velocities(st, geo.r0, b)
     v0, w0 = u_known[:3], u_known[3:6]
     known = mv(red.root_rot, w0) + cross(red.first, v0)
-    u = branch.solve(st.tree, red.factor, rhs[3:].reshape(-1, 3) - known)
+    u = branch.linear_solve(st.tree, red.paths, red.factor, rhs[3:].reshape(-1, 3) - known)
     return apply_basis(st, geo, jnp.concatenate([u_known, u[1:].reshape(-1)]))
 
 
@@ -373,8 +374,9 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
     if st.by_tree:
         sch = st.tree
         c_blocks, first = _moments(st, geo, mass, inertia_world)
-        w = branch.solve(sch, branch.factor(sch, branch.inertia_paths(sch, c_blocks, first, geo.pivot)),
-                         rhs[3:].reshape(-1, 3))
+        paths = branch.inertia_paths(sch, c_blocks, first, geo.pivot)
+        fac = branch.factor(sch, jax.lax.stop_gradient(paths))
+        w = branch.linear_solve(sch, paths, fac, rhs[3:].reshape(-1, 3), symmetric=True)
         u = jnp.concatenate([jnp.zeros(6, c.dtype), w[1:].reshape(-1)])
         return x_p + apply_basis(st, geo, u)
     w = spd_solve(_free_block(st, reduced_inertia(st, geo, mass, inertia_world)), _take(rhs, st.free))
