@@ -9,7 +9,9 @@ Prints, after compilation, for the 19-joint default clip at h = 1/120 s:
 * ``jax.jacfwd`` over (ks, kd) through a 1 s rollout, relative to the rollout itself;
 * inverse dynamics of whole clips (Eq. 3) after compile and its compile time;
 * MuJoCo (optional) on the exported MJCF (:func:`neuromotor.io.mjcf.model_to_mjcf`): one thread,
-  implicitfast, PD servos on every hinge, same skeleton, masses and time step; and the ratio.
+  implicitfast, PD servos on every hinge, same skeleton, masses and time step; and the ratio;
+* MuJoCo MJX (optional, float64 and float32) on that same model beside MuJoCo C and ours, timed in
+  interleaved rounds (:mod:`neuromotor.studies.bench_mjx`).
 
 Every time is the best of several repeats (the figures are meant for a shared machine).
 Component times are measured on their own inside a ``lax.scan`` over the states of a rollout,
@@ -217,8 +219,9 @@ def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
              "max_theta_diff_rad": float(jnp.max(jnp.abs(runs[n].theta - last.theta)))} for n in steps]
 
 
-def batched(setup, sizes, repeats: int) -> list[dict]:
-    """Total steps per second of a vmap over pulse magnitudes."""
+def batched(setup, sizes, repeats: int, programs: dict | None = None) -> list[dict]:
+    """Total steps per second of a vmap over pulse magnitudes. ``programs`` (a dict) receives
+    each compiled batch as a zero-argument callable, keyed ``batch<size>``."""
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     out = []
     for size in sizes:
@@ -230,13 +233,16 @@ def batched(setup, sizes, repeats: int) -> list[dict]:
 
         comp, compile_s = _compile(many, mags, g, ref)
         t = _best(lambda: comp(mags, g, ref), repeats)
+        if programs is not None:
+            programs[f"batch{size}"] = lambda comp=comp, mags=mags: comp(mags, g, ref)
         out.append({"batch": size, "steps": cfg.n_steps, "seconds": t, "compile_s": compile_s,
                     "steps_per_s": size * cfg.n_steps / t, "real_time_factor": size * cfg.n_steps * cfg.h / t})
     return out
 
 
-def gain_jacobian(setup, repeats: int) -> dict:
-    """jacfwd over (ks, kd) through the rollout, against the rollout alone."""
+def gain_jacobian(setup, repeats: int, programs: dict | None = None) -> dict:
+    """jacfwd over (ks, kd) through the rollout, against the rollout alone. ``programs`` (a dict)
+    receives both compiled programs as zero-argument callables (``jacfwd``, ``jacfwd_rollout``)."""
     from neuromotor.studies.gains import set_gains
 
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
@@ -249,6 +255,8 @@ def gain_jacobian(setup, repeats: int) -> dict:
     jac, c2 = _compile(jax.jacfwd(theta), x, g, ref)
     t_fwd = _best(lambda: fwd(x, g, ref), repeats)
     t_jac = _best(lambda: jac(x, g, ref), repeats)
+    if programs is not None:
+        programs.update(jacfwd=lambda: jac(x, g, ref), jacfwd_rollout=lambda: fwd(x, g, ref))
     return {"seconds_simulated": cfg.n_steps * cfg.h, "rollout_s": t_fwd, "jacfwd_s": t_jac,
             "ratio": t_jac / t_fwd, "compile_rollout_s": c1, "compile_jacfwd_s": c2}
 
@@ -279,16 +287,7 @@ def mujoco_reference(setup, steps: int, repeats: int, ours=None) -> dict | None:
         import mujoco
     except ImportError:
         return None
-    from neuromotor.io.mjcf import model_to_mjcf
-
-    mj = mujoco.MjModel.from_xml_string(model_to_mjcf(setup.character, timestep=setup.sim.h))
-    data = mujoco.MjData(mj)
-    # Start from the mocap's first pose and hold it with the servos.
-    theta0 = np.asarray(setup.ref.theta[0])
-    if mj.nq == 7 + theta0.shape[0]:  # hinges are our DOFs, in our order (see mjcf.py)
-        data.qpos[7:] = theta0
-    data.ctrl[:] = data.qpos[7:7 + mj.nu]
-    mujoco.mj_forward(mj, data)
+    mj, data = mujoco_start(setup.character, setup.sim.h, setup.ref.theta[0])
     qpos0, qvel0 = data.qpos.copy(), data.qvel.copy()
 
     def run(n):
@@ -306,6 +305,47 @@ def mujoco_reference(setup, steps: int, repeats: int, ours=None) -> dict | None:
         best = _interleaved({"ours": ours, "mujoco": lambda: run(n)}, max(3 * repeats, 10))
         out["interleaved"] = {"steps": n, "ours_us": best["ours"] / n * 1e6, "mujoco_us": best["mujoco"] / n * 1e6,
                               "ratio": best["ours"] / best["mujoco"]}
+    return out
+
+
+def mujoco_start(character, h: float, theta0):
+    """(MjModel, MjData) of the exported MJCF at step ``h``, starting from the joint angles
+    ``theta0`` (the mocap's first pose) at rest, held there by the servos (``ctrl``)."""
+    import mujoco
+
+    from neuromotor.io.mjcf import model_to_mjcf
+
+    mj = mujoco.MjModel.from_xml_string(model_to_mjcf(character, timestep=h))
+    data = mujoco.MjData(mj)
+    theta0 = np.asarray(theta0)
+    if mj.nq == 7 + theta0.shape[0]:  # hinges are our DOFs, in our order (see mjcf.py)
+        data.qpos[7:] = theta0
+    data.ctrl[:] = data.qpos[7:7 + mj.nu]
+    mujoco.mj_forward(mj, data)
+    return mj, data
+
+
+def mjx_beside(setup, batch_setup, programs: dict, res: dict, repeats: int, log=print) -> dict:
+    """MuJoCo MJX beside MuJoCo C and ours (:func:`neuromotor.studies.bench_mjx.compare`) on the
+    model :func:`mujoco_reference` steps; ``programs``: our compiled rollout, batch and jacfwd.
+    Without MJX, one line saying why and ``{"skipped": why}``."""
+    from neuromotor.studies import bench_mjx
+
+    why = bench_mjx.unavailable()
+    if why is not None:
+        log(f"MJX: skipped ({why})")
+        return {"skipped": why}
+    size = max(r["batch"] for r in res["batch"])
+    ours = {"rollout": programs["rollout"], "batch": programs[f"batch{size}"],
+            "jacfwd": programs["jacfwd"], "jacfwd_rollout": programs["jacfwd_rollout"]}
+    mj, data = mujoco_start(setup.character, setup.sim.h, setup.ref.theta[0])
+    # MJX gets the XLA options ours is compiled with (on the CPU they cut its jacfwd time ~5x).
+    out = bench_mjx.compare(mj, data, ours, steps=setup.sim.n_steps, batch=size,
+                            batch_steps=batch_setup.sim.n_steps, rounds=max(2 * repeats, 7),
+                            compiler_options=compiler.compiler_options() if jax.default_backend() == "cpu" else None)
+    out["ours_compile_s"] = {"rollout": res["single"]["compile_s"], "jacfwd": res["jacfwd"]["compile_jacfwd_s"],
+                             "batch": next(r["compile_s"] for r in res["batch"] if r["batch"] == size)}
+    bench_mjx.log_figures(out, log, out["ours_compile_s"])
     return out
 
 
@@ -334,8 +374,10 @@ def plot_throughput(rows: list[dict], mujoco_sps: float | None, path) -> None:
 
 
 def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_seconds: float = 0.25,
-            repeats: int = 5, idyn_clips=(), plot=None, log=print, dense_too: bool = True, load=None) -> dict:
-    """Run every benchmark and print the figures as they come."""
+            repeats: int = 5, idyn_clips=(), plot=None, log=print, dense_too: bool = True, load=None,
+            mjx: bool = True) -> dict:
+    """Run every benchmark and print the figures as they come (``mjx``: MuJoCo MJX beside
+    MuJoCo C, when mujoco-mjx is installed)."""
     log(f"machine: {machine()}")
     res: dict = {"machine": machine()}
     setup = _setup(clip, 1.0, solver, load)
@@ -355,7 +397,8 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
     for r in res["stabilization"]:
         log(f"post-stabilization, {r['stabilization_steps']} Newton step(s): {r['step_us']:.1f} us/step, max violation "
             f"{r['max_violation']:.1e} m, max |theta - theta(2 steps)| {r['max_theta_diff_rad']:.1e} rad")
-    res["jacfwd"] = gain_jacobian(setup, repeats)
+    programs = {"rollout": ours}  # compiled programs of ours, for the interleaved MJX rounds
+    res["jacfwd"] = gain_jacobian(setup, repeats, programs)
     j = res["jacfwd"]
     log(f"jacfwd over (ks, kd), {j['seconds_simulated']:.2f} s rollout: {j['jacfwd_s'] * 1e3:.1f} ms vs "
         f"{j['rollout_s'] * 1e3:.1f} ms -> {j['ratio']:.2f}x (compile {j['compile_jacfwd_s']:.1f} s)")
@@ -373,7 +416,7 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
                 f"{il['mujoco_us']:.1f} us/step -> ours/MuJoCo {il['ratio']:.2f}x (real-time factor "
                 f"{H / il['ours_us'] * 1e6:.0f} at that moment)")
     bsetup = _setup(clip, batch_seconds, solver, load)
-    res["batch"] = batched(bsetup, sizes, max(2, repeats // 2))
+    res["batch"] = batched(bsetup, sizes, max(2, repeats // 2), programs)
     for r in res["batch"]:
         ratio = "" if res["mujoco"] is None else f" ({r['steps_per_s'] / res['mujoco']['steps_per_s']:.2f}x MuJoCo)"
         log(f"batch {r['batch']:4d}: {r['steps_per_s']:10.0f} steps/s{ratio}, compile {r['compile_s']:.1f} s")
@@ -382,6 +425,8 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
     mj_us = "" if res["mujoco"] is None else f"; one MuJoCo step {res['mujoco']['step_us']:.1f} us"
     log(f"batch {bs['batch']} split (us per trajectory-step): Jacobians {bs['jacobians']:.1f}, KKT solve "
         f"{bs['kkt_solve']:.1f}, post-stabilization {bs['post_stabilization']:.1f}, whole step {bs['step']:.1f}{mj_us}")
+    if mjx:
+        res["mjx"] = mjx_beside(setup, bsetup, programs, res, repeats, log)
     if idyn_clips:
         res["inverse_dynamics"] = inverse(idyn_clips, repeats, load)
         for r in res["inverse_dynamics"]:
@@ -418,6 +463,7 @@ def add_arguments(ap) -> None:
     ap.add_argument("--plot", default=None, help="PNG of throughput against batch size")
     ap.add_argument("--json", default=None, help="write all figures as JSON")
     ap.add_argument("--no-dense", action="store_true", help="skip the other solvers (tree, dense reference)")
+    ap.add_argument("--no-mjx", action="store_true", help="skip MuJoCo MJX (compiles six programs)")
 
 
 def run_from_args(args) -> int:
@@ -429,7 +475,7 @@ def run_from_args(args) -> int:
                     options=MassModelOptions(body_mass=args.body_mass, sex=args.sex,
                                              simulate_extremities=args.simulate_extremities))
     res = run_all(args.clip, args.solver, tuple(args.sizes), repeats=args.repeats, idyn_clips=tuple(args.idyn),
-                  plot=args.plot, dense_too=not args.no_dense, load=load)
+                  plot=args.plot, dense_too=not args.no_dense, load=load, mjx=not getattr(args, "no_mjx", False))
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps(res, indent=2, default=float))
     return 0
