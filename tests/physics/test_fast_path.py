@@ -1,4 +1,4 @@
-"""The fast solvers (null-space and tree) solve the same equations as the dense reference path."""
+"""The fast solvers (null-space, its tree-factored twin "branch", and tree) solve the same equations as the dense reference path."""
 
 import dataclasses
 
@@ -98,7 +98,7 @@ def test_per_joint_jacobians_equal_dense_jacfwd(hit_setup):
     np.testing.assert_array_equal(np.asarray(k).reshape(n, 6)[:, :3], 0.0)  # stiff forces are pure torques
 
 
-@pytest.mark.parametrize("solver", ["nullspace", "tree"])
+@pytest.mark.parametrize("solver", ["nullspace", "branch", "tree"])
 def test_fast_rollout_equals_dense_rollout_with_a_hit(hit_setup, solver):
     s = hit_setup
     run = jax.jit(rollout, static_argnames="cfg")
@@ -116,7 +116,7 @@ def test_fast_rollout_equals_dense_rollout_with_a_hit(hit_setup, solver):
     assert int(tree.diverged_step) == int(dense.diverged_step) == -1
 
 
-@pytest.mark.parametrize("solver", ["nullspace", "tree"])
+@pytest.mark.parametrize("solver", ["nullspace", "branch", "tree"])
 @pytest.mark.parametrize("driven_free", [((2, 5, 9), False), ((), True)], ids=["driven", "free_root"])
 def test_fast_step_equals_dense_step_with_constraint_forces(hit_setup, driven_free, solver):
     """One step from perturbed states: new state and every constraint force lambda."""

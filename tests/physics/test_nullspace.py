@@ -124,5 +124,11 @@ def test_kkt_solve_and_projection_match_dense_saddle_point_solves(driven, free_r
     c = rng.normal(size=nc) * 1e-3
     minv = np.linalg.inv(m)
     dx = minv @ j.T @ np.linalg.solve(j @ minv @ j.T, -c)
-    got = nullspace.projection_step(st, geo, jnp.asarray(mass), jnp.asarray(inertia), jnp.asarray(c))
-    np.testing.assert_allclose(np.asarray(got).reshape(-1), dx, atol=1e-12 * np.abs(dx).max())
+    for tree in (False, True):  # dense Cholesky, and the tree factorization where it applies
+        got = nullspace.projection_step(st, geo, jnp.asarray(mass), jnp.asarray(inertia), jnp.asarray(c), tree)
+        np.testing.assert_allclose(np.asarray(got).reshape(-1), dx, atol=1e-12 * np.abs(dx).max())
+    if st.by_tree:  # Eq. 2 by the tree-factored H (BranchSolver's path)
+        args = [jnp.asarray(x) for x in (mass, inertia, g_diag, zero, zero)]
+        red = nullspace.reduce_tree(st, geo, *args)
+        v = nullspace.solve_reduced(st, geo, red, jnp.asarray(r), jnp.asarray(b))
+        np.testing.assert_allclose(np.asarray(v).reshape(-1), x[:6 * n], atol=1e-12 * np.abs(x).max())

@@ -89,6 +89,10 @@ SHARDED_SCRIPT = textwrap.dedent("""\
         chunk_out = sweeper.simulate_chunk(sweeper.pad(sw.build_batch(s.gains, s.pulses, runs, index), 0, 6))
         out[name] = {"curves": res.curves.tolist(), "rows": res.rows,
                      "shards": len({sh.device for sh in chunk_out.theta.addressable_shards})}
+    # Rollouts vmapped three at a time: the sweep switches to the batched solver (branch).
+    sweeper = sw.Sweeper(s.model, s.ref, s.sim, chunk=6, inner_batch=3, mesh=sw.device_mesh(jax.devices()[:1]))
+    res = sw.run_sweep(sweeper, s.gains, s.pulses, runs, index, s.model.body_names, keep_curves=True, progress=False)
+    out["batched"] = {"curves": res.curves.tolist(), "rows": res.rows, "solver": str(sweeper.sim.solver)}
     # One run of the grid through the ordinary single-run path.
     i = 5  # gains (150, 8), magnitude 15
     one = prepare(SimulationConfig(duration=1.2, ks=150.0, kd=8.0, perturbations=[dict(hit, magnitude=15.0)]),
@@ -124,6 +128,13 @@ def test_sharded_sweep_equals_unsharded(sharded):
         assert ra["diverged"] == rb["diverged"]
         for k in sw.METRIC_KEYS:
             np.testing.assert_allclose(ra[k], rb[k], rtol=1e-9, err_msg=k)  # NaN == NaN here
+
+
+def test_vmapped_sweep_uses_the_batched_solver_and_equals_the_looped_one(sharded):
+    assert sharded["batched"]["solver"] == "branch"
+    a, b = np.array(sharded["batched"]["curves"]), np.array(sharded["single"]["curves"])
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
+    assert [r["diverged"] for r in sharded["batched"]["rows"]] == [r["diverged"] for r in sharded["single"]["rows"]]
 
 
 def test_sweep_row_matches_single_run(sharded):

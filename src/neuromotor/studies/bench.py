@@ -159,6 +159,7 @@ def batch_split(setup, size: int, repeats: int) -> dict:
     """The parts of a step (as in :func:`single`) and the whole step under ``vmap`` over
     ``size`` states of a rollout: wall microseconds per trajectory-step. In a batch the
     kernel count no longer dominates; this shows where the arithmetic and copies go."""
+    setup = dataclasses.replace(setup, sim=dataclasses.replace(setup.sim, solver=solvers.Solver(setup.sim.solver).batched()))
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     run = compiler.jit(lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg))(m, g, p, ref)
     idx = np.arange(size) % cfg.n_steps
@@ -226,6 +227,8 @@ def batched(setup, sizes, repeats: int, programs: dict | None = None) -> list[di
     out = []
     for size in sizes:
         mags = jnp.linspace(0.5, 1.5, size)[:, None] * p.magnitude[None]
+        cfg = dataclasses.replace(setup.sim, solver=solvers.Solver(setup.sim.solver).batched() if size > 1
+                                  else setup.sim.solver)
 
         def many(mags, g, ref):
             one = lambda mag: dy.rollout(m, g, dataclasses.replace(p, magnitude=mag), ref, cfg).theta

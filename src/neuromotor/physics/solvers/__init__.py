@@ -5,11 +5,12 @@ from __future__ import annotations
 
 from neuromotor.physics.solvers.base import KKTSolver, Solver
 from neuromotor.physics.solvers.dense import DenseSolver
-from neuromotor.physics.solvers.nullspace import NullSpaceSolver
+from neuromotor.physics.solvers.nullspace import BranchSolver, NullSpaceSolver
 from neuromotor.physics.solvers.tree import TreeSolver
 
 SOLVERS: dict[Solver, KKTSolver] = {
     Solver.NULLSPACE: NullSpaceSolver(),
+    Solver.BRANCH: BranchSolver(),
     Solver.TREE: TreeSolver(),
     Solver.DENSE: DenseSolver(),
 }

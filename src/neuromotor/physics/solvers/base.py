@@ -39,12 +39,17 @@ def relative_residual(res: Float[Array, " m"], rhs_norm: Float[Array, ""]) -> Fl
 class Solver(str, enum.Enum):
     """Which solver of Eq. 2 a rollout uses (``SimConfig.solver``; the strings are accepted too)."""
 
-    NULLSPACE = "nullspace"  # v = S u over the joint-space basis, one small LU (fastest on a CPU)
+    NULLSPACE = "nullspace"  # v = S u over the joint-space basis, one small LU (fastest single run on a CPU)
+    BRANCH = "branch"  # the same, H factored along the tree without LAPACK (fastest in batches)
     TREE = "tree"  # linear-time block elimination along the body tree (Baraff 1996)
     DENSE = "dense"  # one dense LU of the (6B + nc) matrix: the reference path
 
     def __str__(self) -> str:
         return self.value
+
+    def batched(self) -> "Solver":
+        """The solver for many trajectories under ``vmap``: the null-space method's batched twin."""
+        return Solver.BRANCH if self is Solver.NULLSPACE else self
 
 
 class KKTSolver(abc.ABC):

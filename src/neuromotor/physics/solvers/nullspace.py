@@ -287,12 +287,18 @@ def multipliers(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[A
 def solve_kkt(st: Structure, geo: Geometry, mass: Float[Array, " B"], inertia_world: Float[Array, "B 3 3"],
               g_diag, g_up, g_down, r: Float[Array, "B 6"], b: Float[Array, " nc"]) -> Float[Array, "B 6"]:
     """v+ of Eq. 2 with ``A = M - G`` (G = h D + h^2 K, angular blocks on the tree)."""
-    if st.by_tree:
-        return solve_reduced(st, geo, reduce_tree(st, geo, mass, inertia_world, g_diag, g_up, g_down), r, b)
-    # Free root or driven joints: one dense LU of the free block of H.
     rhs, u_known = project_forces(st, geo, r), known_velocities(st, geo.r0, b)
-    h = reduced_inertia(st, geo, mass, inertia_world) - reduced_stiffness(st, g_diag, g_up, g_down)
-    return apply_basis(st, geo, _split(st, h, rhs, u_known))
+    if st.free_root or st.driven:
+        h = reduced_inertia(st, geo, mass, inertia_world) - reduced_stiffness(st, g_diag, g_up, g_down)
+        return apply_basis(st, geo, _split(st, h, rhs, u_known))
+    # Driven root, every joint free (the common case): only the joints' blocks are assembled,
+    # and the known root motion enters through its two block columns.
+    blocks, first = inertia_blocks(st, geo, mass, inertia_world)
+    blocks = blocks - stiffness_blocks(st, g_diag, g_up, g_down)
+    v0, w0 = u_known[:3], u_known[3:6]
+    known = jnp.einsum("kij,j->ki", blocks[1:, :, 0], w0) + cross(first[1:], v0)  # H_{k,u0} w0 + H_{k,v0} v0
+    u_free = jnp.linalg.solve(_flat(blocks[1:, :, 1:]), rhs[6:] - known.reshape(-1))
+    return apply_basis(st, geo, jnp.concatenate([u_known, u_free]))
 
 
 class Reduced(eqx.Module):
@@ -365,13 +371,14 @@ def spd_solve(a: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n
                                        symmetric=True)
 
 
-def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[Array, " nc"]):
+def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[Array, " nc"], tree: bool = False):
     """One Newton step of post-stabilization: ``dx`` (B, 6) with ``J dx = -C`` of least M-norm,
-    ``dx = dx_p + S w`` with ``(S^T M S) w = -S^T M dx_p``."""
+    ``dx = dx_p + S w`` with ``(S^T M S) w = -S^T M dx_p``; ``S^T M S`` factored along the tree
+    (:mod:`.branch`) when ``tree`` and the structure allows, else by a dense Cholesky."""
     x_p = particular_correction(st, geo, c)
     mx = jnp.concatenate([mass[:, None] * x_p[:, :3], jnp.einsum("bij,bj->bi", inertia_world, x_p[:, 3:])], -1)
     rhs = -project_forces(st, geo, mx)
-    if st.by_tree:
+    if tree and st.by_tree:
         sch = st.tree
         c_blocks, first = _moments(st, geo, mass, inertia_world)
         paths = branch.inertia_paths(sch, c_blocks, first, geo.pivot)
@@ -379,7 +386,11 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
         w = branch.linear_solve(sch, paths, fac, rhs[3:].reshape(-1, 3), symmetric=True)
         u = jnp.concatenate([jnp.zeros(6, c.dtype), w[1:].reshape(-1)])
         return x_p + apply_basis(st, geo, u)
-    w = spd_solve(_free_block(st, reduced_inertia(st, geo, mass, inertia_world)), _take(rhs, st.free))
+    if st.free_root or st.driven:
+        h_free = _free_block(st, reduced_inertia(st, geo, mass, inertia_world))
+    else:  # driven root, free joints: the joints' blocks only
+        h_free = _flat(inertia_blocks(st, geo, mass, inertia_world)[0][1:, :, 1:])
+    w = spd_solve(h_free, _take(rhs, st.free))
     u = _assemble(st, w, jnp.zeros(st.known.size, c.dtype))
     return x_p + apply_basis(st, geo, u)
 
@@ -427,7 +438,7 @@ class NullSpaceKKT(eqx.Module):
     g_down: Float[Array, "C 3 3"]
     r_parent: Float[Array, "C 3"]  # joint levers (the rows of J)
     r_child: Float[Array, "C 3"]
-    reduced: Reduced | None  # factored once per step where the tree allows (Structure.by_tree)
+    reduced: Reduced | None  # H factored along the tree (BranchSolver, where Structure.by_tree)
 
     def a_times(self, v: Float[Array, "B 6"]) -> Float[Array, "B 6"]:
         """A v = M v - G v."""
@@ -438,16 +449,18 @@ class NullSpaceKKT(eqx.Module):
 
 class NullSpaceSolver(KKTSolver):
     """Eq. 2 by the null-space method (see the module docstring): one small dense LU per step,
-    each post-stabilization Newton step with one Cholesky."""
+    each post-stabilization Newton step with one Cholesky (fewest kernels: the fastest single
+    trajectory and the shortest compile on a CPU)."""
 
     tree_blocks = True
+    tree_factor = False  # factor H along the body tree (BranchSolver) instead of by LAPACK
 
     def assemble(self, model, cfg, rot, inertia, stiff, h):
         st = structure(model.topology, cfg.driven, cfg.free_root)
         r_par, r_chi = joint_levers(model, rot)
         geo = geometry(st, r_par, r_chi, root_lever(model, rot))
         g = stiff.g_blocks(h)
-        red = reduce_tree(st, geo, model.mass, inertia, *g) if st.by_tree else None
+        red = reduce_tree(st, geo, model.mass, inertia, *g) if self.tree_factor and st.by_tree else None
         return NullSpaceKKT(st, model.topology, geo, model.mass, inertia, *g, r_par, r_chi, red)
 
     def solve(self, system, r, b):
@@ -468,4 +481,13 @@ class NullSpaceSolver(KKTSolver):
     def projection_step(self, model, cfg, rot, c):
         st = structure(model.topology, cfg.driven, cfg.free_root)
         geo = geometry(st, *joint_levers(model, rot), root_lever(model, rot))
-        return projection_step(st, geo, model.mass, world_inertia(model, rot), c)
+        return projection_step(st, geo, model.mass, world_inertia(model, rot), c, self.tree_factor)
+
+
+class BranchSolver(NullSpaceSolver):
+    """The null-space method with H factored along the body tree (:mod:`.branch`): elementwise
+    3x3-block arithmetic instead of LAPACK calls, so a ``vmap`` over trajectories vectorizes
+    along the batch (the solver of sweeps). Falls back to the dense LU where the root floats
+    or joints are driven."""
+
+    tree_factor = True

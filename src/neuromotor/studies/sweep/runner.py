@@ -54,6 +54,8 @@ class Sweeper:
         n_dev = self.mesh.devices.size
         self.chunk = max(n_dev, int(math.ceil(chunk / n_dev)) * n_dev)
         self.inner_batch = max(1, min(int(inner_batch), self.chunk // n_dev))
+        if self.inner_batch > 1:  # rollouts vmapped together: the solver that vectorizes in a batch
+            sim = dataclasses.replace(sim, solver=sim.solver.batched())
         self.sim, self.n_steps = sim, sim.n_steps
         self.model_static = eqx.partition(model, eqx.is_array)[1]
         rep = P()
