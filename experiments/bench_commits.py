@@ -1,6 +1,6 @@
 """Speed of the working tree against an earlier commit, timed in alternation in one process.
 
-    .venv/bin/python experiments/bench_commits.py REV [--batch 1] [--repeats 15]
+    .venv/bin/python experiments/bench_commits.py REV [--batch 1] [--repeats 15] [--solver branch]
 
 The host's speed drifts by 2x between runs minutes apart, so two separate benchmark runs cannot
 resolve a 10 % change. This script extracts ``src/neuromotor`` of commit REV (``git archive``)
@@ -48,7 +48,7 @@ def _module(pkg: str, *names: str):
     raise ModuleNotFoundError(f"none of {names} in {pkg}")
 
 
-def _program(pkg: str, batch: int):
+def _program(pkg: str, batch: int, solver: str = "nullspace"):
     """(zero-argument compiled call, its joint angles, trajectory-steps per call)."""
     import equinox as eqx
     import jax
@@ -57,7 +57,7 @@ def _program(pkg: str, batch: int):
     bench = _module(pkg, "studies.bench", "bench")
     dy = _module(pkg, "physics.dynamics", "dynamics")
     compiler = importlib.import_module(f"{pkg}.compiler")
-    setup = bench._setup(None, 1.0, "nullspace")
+    setup = bench._setup(None, 1.0, solver)
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     scales = jnp.linspace(0.5, 1.5, batch)
 
@@ -77,6 +77,7 @@ def main(argv=None) -> int:
     ap.add_argument("rev", help="the commit to compare with (e.g. HEAD~1)")
     ap.add_argument("--batch", type=int, default=1, help="trajectories per call (vmap over pulse magnitude)")
     ap.add_argument("--repeats", type=int, default=15, help="timed calls of each version")
+    ap.add_argument("--solver", default="nullspace", help="solver of the working tree (REV uses nullspace)")
     args = ap.parse_args(argv)
     import jax
     import jax.numpy as jnp
@@ -86,8 +87,8 @@ def main(argv=None) -> int:
         sys.path.insert(0, tmp)
         old_pkg = _extract(args.rev, Path(tmp))
         runs = {}
-        for name, pkg in (("working tree", "neuromotor"), (args.rev, old_pkg)):
-            runs[name] = _program(pkg, args.batch)
+        for name, pkg, solver in (("working tree", "neuromotor", args.solver), (args.rev, old_pkg, "nullspace")):
+            runs[name] = _program(pkg, args.batch, solver)
         (new, th_new, steps), (old, th_old, _) = runs.values()
         print(f"max |theta(working tree) - theta({args.rev})|: {float(jnp.max(jnp.abs(th_new - th_old))):.2e} rad")
         best = {name: float("inf") for name in runs}
