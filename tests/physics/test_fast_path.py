@@ -116,7 +116,8 @@ def test_fast_rollout_equals_dense_rollout_with_a_hit(hit_setup, solver):
     assert int(tree.diverged_step) == int(dense.diverged_step) == -1
 
 
-@pytest.mark.parametrize("solver", ["nullspace", "branch", "tree"])
+# "branch" is left out here: with driven joints or a free root it takes the null-space LU path.
+@pytest.mark.parametrize("solver", ["nullspace", "tree"])
 @pytest.mark.parametrize("driven_free", [((2, 5, 9), False), ((), True)], ids=["driven", "free_root"])
 def test_fast_step_equals_dense_step_with_constraint_forces(hit_setup, driven_free, solver):
     """One step from perturbed states: new state and every constraint force lambda."""
