@@ -149,14 +149,8 @@ def inertia_blocks(st: Structure, geo: Geometry, mass: Float[Array, " B"], inert
         H_{v0,k} = -[s_k - m_k p_k]x,     H_{v0,v0} = (sum m_i) 1.
     """
     dtype = geo.com.dtype
-    c = geo.com
     eye = jnp.eye(3, dtype=dtype)
-    cc = jnp.sum(c * c, -1)
-    own = inertia + mass[:, None, None] * (cc[:, None, None] * eye - c[:, :, None] * c[:, None, :])
-    desc = st.anc.T
-    m_sub = _tree_sum(desc, mass)
-    s_sub = _tree_sum(desc, mass[:, None] * c)
-    j_sub = _tree_sum(desc, own)
+    m_sub, s_sub, j_sub = branch.subtree_moments(st.anc.T, mass, inertia, geo.com)
     # Blocks are built in the (k, i, l, j) layout of the flattened matrix, and "the deeper of
     # k and l" is a pair of static masks rather than a gather: no transpose or gather kernels.
     at_k, at_l = _deep_masks(st, dtype)  # (B, B): d = k, d = l
@@ -202,12 +196,7 @@ def stiffness_blocks(st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[A
     """Rotation blocks of S^T G S for an angular block-tree matrix G (diagonal blocks, body <- parent ``g_up`` and
     parent <- body ``g_down``), i.e. the sum of G's blocks over subtree(k) x subtree(l)."""
     dtype = g_diag.dtype
-    n = g_diag.shape[0]
-    zero = jnp.zeros((1, 3, 3), dtype)
-    up = jnp.concatenate([zero, g_up], 0)
-    down = jnp.concatenate([zero, g_down], 0)
-    strict_desc = st.anc.T - np.eye(n)
-    inner = _tree_sum(st.anc.T, g_diag) + _tree_sum(strict_desc, up + down)
+    inner, up, down = _stiff_subtrees(st, g_diag, g_up, g_down)
     at_k, at_l = _deep_masks(st, dtype)
     mask = lambda m: m[:, None, :, None]
     return (mask(at_k) * inner[:, :, None, :] + mask(at_l) * jnp.swapaxes(inner, 0, 1)[None]
