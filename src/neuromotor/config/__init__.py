@@ -64,13 +64,13 @@ from neuromotor.config.parse import (
 from neuromotor.config.specs import (
     CONTROLLERS, DEFAULT_CONTRAST, DEFAULT_HIT, FEATURE_NAMES, SOLVERS, TARGET_KINDS, BallSpec, ExperimentSpec,
     FeatureTarget, FitSpec, FitTargetSpec, GainSetting, PerturbationSpec, SimulationConfig, SolverOptions, Surrogate,
-    SweepSpec,
+    ReflexSpec, SweepSpec,
 )
 from neuromotor.errors import ConfigError, UserError
 
 __all__ = [
     "BallSpec", "CONTROLLERS", "ConfigError", "DEFAULT_CONTRAST", "DEFAULT_HIT", "ExperimentSpec", "FEATURE_NAMES",
-    "FeatureTarget", "Fields", "FitSpec", "FitTargetSpec", "GainSetting", "PerturbationSpec", "SOLVERS",
+    "FeatureTarget", "Fields", "FitSpec", "FitTargetSpec", "GainSetting", "PerturbationSpec", "ReflexSpec", "SOLVERS",
     "SimulationConfig", "SolverOptions", "Surrogate", "SweepSpec", "TARGET_KINDS", "UserError", "experiment_spec",
     "fit_spec", "load_experiment", "load_simulation_config", "load_sweep_config", "parse_ball", "parse_perturbation",
     "read_fitted", "read_toml", "simulation_config", "sweep_spec",

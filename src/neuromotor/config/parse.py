@@ -15,13 +15,13 @@ import numpy as np
 from neuromotor.config.fields import Fields, read_toml, resolve
 from neuromotor.config.specs import (
     CONTROLLERS, EXPERIMENT_KINDS, FEATURE_NAMES, JACOBIANS, PERTURBATION_KINDS, PULSE_SHAPES, SEXES, SOLVERS,
-    TARGET_KINDS, BallSpec, ExperimentSpec, FeatureTarget, FitSpec, FitTargetSpec, GainSetting, PerturbationSpec,
+    TARGET_KINDS, BallSpec, ExperimentSpec, ReflexSpec, FeatureTarget, FitSpec, FitTargetSpec, GainSetting, PerturbationSpec,
     SimulationConfig, SolverOptions, Surrogate, SweepSpec, default,
 )
 from neuromotor.errors import ConfigError
 from neuromotor.physics.precision import Precision
 
-TABLES = ("fit", "sweep", "experiment", "ball")  # top-level tables beside [sim], [gains], [[perturbation]]
+TABLES = ("fit", "sweep", "experiment", "ball", "reflex")  # top-level tables beside [sim], [gains], [[perturbation]]
 
 
 # ----------------------------------------------------------------------------- simulation
@@ -131,6 +131,25 @@ def _sim_fields(top: Fields) -> dict:
     return out
 
 
+def parse_reflex(top: Fields) -> ReflexSpec:
+    """The ``[reflex]`` table (defaults: :class:`ReflexSpec`)."""
+    f = top.sub("reflex")
+    d = lambda name: default(ReflexSpec, name)
+    out = {k: f.number(k, d(k), nonneg=True) for k in ("gain", "delay", "long_latency_gain", "long_latency_delay",
+                                                         "rate_weight")}
+    out["width"] = f.number("width", d("width"), positive=True)
+    out["max_delay"] = f.number("max_delay", max(d("max_delay"), out["delay"], out["long_latency_delay"]),
+                                positive=True)
+    if out["max_delay"] > 1.0:
+        f.fail("max_delay", f"must be at most 1 s (the history buffer), got {out['max_delay']!r}")
+    for key in ("delay", "long_latency_delay"):
+        if out[key] > out["max_delay"]:
+            f.fail(key, f"= {out[key]:g} s is longer than reflex.max_delay = {out['max_delay']:g} s")
+    out["one_sided"] = f.boolean("one_sided", d("one_sided"))
+    f.done()
+    return ReflexSpec(**out)
+
+
 def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> SimulationConfig:
     """The simulation of a config: top level, ``[sim]``, ``[gains]``, ``[[perturbation]]``, ``[ball]``."""
     top = Fields(data, "", source)
@@ -142,6 +161,8 @@ def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> Simu
     fields["perturbations"] = [parse_perturbation(p, f"perturbation[{i}]", source) for i, p in enumerate(perts)]
     if "ball" in data:
         fields["ball"] = parse_ball(top.get("ball"), source)
+    if "reflex" in data:
+        fields["reflex"] = parse_reflex(top)
     top.done(allowed_tables=TABLES)
     return SimulationConfig(source=source, **fields)
 

@@ -18,6 +18,7 @@ from neuromotor.physics.contact.ball import make_ball
 from neuromotor.physics.contact.detection import ContactSettings
 from neuromotor.physics.control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
 from neuromotor.physics.precision import Precision
+from neuromotor.physics import reflex as _reflex
 from neuromotor.studies.metrics import RECOVERY_FLOOR_DEG, RECOVERY_FRACTION
 
 PERTURBATION_KINDS = ("force", "impulse")
@@ -147,6 +148,26 @@ class GainSetting:
         return self.label or f"{self.controller} ks={self.ks:g} kd={self.kd:g}"
 
 
+@dataclasses.dataclass(frozen=True)
+class ReflexSpec:
+    """The ``[reflex]`` table: the delayed stretch reflex (:mod:`neuromotor.physics.reflex`, where
+    the literature behind the defaults is cited). Without the table there is no reflex (the paper)."""
+
+    gain: float = _reflex.SPINAL_GAIN  # 1/s^2, spinal path
+    delay: float = _reflex.SPINAL_DELAY  # s
+    long_latency_gain: float = 0.0  # 1/s^2: the supraspinal path is off by default
+    long_latency_delay: float = _reflex.LONG_LATENCY_DELAY  # s
+    rate_weight: float = _reflex.RATE_WEIGHT  # s
+    one_sided: bool = False  # only while the loaded muscle is being stretched
+    width: float = _reflex.RAMP_WIDTH  # rad, of the one-sided ramp
+    max_delay: float = _reflex.MAX_DELAY  # s: the longest delay the history holds
+
+    def build(self, h: float):
+        """The :class:`~neuromotor.physics.reflex.Reflex` of this table at step ``h``."""
+        return _reflex.make_reflex(h, self.gain, self.delay, self.long_latency_gain, self.long_latency_delay,
+                                   self.rate_weight, self.one_sided, self.width, self.max_delay)
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class SimulationConfig:
     """The character, the step, the gains and the perturbations of one simulation."""
@@ -170,6 +191,7 @@ class SimulationConfig:
     tau_floor: float = DEFAULT_TAU_FLOOR
     perturbations: list[PerturbationSpec] = dataclasses.field(default_factory=list)
     ball: BallSpec | None = None
+    reflex: ReflexSpec | None = None  # None: no delayed reflex (the paper's controller)
     source: str = "<defaults>"
 
     def __post_init__(self):

@@ -50,6 +50,7 @@ from jaxtyping import Array, Float
 
 from neuromotor.model.kinematics import body_kinematics
 from neuromotor.model.skeleton import Model
+from neuromotor.physics.reflex import Reflex, reflex_multipliers
 from neuromotor.physics.system import dof_axes, dofs_to_per_joint, per_joint_to_dofs, solve3
 from neuromotor.rotations import (AXIS, axis_rotation, euler_axes, inv3, matrix_to_quat, mm, mmt, mv, quat_conj, quat_log, quat_mul,
                                   quat_to_matrix)
@@ -69,6 +70,7 @@ class Gains(eqx.Module):
     reference_torque: Float[Array, " n"]  # rms_t |T_j| of each DOF's joint (N m)
     feedforward: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1.0))
     signal_dependence: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1.0))
+    reflex: Reflex | None = None  # the delayed stretch reflex (neuromotor.physics.reflex); None: the paper's
 
     def per_dof(self) -> tuple[Float[Array, " n"], Float[Array, " n"]]:
         return self.ks * self.scale, self.kd * self.scale
@@ -177,6 +179,16 @@ def rate_feedback_gains(gains: Gains, activation: Float[Array, " n"],
 
 def _feedback_magnitude(gains: Gains, activation):
     return jnp.maximum(gains.signal_dependence * activation, gains.floor)
+
+
+def reflex_torque(gains: Gains, history, h: float, rot_p, inp: "ControllerInputs"):
+    """The delayed reflex (:mod:`neuromotor.physics.reflex`), signal-dependent and scaled like
+    the muscle feedback: ``(rho, r)``, the world torque ``rho_j = sum_i h_i r_i`` on each
+    joint's child and the multipliers r_i per joint and DOF (N m along h_i)."""
+    g = inp.gains(gains)
+    r = reflex_multipliers(gains.reflex, history, h, _feedback_magnitude(g, inp.activation), inp.scale, inp.tau,
+                           inp.reference_torque, inp.active)
+    return jnp.einsum("...ij,...j->...i", mm(rot_p, inp.local_axes), r), r
 
 
 # ---------------------------------------------------------------- the joint torque (Section 5.2)

@@ -50,8 +50,9 @@ from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angle
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
 from neuromotor.physics.constraints import PoseTargets, constraint_count, constraint_velocity, post_stabilize
-from neuromotor.physics.control import (ControllerInputs, Gains, controller_inputs, joint_local_axes,
-                                        joint_torque_magnitude)
+from neuromotor.physics.control import (ControllerInputs, Gains, body_torques, controller_inputs, joint_errors,
+                                        joint_local_axes, joint_torque_magnitude, reflex_torque)
+from neuromotor.physics.reflex import History, empty_history, push
 from neuromotor.physics.inverse import inverse_dynamics, sim_columns
 from neuromotor.physics.perturbation import ForcePulses, generalized_forces, no_pulses
 from neuromotor.physics.solvers import Solver
@@ -59,7 +60,7 @@ from neuromotor.physics.precision import Precision, cast
 from neuromotor.physics.stiffness import DenseStiffness, StiffBlocks, explicit_forces, stiff_blocks, stiff_jacobians
 from neuromotor.physics.system import (State, dof_axes, gravity_forces, joint_angles, joint_rates, mass_times,
                                        retract, world_inertia)
-from neuromotor.rotations import matrix_to_quat
+from neuromotor.rotations import matrix_to_quat, mm
 
 
 class SimulationDiverged(UserError, RuntimeError):
@@ -171,6 +172,7 @@ class StepInfo(eqx.Module):
     force: Float[Array, "B 3"]  # perturbation force per body (world, N)
     points: Float[Array, "P 3"]  # world application points of the pulses
     lam: Float[Array, " nc"]  # constraint forces (rows of constraints.full_constraints)
+    reflex: Float[Array, "C 3"] | None = None  # the delayed reflex's r_i per joint and DOF (N m); None: no reflex
 
 
 class Data(eqx.Module):
@@ -179,6 +181,7 @@ class Data(eqx.Module):
     k: Int[Array, ""]
     state: State
     info: StepInfo
+    history: History | None = None  # the reflex's error history (neuromotor.physics.reflex)
 
     def badness(self, max_speed: float) -> Float[Array, " B"]:
         """Per body: speed over ``max_speed`` (> 1: diverged), inf where not finite."""
@@ -197,7 +200,13 @@ def init_data(sim: SimModel, params: Params) -> Data:
                                           model.com)
     zero = jnp.zeros((), state.pos.dtype)
     lam = jnp.zeros(constraint_count(model, cfg.driven, cfg.free_root), state.pos.dtype)
-    return Data(jnp.asarray(0), state, StepInfo(zero, zero, force, points, lam))
+    reflex = params.gains.reflex
+    if reflex is None:
+        return Data(jnp.asarray(0), state, StepInfo(zero, zero, force, points, lam))
+    n_joints = model.n_bodies - 1
+    history = empty_history(reflex, n_joints, state.pos.dtype)
+    info = StepInfo(zero, zero, force, points, lam, jnp.zeros((n_joints, 3), state.pos.dtype))
+    return Data(jnp.asarray(0), state, info, history)
 
 
 def data_at(sim: SimModel, params: Params, k, state: State) -> Data:
@@ -241,6 +250,20 @@ def applied_forces(sim: SimModel, pulses: ForcePulses, k, state: State):
     return (gravity_forces(model) + f_pert).reshape(-1, 6), per_body, points
 
 
+def delayed_reflex(sim: SimModel, gains: Gains, inputs: ControllerInputs, state: State, history: History):
+    """Stage 3b: this step's angle and rate errors pushed into the history, and the delayed
+    reflex (:mod:`neuromotor.physics.reflex`) that joins k of Eq. 2: ``(joint torques (world),
+    multipliers r_i per joint and DOF, history)``."""
+    topo = sim.model.topology
+    rot, omega = state.rot, state.omega
+    rot_p = rot[topo.parent]
+    axes = mm(rot_p, inputs.local_axes)
+    angle, rate = joint_errors(rot_p, rot[topo.child], omega[topo.parent], omega[topo.child], axes, inputs.rel_rot,
+                               inputs.rel_omega)
+    history = push(history, angle, rate)
+    return *reflex_torque(gains, history, sim.cfg.h, rot_p, inputs), history
+
+
 def momentum_rhs(model: Model, h: float, state: State, inertia, forces, damping_v) -> Float[Array, "B 6"]:
     """Stage 4: the first block row's right-hand side of Eq. 2, ``r = M v + h (k - D v)``."""
     v = state.v.reshape(model.n_bodies, 6)
@@ -256,6 +279,8 @@ class Eq2(eqx.Module):
     b: Float[Array, " nc"]
     force: Float[Array, "B 3"]  # perturbation force per body (world, N)
     points: Float[Array, "P 3"]  # world application points of the pulses
+    reflex: Float[Array, "C 3"] | None = None  # the delayed reflex's r_i per joint and DOF (N m along h_i)
+    history: History | None = None  # the reflex's error history including this step
 
 
 def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solvers.KKTSolver) -> Eq2:
@@ -267,12 +292,16 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
     inputs = reference_inputs(sim, params.gains, k)
     stiff = stiff_forces(sim, params.gains, inputs, state, solver.tree_blocks)
     applied, per_body, points = applied_forces(sim, params.pulses, k, state)
+    reflex, history = None, None
+    if params.gains.reflex is not None:
+        torque, reflex, history = delayed_reflex(sim, params.gains, inputs, state, data.history)
+        applied = applied.at[:, 3:].add(body_torques(model, torque))
     inertia = world_inertia(model, rot)
     r = momentum_rhs(model, cfg.h, state, inertia, applied + stiff.forces(),
                      stiff.damping_times(model, state.v.reshape(model.n_bodies, 6)))
     b = constraint_velocity(model, cfg.driven, rot, ref.root_vel[k + 1], ref.root_omega[k + 1],
                             ref.rel_omega[k + 1], cfg.free_root)
-    return Eq2(solver.assemble(model, cfg, rot, inertia, stiff, cfg.h), r, b, per_body, points)
+    return Eq2(solver.assemble(model, cfg, rot, inertia, stiff, cfg.h), r, b, per_body, points, reflex, history)
 
 
 def integrate(sim: SimModel, solver: solvers.KKTSolver, k, state: State, dx: Float[Array, "B 6"],
@@ -294,7 +323,8 @@ def step(sim: SimModel, params: Params, data: Data) -> Data:
     v_new, aux = solver.solve(eq.system, eq.r, eq.b)  # stage 6
     lam, residual = solver.multipliers(eq.system, eq.r, eq.b, v_new, aux)
     new, violation = integrate(sim, solver, data.k, data.state, cfg.h * v_new, v_new)
-    return Data(data.k + 1, new, StepInfo(residual, violation, eq.force, eq.points, lam / cfg.h))
+    return Data(data.k + 1, new, StepInfo(residual, violation, eq.force, eq.points, lam / cfg.h, eq.reflex),
+                eq.history)
 
 
 # ---------------------------------------------------------------- rollout
@@ -313,6 +343,7 @@ class Rollout(eqx.Module):
     points: Float[Array, "S1 P 3"]
     diverged_step: Int[Array, ""]  # -1 if the run stayed finite
     diverged_body: Int[Array, ""]
+    reflex: Float[Array, "S1 C 3"] | None = None  # the reflex's r_i per joint and DOF (N m; zero at t_0)
 
 
 def badness(state: State, max_speed: float) -> Float[Array, " B"]:
@@ -372,7 +403,8 @@ def rollout_of(sim: SimModel, data0, out, bad_step, bad_body) -> Rollout:
     theta, theta_dot = jax.vmap(lambda st, k: observe(model, st, ref, k))(states, jnp.arange(n_steps + 1))
     return Rollout(ref.time[: n_steps + 1], states, theta, theta_dot, out.info.residual, out.info.violation,
                    stack(data0.info.force, out.info.force), stack(data0.info.points, out.info.points),
-                   bad_step, bad_body)
+                   bad_step, bad_body,
+                   None if out.info.reflex is None else stack(data0.info.reflex, out.info.reflex))
 
 
 def simulate(sim: SimModel, params: Params) -> Rollout:

@@ -139,6 +139,8 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     ref = make_reference(model, traj, config.start, config.h, n_steps)
     gains = _initial_gains(model, traj, jnp.asarray(config.start), ref.theta, ref.activation,
                            config.ks, config.kd, config.tau_floor)
+    if config.reflex is not None:
+        gains = dataclasses.replace(gains, reflex=config.reflex.build(config.h))
     sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit,
                     stabilization_steps=config.stabilization_steps, dtype=config.dtype)
     # An impulse is a one-step square pulse: it needs the step to know its force.

@@ -56,6 +56,7 @@ from neuromotor.physics.contact.lcp import solve_gap_projection, solve_lcp_pgs
 from neuromotor.physics.contact.shapes import Capsules
 from neuromotor.physics.dynamics import (Eq2, Params, SimModel, StepInfo, badness, equations_of_motion, hold,
                                          integrate)
+from neuromotor.physics.reflex import History
 from neuromotor.physics.system import State
 from neuromotor.rotations import quat_turn
 
@@ -101,6 +102,7 @@ class ContactData(eqx.Module):
     ball: BallState
     warm: Float[Array, "C 3"]
     contact: ContactInfo
+    history: History | None = None  # the reflex's error history (neuromotor.physics.reflex)
 
     def badness(self, max_speed: float) -> Float[Array, " B1"]:
         """The ordinary score per body, the ball last; the ball may legitimately fly faster than
@@ -122,7 +124,7 @@ def initial_contact_data(model: Model, scene: ContactScene, data) -> ContactData
                  data.state.rot)[0]
     warm = jnp.zeros(gap.shape + (3,), gap.dtype)
     return ContactData(data.k, data.state, data.info, initial_ball_state(ball), warm,
-                       ContactInfo.before_any_step(gap))
+                       ContactInfo.before_any_step(gap), data.history)
 
 
 # ----------------------------------------------------------------------------- stages
@@ -337,5 +339,6 @@ def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: Conta
     n = model.n_bodies
     new, violation = integrate(sim, solver, k, state, mo.d_char.reshape(n, 6), mo.v_char.reshape(n, 6))
     record = contact_info(model, scene, h, data, free, frame, resp, imp, p, slack)
-    return ContactData(k + 1, new, StepInfo(resp.residual, violation, eq.force, eq.points, resp.lam / h),
-                       ball_after(data.ball, free, mo), jnp.zeros_like(data.warm).at[frame.sel].set(p), record)
+    return ContactData(k + 1, new, StepInfo(resp.residual, violation, eq.force, eq.points, resp.lam / h, eq.reflex),
+                       ball_after(data.ball, free, mo), jnp.zeros_like(data.warm).at[frame.sel].set(p), record,
+                       eq.history)
