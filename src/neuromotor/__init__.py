@@ -89,6 +89,7 @@ _API = {
     "read_run": "neuromotor.io.runfile",
     "render_run": "neuromotor.viz.render",
     "plot_run": "neuromotor.viz.render",
+    "write_viewer": "neuromotor.viz.html",
 }
 
 __all__ = ["__version__", *_API]

@@ -1,11 +1,13 @@
 """The ``neuromotor`` command line.
 
     neuromotor inspect [CLIP.bvh] [--json]
-    neuromotor idyn [CLIP.bvh] -o OUT.npz
-    neuromotor simulate [CONFIG.toml] -o RUN.npz [--ks KS --kd KD] [--json]
+    neuromotor idyn [CLIP.bvh] -o OUT.npz [--opensim-dir DIR]   # DIR: model.osim, motion.mot, inverse_dynamics.sto
+    neuromotor simulate [CONFIG.toml] -o RUN.npz [--ks KS --kd KD] [--json] [--opensim-dir DIR]
     neuromotor render RUN.npz -o OUT.png|OUT.mp4|OUT.gif
     neuromotor plot RUN.npz -o OUT.png    # deviation and joint angles vs time (matplotlib)
+    neuromotor view RUN.npz -o OUT.html   # interactive 3-D viewer, one self-contained page (three.js)
     neuromotor export-bvh RUN.npz -o OUT.bvh
+    neuromotor export-gltf RUN.npz -o OUT.glb|OUT.gltf [--layout ghost|shared]  # Blender, Unity, three.js
     neuromotor sweep CONFIG.toml [-o DIR] [--fitted KS KD | --fitted-json FIT.json]  # batch grid -> CSV + plots
         [--local-processes N | --coordinator HOST:PORT --num-processes N --process-id I | --distributed]
     neuromotor fit CONFIG.toml [-o DIR] [--solver NAME]   # calibrate (ks, kd) -> fit.json + fit.png
@@ -13,6 +15,7 @@
     neuromotor demo [-o DIR]        # the main job: simulate the default hit, render it
     neuromotor bench [CLIP.bvh] [--plot PNG] [--json OUT]   # speed figures (docs/benchmarks.md)
     neuromotor export-mjcf [CLIP.bvh] -o MODEL.xml          # the same model for MuJoCo
+    neuromotor export-osim [CLIP.bvh] -o MODEL.osim         # the same model for OpenSim (docs/opensim.md)
     neuromotor info RUN.npz [--json]   # provenance: version, clip SHA-256, resolved config, metrics
 
 Every command writes its outputs atomically and exits non-zero with a one-line message on bad
@@ -187,7 +190,15 @@ def cmd_idyn(args) -> int:
     save_npz_atomic(args.output, arrays)
     print(f"wrote {args.output}: {len(times)} frames, {len(arrays['dof_names'])} DOFs, "
           f"max Eq. 3 residual {arrays['kkt_residual'].max():.2e}")
+    if getattr(args, "opensim_dir", None):
+        from neuromotor.io.opensim import write_idyn_storage
+
+        _wrote_all(write_idyn_storage(args.opensim_dir, character, arrays))
     return 0
+
+
+def _wrote_all(paths: dict, stream=None) -> None:
+    print("wrote " + ", ".join(str(p) for p in paths.values()), file=stream or sys.stdout)
 
 
 def _sim_config(args):
@@ -223,7 +234,8 @@ def cmd_simulate(args) -> int:
           "(compiling on first use)")
     result = run(setup)
     stage(f"writing {args.output}")
-    save_npz_atomic(args.output, run_arrays(setup, result))
+    arrays = run_arrays(setup, result)
+    save_npz_atomic(args.output, arrays)
     if args.json:
         print(json.dumps(json_safe(result.metrics), indent=2))
     else:
@@ -231,6 +243,11 @@ def cmd_simulate(args) -> int:
         print(f"wrote {args.output}: peak deviation {m['peak_deviation_deg']:.2f} deg at "
               f"{m['time_of_peak_s']:.2f} s, recovery {m['recovery_time_s']:.2f} s, "
               f"unperturbed RMS error {m['unperturbed_rms_error_deg']:.2f} deg")
+    if getattr(args, "opensim_dir", None):
+        from neuromotor.io.opensim import write_run_storage
+
+        # With --json, stdout stays one JSON document.
+        _wrote_all(write_run_storage(args.opensim_dir, character, arrays), sys.stderr if args.json else sys.stdout)
     return 0
 
 
@@ -252,6 +269,13 @@ def cmd_plot(args) -> int:
     from neuromotor.viz.render import plot_run
 
     plot_run(args.run, args.output)
+    return _wrote(args.output)
+
+
+def cmd_view(args) -> int:
+    from neuromotor.viz.html import write_viewer
+
+    write_viewer(args.run, args.output)
     return _wrote(args.output)
 
 
@@ -288,9 +312,13 @@ def cmd_fit(args) -> int:
     except FitError as e:  # the fit ran and failed: not bad input, a status of its own
         print(f"neuromotor fit: error: {e}", file=sys.stderr)
         return 3
-    print(f"{res.solver}: ks = {res.ks:.6g} +- {res.se_ks:.3g} 1/s^2, kd = {res.kd:.6g} +- {res.se_kd:.3g} 1/s "
-          f"(corr {res.correlation:+.2f}); residual {res.residual_norm:.4g}, {res.iterations} iterations, "
-          f"{res.wall_time_s:.1f} s; wrote {args.output}/fit.json, fit.png")
+    from neuromotor.studies.fit.parameters import UNITS
+
+    fitted = ", ".join(f"{n} = {v:.6g} +- {res.standard_errors[n]:.3g} {UNITS[n]}" for n, v in res.values.items())
+    print(f"{res.solver}: {fitted} (corr {res.correlation:+.2f}); residual {res.residual_norm:.4g}, "
+          f"{res.iterations} iterations, {res.wall_time_s:.1f} s; wrote {args.output}/fit.json, fit.png")
+    if not all(res.identifiable.values()):
+        print(f"neuromotor fit: warning: {res.identifiability}", file=sys.stderr)
     if not res.converged:
         print(f"neuromotor fit: error: {res.status}: {res.message}", file=sys.stderr)
         return 3
@@ -311,6 +339,13 @@ def cmd_export_bvh(args) -> int:
     from neuromotor.io.export import export_bvh
 
     export_bvh(args.run, args.output)
+    return _wrote(args.output)
+
+
+def cmd_export_gltf(args) -> int:
+    from neuromotor.io.gltf import Layout, export_gltf
+
+    export_gltf(args.run, args.output, Layout(args.layout))
     return _wrote(args.output)
 
 
@@ -398,6 +433,14 @@ def cmd_export_mjcf(args) -> int:
     return _wrote(args.output)
 
 
+def cmd_export_osim(args) -> int:
+    from neuromotor.io.opensim import export_osim
+
+    character, _ = _load(args)
+    export_osim(character, args.output)
+    return _wrote(args.output)
+
+
 def _units_arg(text: str):
     from neuromotor.model.anatomy import UNIT_CHOICES
 
@@ -461,6 +504,7 @@ def _count_arg(text: str) -> int:
 
 
 RUN_HELP = "RUN.npz written by simulate"
+OPENSIM_HELP = "also write OpenSim files to this folder (docs/opensim.md): model.osim, "
 PROGRESS_HELP = "no progress bar on stderr (--no-progress is the same)"
 
 
@@ -504,6 +548,7 @@ def _add_clip_commands(sub) -> None:
     sp = _clip_command(sub, "idyn", cmd_idyn, "inverse dynamics (Eq. 3) on every frame",
                        "NPZ file of joint angles, torques (N m), root wrench")
     sp.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    sp.add_argument("--opensim-dir", default=None, help=OPENSIM_HELP + "motion.mot and inverse_dynamics.sto")
     sp = _command(sub, "simulate", cmd_simulate, "perturbed forward simulation (Eq. 2)",
                   ("config", "TOML config (default: the embedded clip and a 400 N chest push)", "?"),
                   "RUN.npz: the perturbed and unperturbed runs")
@@ -513,6 +558,7 @@ def _add_clip_commands(sub) -> None:
     _body_args(sp, defaults=False)
     sp.add_argument("--json", action="store_true", help="print the recovery metrics as JSON (deg, s)")
     sp.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    sp.add_argument("--opensim-dir", default=None, help=OPENSIM_HELP + "perturbed.mot and unperturbed.mot")
 
 
 def _add_run_commands(sub) -> None:
@@ -522,6 +568,8 @@ def _add_run_commands(sub) -> None:
     sp.add_argument("--quiet", action="store_true", help="no progress lines or bar on stderr")
     _command(sub, "plot", cmd_plot, "PNG plots of a run: deviation and joint angles vs time", ("run", RUN_HELP, None),
              "PNG of the deviation (deg) and joint angles against time (s)")
+    _command(sub, "view", cmd_view, "interactive 3-D viewer of a run: one self-contained HTML page",
+             ("run", RUN_HELP, None), "HTML page (opens offline in a browser; docs/viewer.md)")
 
 
 def _add_sweep_command(sub) -> None:
@@ -538,6 +586,10 @@ def _add_sweep_command(sub) -> None:
     add_arguments(sp)
     _command(sub, "export-bvh", cmd_export_bvh, "write the perturbed motion as BVH", ("run", RUN_HELP, None),
              "BVH in the source clip's skeleton, channel orders and units")
+    sp = _command(sub, "export-gltf", cmd_export_gltf, "write the bodies and both motions as glTF 2.0",
+                  ("run", RUN_HELP, None), "GLB (binary) or GLTF (JSON, buffer embedded) file; docs/gltf.md")
+    sp.add_argument("--layout", choices=("ghost", "shared"), default="ghost",
+                    help="unperturbed motion on a translucent second character (ghost) or on the same one (shared)")
 
 
 def _add_study_commands(sub) -> None:
@@ -575,6 +627,8 @@ def _add_other_commands(sub) -> None:
     sp = _clip_command(sub, "export-mjcf", cmd_export_mjcf,
                        "write the character as MuJoCo MJCF (hinges, position servos)", "MJCF XML file")
     sp.add_argument("--timestep", type=_positive_arg, default=1.0 / 120.0, help="MuJoCo time step (s, > 0)")
+    _clip_command(sub, "export-osim", cmd_export_osim,
+                  "write the character as an OpenSim model (bodies, custom joints, Y-up)", "OpenSim .osim file")
     sp = _command(sub, "info", cmd_info, "what made a run: version, clip and its SHA-256, resolved config, metrics",
                   ("run", RUN_HELP, None))
     sp.add_argument("--json", action="store_true", help="print it as JSON")
@@ -600,11 +654,11 @@ def _io_paths(args) -> tuple[list, list, list]:
 
     cmd, out = args.command, getattr(args, "output", None)
     clip = getattr(args, "clip", None)
-    if cmd in ("idyn", "export-mjcf"):
+    if cmd in ("export-mjcf", "export-osim"):
         return [clip], [out], []
-    if cmd == "simulate":
-        return [args.config, clip, _sim_config(args).clip], [out], []
-    if cmd in ("render", "plot"):
+    if cmd in ("idyn", "simulate"):
+        return _clip_run_paths(args)
+    if cmd in ("render", "plot", "export-gltf", "view"):
         return [args.run], [out], []
     if cmd == "export-bvh":
         return [args.run, *inputs_of_run(args.run)], [out], []
@@ -628,6 +682,15 @@ def _io_paths(args) -> tuple[list, list, list]:
     if cmd == "fit":
         return _fit_paths(args)
     return [], [], []
+
+
+def _clip_run_paths(args) -> tuple[list, list, list]:
+    """``idyn`` and ``simulate``: their output and, with --opensim-dir, the OpenSim files."""
+    clip, folder = getattr(args, "clip", None), getattr(args, "opensim_dir", None)
+    names = ("motion.mot", "inverse_dynamics.sto") if args.command == "idyn" else ("perturbed.mot", "unperturbed.mot")
+    files = [pathlib.Path(folder) / n for n in ("model.osim", *names)] if folder is not None else []
+    inputs = [clip] if args.command == "idyn" else [args.config, clip, _sim_config(args).clip]
+    return inputs, [args.output, *files], [folder]
 
 
 def _fit_paths(args) -> tuple[list, list, list]:

@@ -174,7 +174,8 @@ class ToyEvaluator:
         self.diverge_above, self.nan_above = diverge_above, nan_above
         self.n_evals, self.diverged_evals = 0, []
         self.problem = type("P", (), {"ref": type("R", (), {"time": np.arange(10) * 0.01})(),
-                                      "spec": F.ResponseSpec("joint_angles", (0,), 0, 10), "n_cases": 1})()
+                                      "spec": F.ResponseSpec("joint_angles", (0,), 0, 10), "n_cases": 1,
+                                      "names": ("ks", "kd"), "n_params": 2, "gains": None})()
         self._cache = {}
 
     def __call__(self, x):
@@ -209,7 +210,7 @@ def test_toy_fit_converges_and_reports_standard_errors():
 
 def test_divergence_at_start_is_reported_not_fitted():
     ev = ToyEvaluator(diverge_above=0.5)
-    with pytest.raises(F.FitError, match=r"diverges at the starting gains ks=2\.718.*step 3"):
+    with pytest.raises(F.FitError, match=r"diverges at the starting values ks=2\.718.*step 3"):
         F.fit(ev, toy_target([0.0, 0.0]), np.ones(20), [1.0, 0.0], progress=False)
 
 

@@ -14,9 +14,10 @@ import numpy as np
 
 from neuromotor.config.fields import Fields, read_toml, resolve
 from neuromotor.config.specs import (
-    CONTROLLERS, EXPERIMENT_KINDS, FEATURE_NAMES, JACOBIANS, PERTURBATION_KINDS, PULSE_SHAPES, SEXES, SOLVERS,
-    TARGET_KINDS, BallSpec, ExperimentSpec, ReflexSpec, FeatureTarget, FitSpec, FitTargetSpec, GainSetting, PerturbationSpec,
-    SimulationConfig, SolverOptions, Surrogate, SweepSpec, default,
+    CONTROLLERS, EXPERIMENT_KINDS, FEATURE_NAMES, FIT_PARAMETERS, JACOBIANS, PERTURBATION_KINDS, PULSE_SHAPES,
+    SEXES, SOLVERS, TARGET_KINDS, BallSpec, ExperimentSpec, FeatureTarget, FitSpec, FitTargetSpec, GainSetting,
+    PerturbationSpec, ReflexSpec, SimulationConfig, SolverOptions, Surrogate, SweepSpec, default, reflex_grid,
+    REFLEX_AXES,
 )
 from neuromotor.errors import ConfigError
 from neuromotor.physics.precision import Precision
@@ -276,6 +277,24 @@ def _sweep_gains(f: Fields, cfg: SimulationConfig) -> list[GainSetting]:
     return explicit if explicit is not None else [GainSetting(a, b) for a in ks for b in kd]
 
 
+def _sweep_reflex(f: Fields, cfg: SimulationConfig, kind: str) -> tuple[ReflexSpec, ...] | None:
+    """The reflex settings of the grid: the product of the reflex axes over the config's
+    ``[reflex]``. The history is extended to the grid's longest delay (one static length for
+    the whole batch), up to the 1 s that ``reflex.max_delay`` allows."""
+    axes = {k: f.number_list(k, None, nonneg=True) for k in REFLEX_AXES}
+    given = [k for k, v in axes.items() if v is not None]
+    if not given:
+        return None
+    if cfg.reflex is None:
+        f.fail(given[0], "needs a [reflex] table in the config (the reflex it varies)")
+    if kind == "ball":
+        f.fail(given[0], "does not apply to a ball sweep (reflex axes sweep force pulses)")
+    for key in ("reflex_delay", "long_latency_delay"):
+        if max(axes[key] or [0.0]) > 1.0:
+            f.fail(key, f"delays must be at most 1 s (the reflex history buffer), got {max(axes[key])!r}")
+    return reflex_grid(cfg.reflex, **axes)
+
+
 def _sweep_fitted(f: Fields, base_dir) -> tuple[float, float] | None:
     fitted = f.get("fitted", None)
     if fitted is None:
@@ -294,13 +313,15 @@ def sweep_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> SweepSpec:
     kind, mags = _sweep_magnitudes(f, cfg)
     axes = _sweep_axes(f)
     gains = _sweep_gains(f, cfg)
+    reflexes = _sweep_reflex(f, cfg, kind)
     chunk = f.integer("chunk", default(SweepSpec, "chunk"), 1, "must be a positive integer")
     inner = f.integer("inner_batch", default(SweepSpec, "inner_batch"), 1, "must be a positive integer")
     out = f.string("output", None, "a path string")
     fitted = _sweep_fitted(f, base_dir)
     f.done()
     output = None if out is None else output_dir(out, base_dir)
-    return SweepSpec(mags, gains, chunk=chunk, inner_batch=inner, output=output, fitted=fitted, kind=kind, **axes)
+    return SweepSpec(mags, gains, chunk=chunk, inner_batch=inner, output=output, fitted=fitted, kind=kind,
+                     reflexes=reflexes, **axes)
 
 
 def load_sweep_config(path) -> tuple[SimulationConfig, SweepSpec]:
@@ -419,6 +440,14 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
                          atol=f.number("atol", d("atol"), positive=True),
                          gtol=f.number("gtol", d("gtol"), positive=True))
     jacobian = f.choice("jacobian", default(FitSpec, "jacobian"), JACOBIANS)
+    names = f.string_list("parameters", list(default(FitSpec, "parameters")))
+    for i, n in enumerate(names):
+        if n not in FIT_PARAMETERS:
+            f.fail(f"parameters[{i}]", f"is {n!r}; choose from {list(FIT_PARAMETERS)}")
+        if n not in ("ks", "kd") and cfg.reflex is None:
+            f.fail(f"parameters[{i}]", f"= {n!r} needs a [reflex] table in the config")
+    if not names or len(set(names)) != len(names):
+        f.fail("parameters", f"must list distinct parameters, at least one, got {names!r}")
     window = _fit_window(f)
     t = Fields(f.get("target", None) or f.fail("target", "is required ([fit.target] table)"), "fit.target", source)
     f.done()
@@ -427,4 +456,4 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
         target = _feature_target(t, len(cfg.perturbations))
     else:
         target = _trajectory_target(t, kind, base_dir)
-    return FitSpec(target, solver, opts, jacobian, window)
+    return FitSpec(target, solver, opts, jacobian, window, tuple(names))

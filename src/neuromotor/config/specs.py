@@ -31,6 +31,8 @@ TARGET_KINDS = ("joint_angles", "body_positions", "features")
 FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg",
                  "peak_acceleration_deg_s2")
 EXPERIMENT_KINDS = ("arm", "full_body", "contrast")
+# What a fit may tune (neuromotor.studies.fit.parameters): the muscle feedback pair and the reflex paths.
+FIT_PARAMETERS = ("ks", "kd", "reflex_gain", "reflex_delay", "long_latency_gain", "long_latency_delay")
 
 
 def default(cls, name: str):
@@ -272,6 +274,26 @@ class FitSpec:
     options: SolverOptions = SolverOptions()
     jacobian: str = "forward"
     window: tuple[float, float] | None = None  # clip seconds
+    # The fitted parameters (studies.fit.parameters): any of ks, kd, reflex_gain, reflex_delay,
+    # long_latency_gain, long_latency_delay; they start from the config's [gains] and [reflex].
+    parameters: tuple[str, ...] = ("ks", "kd")
+
+
+# The reflex axes of a sweep: [sweep] key -> ReflexSpec field.
+REFLEX_AXES = {"reflex_gain": "gain", "reflex_delay": "delay", "long_latency_gain": "long_latency_gain",
+               "long_latency_delay": "long_latency_delay"}
+
+
+def reflex_grid(base: ReflexSpec, **axes) -> tuple[ReflexSpec, ...]:
+    """Every combination of the reflex axes (keys of :data:`REFLEX_AXES`, lists of values; the
+    first key outermost) over ``base``. All share one history length: ``max_delay`` is raised to
+    the grid's longest delay (the batch has one static buffer)."""
+    delays = [float(d) for k in ("reflex_delay", "long_latency_delay") for d in axes.get(k) or ()]
+    out = [dataclasses.replace(base, max_delay=max([base.max_delay, base.delay, base.long_latency_delay, *delays]))]
+    for key, values in axes.items():
+        if values is not None:
+            out = [dataclasses.replace(r, **{REFLEX_AXES[key]: float(v)}) for r in out for v in values]
+    return tuple(out)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -288,17 +310,23 @@ class SweepSpec:
     output: pathlib.Path | None = None
     fitted: tuple[float, float] | None = None
     kind: str = "force"  # "ball": magnitudes are ball speeds (m/s) of the config's [ball]
+    # The reflex settings of the grid (sweep.reflex_gain x reflex_delay x long_latency_gain x
+    # long_latency_delay over the config's [reflex]); all share the grid's longest max_delay.
+    reflexes: tuple[ReflexSpec, ...] | None = None
 
     def runs(self, base) -> list[dict]:
-        """Flat list of run descriptions (dicts), gain setting outermost, magnitude innermost."""
+        """Flat list of run descriptions (dicts), gain setting outermost, then the reflex
+        setting (key ``reflex``, when the grid varies it), magnitude innermost."""
         out = []
         for g in self.gains:
-            for body in self.bodies or [base["body"]]:
-                for d in self.directions or [base["direction"]]:
-                    for start in self.starts or [base["start"]]:
-                        for m in self.magnitudes:
-                            out.append(dict(gain=g, body=body, direction=list(d), start=float(start),
-                                            magnitude=float(m), duration=base["duration"]))
+            for rx in self.reflexes or [None]:
+                for body in self.bodies or [base["body"]]:
+                    for d in self.directions or [base["direction"]]:
+                        for start in self.starts or [base["start"]]:
+                            for m in self.magnitudes:
+                                run = dict(gain=g, body=body, direction=list(d), start=float(start),
+                                           magnitude=float(m), duration=base["duration"])
+                                out.append(run if rx is None else dict(run, reflex=rx))
         return out
 
 

@@ -1,7 +1,11 @@
 """Gain calibration: the single (ks, kd) whose simulated reaction to a hit matches a target.
 
-Parameters. ``x = (log ks, log kd)``: the gains stay positive and both are fitted on the scale
-on which they matter (a factor, not an increment).
+Parameters (:mod:`.parameters`). By default ``x = (log ks, log kd)``: the gains stay positive and
+both are fitted on the scale on which they matter (a factor, not an increment). ``[fit]
+parameters`` picks any subset of ks, kd and the delayed reflex's gains and delays
+(``reflex_gain``, ``reflex_delay``, ``long_latency_gain``, ``long_latency_delay``; see
+:mod:`neuromotor.physics.reflex`), each fitted as its logarithm; the others stay at the config's
+values.
 
 Residuals (:mod:`.problem`, :mod:`.surrogate`). Given C perturbation cases, simulated jointly by
 one ``vmap`` over the case axis of a :class:`~neuromotor.physics.perturbation.ForcePulses`, the
@@ -25,8 +29,10 @@ and every solver is stepped one iteration at a time from Python (progress, diver
 The pure-JAX path (:meth:`FitProblem.residuals`, :func:`loss`) stays for ``jit``/``grad``/``vmap``.
 
 After the fit (:mod:`.driver`, :mod:`.covariance`, :class:`FitResult`): the Gauss-Newton
-covariance ``s^2 (J^T J)^-1`` of (log ks, log kd) with ``s^2 = ||r||^2 / (m - 2)``, standard
-errors (also of ks and kd by the delta method), residual, counts, wall time, and a status:
+covariance ``s^2 (J^T J)^-1`` of the log-parameters with ``s^2 = ||r||^2 / (m - p)``, standard
+errors (also of the parameters themselves by the delta method), which parameters the target
+identifies (:func:`.result.identifiability`: a finite standard error of the log below 0.5; a
+delay cannot be told from a gain by one peak value), residual, counts, wall time, and a status:
 ``converged``, ``converged (loss flat)`` (the step limit was reached with the loss flat:
 relative change below ``LOSS_FLAT_RTOL`` in each of the last ``LOSS_FLAT_ITERATIONS``
 iterations; counts as converged), ``max_steps``, ``diverged`` or ``nonfinite`` (the last finite

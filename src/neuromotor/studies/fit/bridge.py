@@ -21,7 +21,8 @@ def residual_function(evaluator: ResponseEvaluator, target, weights) -> Callable
     target = np.asarray(target, np.float64)
     weights = np.asarray(weights, np.float64)
     m = target.size
-    shapes = (jax.ShapeDtypeStruct((m,), jnp.float64), jax.ShapeDtypeStruct((m, 2), jnp.float64))
+    p = evaluator.problem.n_params
+    shapes = (jax.ShapeDtypeStruct((m,), jnp.float64), jax.ShapeDtypeStruct((m, p), jnp.float64))
 
     def host(x):
         ev = evaluator(x)

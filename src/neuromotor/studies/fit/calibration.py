@@ -13,6 +13,7 @@ from neuromotor.config.specs import FEATURE_NAMES, SOLVERS, FitSpec, SolverOptio
 from neuromotor.errors import ConfigError
 from neuromotor.io.tables import json_safe, write_json
 from neuromotor.studies import metrics as mx
+from neuromotor.studies.fit import parameters as fp
 from neuromotor.studies.fit.driver import fit
 from neuromotor.studies.fit.evaluate import ResponseEvaluator
 from neuromotor.studies.fit.problem import FitProblem, make_problem
@@ -49,7 +50,7 @@ class Calibration:
 
 
 def trajectory_calibration(setup, table, quantity: str, names=None, weights=None, window=None,
-                           angle_unit: str = "rad", source: str | None = None) -> tuple:
+                           angle_unit: str = "rad", source: str | None = None, parameters=fp.DEFAULT) -> tuple:
     """Target and weights for a trajectory table (see :mod:`neuromotor.studies.targets`).
 
     Returns (problem, target, weights, labels). ``names``: the DOFs or bodies to fit (default:
@@ -82,7 +83,7 @@ def trajectory_calibration(setup, table, quantity: str, names=None, weights=None
         raise ConfigError(f"{table.source}: holds {table.values.shape[0]} case(s) but {src} has "
                           f"{len(setup.config.perturbations)} [[perturbation]] entries (one per case)")
     columns = [known.index(n) for n in names]
-    problem = make_problem(setup, quantity, columns, window)
+    problem = make_problem(setup, quantity, columns, window, names=parameters)
     s = problem.spec
     times = np.asarray(setup.ref.time[s.i0:s.i1])
     vals = resample(table, times, "fit.window")  # (C, T, k[, 3])
@@ -123,12 +124,12 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
     from neuromotor.studies.simulate import prepare
     from neuromotor.studies.targets import read_target
 
-    if not (cfg.ks > 0 and cfg.kd > 0):
-        raise ConfigError(f"{cfg.source}: field 'gains.ks'/'gains.kd' (the starting gains) must be > 0")
     if solver is not None and solver not in SOLVERS:
         raise ConfigError(f"unknown solver {solver!r}; choose one of {', '.join(SOLVERS)}")
-    common = dict(x0=np.log([cfg.ks, cfg.kd]), solver=solver or spec.solver, options=spec.options,
-                  jacobian=spec.jacobian, source=cfg.source)
+    if any(n in ("ks", "kd") for n in spec.parameters) and not (cfg.ks > 0 and cfg.kd > 0):
+        raise ConfigError(f"{cfg.source}: field 'gains.ks'/'gains.kd' (the starting gains) must be > 0")
+    fp.check_names(spec.parameters, cfg.reflex is not None, cfg.source)  # before the (slow) inverse dynamics
+    common = dict(solver=solver or spec.solver, options=spec.options, jacobian=spec.jacobian, source=cfg.source)
     t = spec.target
     if t.kind == "features":
         setup = prepare(cfg, character, traj)
@@ -136,7 +137,8 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
     table = read_target(t.file, t.kind)  # before the (slow) inverse dynamics: bad files fail fast
     setup = prepare(cfg, character, traj)
     problem, target, w, labels = trajectory_calibration(setup, table, t.kind, t.names or None, t.weights,
-                                                        spec.window, t.angle_unit, cfg.source)
+                                                        spec.window, t.angle_unit, cfg.source, spec.parameters)
+    common["x0"] = fp.start(setup.gains, problem.names, cfg.source)
     return Calibration(setup=setup, problem=problem, target=target, weights=w, labels=labels,
                        target_file=str(t.file), **common)
 
@@ -151,7 +153,8 @@ def _feature_calibration(setup, spec: FitSpec, common: dict) -> Calibration:
     table = [{name: f.as_dict() for name, f in row.items()} for row in t.cases]
     feats = tuple(n for n in FEATURE_NAMES if any(n in row for row in table))
     problem = make_problem(setup, "features", [model.dof_names.index(n) for n in t.names], spec.window, feats,
-                           **dataclasses.asdict(t.surrogate))
+                           names=spec.parameters, **dataclasses.asdict(t.surrogate))
+    common = dict(common, x0=fp.start(setup.gains, problem.names, setup.config.source))
     target = np.array([row.get(n, {}).get("value", 0.0) for row in table for n in feats])
     # A feature a case does not list gets weight 0: it is computed but does not count.
     w = np.array([1.0 / row[n]["sd"] if n in row else 0.0 for row in table for n in feats])

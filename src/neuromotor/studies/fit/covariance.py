@@ -1,4 +1,4 @@
-"""Uncertainty of the fitted gains: the Gauss-Newton covariance of (log ks, log kd)."""
+"""Uncertainty of the fitted parameters: the Gauss-Newton covariance of their logarithms."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 
 
 def gauss_newton_covariance(jac: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float]:
-    """``s^2 (J^T J)^-1`` with ``s^2 = ||r||^2 / (m - p)`` (p = 2 parameters).
+    """``s^2 (J^T J)^-1`` with ``s^2 = ||r||^2 / (m - p)`` (p parameters).
 
     With m = p there are no degrees of freedom left to estimate s^2; the weights are then
     taken as exact inverse standard deviations (s^2 = 1). A singular J^T J (a parameter the

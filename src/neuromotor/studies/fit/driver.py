@@ -1,4 +1,5 @@
-"""The fit: minimize 1/2 ||w * (y(x) - target)||^2 over x = (log ks, log kd), then report."""
+"""The fit: minimize 1/2 ||w * (y(x) - target)||^2 over x = the logarithms of the fitted
+parameters (default (ks, kd)), then report."""
 
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ from neuromotor.config.specs import SOLVERS, SolverOptions
 from neuromotor.studies.fit.bridge import residual_function
 from neuromotor.studies.fit.covariance import gauss_newton_covariance
 from neuromotor.studies.fit.evaluate import Evaluation, ResponseEvaluator
+from neuromotor.studies.fit.parameters import describe, value
 from neuromotor.studies.fit.result import (
-    LOSS_FLAT_ITERATIONS, LOSS_FLAT_RTOL, FitError, FitResult, loss_is_flat,
+    LOSS_FLAT_ITERATIONS, LOSS_FLAT_RTOL, FitError, FitResult, identifiability, loss_is_flat,
 )
 from neuromotor.studies.fit.solvers import run_solver
 
@@ -21,7 +23,8 @@ from neuromotor.studies.fit.solvers import run_solver
 def fit(evaluator: ResponseEvaluator, target, weights, x0, solver: str = "optimistix_lm",
         options: SolverOptions | None = None, progress: bool = True, strict: bool = False,
         residual: Callable | None = None) -> FitResult:
-    """Minimize ``1/2 ||w * (y(x) - target)||^2`` over x = (log ks, log kd) from ``x0``.
+    """Minimize ``1/2 ||w * (y(x) - target)||^2`` over x (the logarithms of the problem's
+    fitted parameters, ``evaluator.problem.names``) from ``x0``.
 
     Pass ``residual`` (from :func:`residual_function`) to reuse one across calls. Raises
     :class:`FitError` when the rollout diverges at the starting gains, and (``strict``) when
@@ -36,9 +39,8 @@ def fit(evaluator: ResponseEvaluator, target, weights, x0, solver: str = "optimi
     t_start, evals0, div0 = _time.perf_counter(), evaluator.n_evals, len(evaluator.diverged_evals)
     ev0 = evaluator(x0)
     if np.any(ev0.diverged >= 0):
-        raise FitError(f"the rollout diverges at the starting gains ks={math.exp(x0[0]):.6g}, "
-                       f"kd={math.exp(x0[1]):.6g} ({_divergence_text(evaluator, ev0)}); "
-                       f"start from gains that simulate")
+        raise FitError(f"the rollout diverges at the starting values {_at(evaluator, x0)} "
+                       f"({_divergence_text(evaluator, ev0)}); start from values that simulate")
     r = residual or residual_function(evaluator, target, weights)
     bar = tqdm(total=opts.max_steps, desc=f"fit {solver}", unit="it", disable=not progress, leave=False)
     track = _Progress(evaluator, target, weights, x0, bar)
@@ -76,11 +78,11 @@ class _Progress:
         lval = self.loss_of(next(reversed(cache.values())))  # the evaluation the solver just used
         at_x = cache.get(np.asarray(x, np.float64).reshape(-1).tobytes()) if finite else None
         loss_x = self.loss_of(at_x) if at_x is not None else lval
-        self.history.append({"iteration": k, "ks": float(np.exp(x[0])), "kd": float(np.exp(x[1])),
-                             "last_loss": lval, "loss": loss_x})
+        names = self.evaluator.problem.names
+        values = {n: float(np.exp(v)) for n, v in zip(names, x)}
+        self.history.append({"iteration": k, **values, "last_loss": lval, "loss": loss_x})
         self.bar.update(1)
-        self.bar.set_postfix(loss=f"{lval:.4g}", ks=f"{math.exp(x[0]):.4g}" if finite else "nan",
-                             kd=f"{math.exp(x[1]):.4g}" if finite else "nan")
+        self.bar.set_postfix(loss=f"{lval:.4g}", **{n: f"{v:.4g}" for n, v in values.items()})
         return finite
 
 
@@ -99,17 +101,14 @@ def _final_status(evaluator, solver, opts, track: _Progress, x, iters, converged
                    f"was not met in {opts.max_steps} steps")
     if not np.all(np.isfinite(x)):
         status, x = "nonfinite", track.last_good
-        message = (f"the solver produced non-finite parameters; returning the last finite iterate "
-                   f"ks={math.exp(x[0]):.6g}, kd={math.exp(x[1]):.6g}")
+        message = f"the solver produced non-finite parameters; returning the last finite iterate {_at(evaluator, x)}"
     ev = evaluator(x)
     if status != "nonfinite" and not np.all(np.isfinite(ev.y)):
         status = "nonfinite"
-        message = (f"the response is non-finite at ks={math.exp(x[0]):.6g}, kd={math.exp(x[1]):.6g} "
-                   f"({message or 'solver stopped'})")
+        message = f"the response is non-finite at {_at(evaluator, x)} ({message or 'solver stopped'})"
     if np.any(ev.diverged >= 0):
         status = "diverged"
-        message = (f"the rollout diverges at the final gains ks={math.exp(x[0]):.6g}, "
-                   f"kd={math.exp(x[1]):.6g}: {_divergence_text(evaluator, ev)}")
+        message = f"the rollout diverges at the final values {_at(evaluator, x)}: {_divergence_text(evaluator, ev)}"
     elif status == "max_steps":
         message = f"{solver} did not converge in {opts.max_steps} steps ({message})"
     return status, x, ev, message
@@ -118,20 +117,32 @@ def _final_status(evaluator, solver, opts, track: _Progress, x, iters, converged
 def _report(evaluator, ev, target, weights, x, x0, solver, status, message, history) -> FitResult:
     """The :class:`FitResult` at ``x``: residual, covariance and standard errors (counts and
     wall time are filled in by :func:`fit`)."""
+    names = evaluator.problem.names
     res = weights * (ev.y - target)
     cov, s2 = gauss_newton_covariance(weights[:, None] * ev.jac, res)
     se = np.sqrt(np.diag(cov))
-    ks, kd = float(np.exp(x[0])), float(np.exp(x[1]))
-    corr = float(cov[0, 1] / (se[0] * se[1])) if np.all(np.isfinite(se)) and np.all(se > 0) else float("nan")
+    values = {n: float(np.exp(v)) for n, v in zip(names, x)}
+    starts = {n: float(np.exp(v)) for n, v in zip(names, x0)}
+    gains = evaluator.problem.gains
+    fixed = lambda n, d: d[n] if n in d else float(value(gains, n))
+    se_abs = {n: values[n] * float(s) for n, s in zip(names, se)}
+    corr = float(cov[0, 1] / (se[0] * se[1])) if (len(se) > 1 and np.all(np.isfinite(se[:2]))
+                                                  and np.all(se[:2] > 0)) else float("nan")
+    ok, note = identifiability(names, se, cov)
     return FitResult(
-        solver=solver, status=status, message=message or "converged", ks=ks, kd=kd,
-        ks0=float(np.exp(x0[0])), kd0=float(np.exp(x0[1])), log_params=[float(v) for v in x],
-        covariance_log=cov.tolist(), se_log=se.tolist(), se_ks=ks * float(se[0]), se_kd=kd * float(se[1]),
+        solver=solver, status=status, message=message or "converged", ks=fixed("ks", values),
+        kd=fixed("kd", values), ks0=fixed("ks", starts), kd0=fixed("kd", starts), log_params=[float(v) for v in x],
+        covariance_log=cov.tolist(), se_log=se.tolist(), se_ks=se_abs.get("ks", 0.0), se_kd=se_abs.get("kd", 0.0),
         correlation=corr, s2=s2, residual_norm=float(np.linalg.norm(res)),
         residual_rms=float(np.sqrt(np.mean(res**2))), loss=0.5 * float(res @ res), n_residuals=int(res.size),
         iterations=0, evaluations=0, wall_time_s=0.0, jacobian=evaluator.jacobian,
-        diverged_evaluations=0, history=history,
+        diverged_evaluations=0, history=history, parameters=list(names), values=values, start_values=starts,
+        standard_errors=se_abs, identifiable=ok, identifiability=note,
     )
+
+
+def _at(evaluator: ResponseEvaluator, x) -> str:
+    return describe(evaluator.problem.names, x)
 
 
 def _divergence_text(evaluator: ResponseEvaluator, ev: Evaluation) -> str:

@@ -20,7 +20,7 @@ from neuromotor.studies.fit.problem import FitProblem
 class Evaluation:
     x: np.ndarray
     y: np.ndarray  # (m,)
-    jac: np.ndarray  # (m, 2)
+    jac: np.ndarray  # (m, p)
     curves: np.ndarray  # (C, T, c)
     diverged: np.ndarray  # (R,) first bad step per run, -1 if fine
 
@@ -46,7 +46,7 @@ class ResponseEvaluator:
         self.diverged_evals: list[tuple[np.ndarray, int, int]] = []  # (x, run, step)
 
     def __call__(self, x) -> Evaluation:
-        x = np.asarray(x, np.float64).reshape(2)
+        x = np.asarray(x, np.float64).reshape(self.problem.n_params)
         key = x.tobytes()
         hit = self._cache.get(key)
         if hit is not None:

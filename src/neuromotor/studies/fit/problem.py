@@ -1,4 +1,5 @@
-"""The fit problem: gains x = (log ks, log kd) -> model output y(x) over C perturbation cases,
+"""The fit problem: parameters x = log of the fitted values (default (ks, kd); any subset of
+:data:`~neuromotor.studies.fit.parameters.PARAMETERS`) -> model output y(x) over C perturbation cases,
 simulated jointly by one ``vmap`` over the case axis of a
 :class:`~neuromotor.physics.perturbation.ForcePulses`."""
 
@@ -18,8 +19,8 @@ from neuromotor.model.skeleton import Model
 from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Reference, Rollout, SimConfig, rollout
 from neuromotor.physics.perturbation import ForcePulses
+from neuromotor.studies.fit import parameters as fp
 from neuromotor.studies.fit.surrogate import acceleration_deg, deviation_deg, response_features
-from neuromotor.studies.gains import set_gains
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,21 +61,27 @@ class FitProblem(eqx.Module):
     start: Float[Array, " C"]  # start of each case's (first) pulse, clip seconds
     sim: SimConfig = eqx.field(static=True)
     spec: ResponseSpec = eqx.field(static=True)
+    names: tuple[str, ...] = eqx.field(static=True, default=fp.DEFAULT)  # the fitted parameters, in x's order
 
     @property
     def n_cases(self) -> int:
         n = self.pulses.magnitude.shape[0]
         return n - 1 if self.spec.kind == "features" else n
 
-    def gains_at(self, x: Float[Array, " 2"]) -> Gains:
-        return set_gains(self.gains, jnp.exp(x[0]), jnp.exp(x[1]))
+    @property
+    def n_params(self) -> int:
+        return len(self.names)
 
-    def rollouts(self, x: Float[Array, " 2"]) -> Rollout:
-        """Every case's rollout at gains exp(x), one vmap over the case axis."""
+    def gains_at(self, x: Float[Array, " p"]) -> Gains:
+        """The controller with the fitted parameters at exp(x), the others as in ``gains``."""
+        return fp.with_values(self.gains, self.names, jnp.exp(x))
+
+    def rollouts(self, x: Float[Array, " p"]) -> Rollout:
+        """Every case's rollout at parameters exp(x), one vmap over the case axis."""
         gains = self.gains_at(x)
         return jax.vmap(lambda p: rollout(self.model, gains, p, self.ref, self.sim))(self.pulses)
 
-    def outputs(self, x: Float[Array, " 2"]) -> tuple[Float[Array, " m"], Float[Array, "C T c"], Int[Array, " R"]]:
+    def outputs(self, x: Float[Array, " p"]) -> tuple[Float[Array, " m"], Float[Array, "C T c"], Int[Array, " R"]]:
         """Model output y (flat), the curves to plot per case, and each run's diverged step.
 
         For feature targets the curves are, per case, the deviation d(t) (deg) and the
@@ -113,7 +120,8 @@ def loss(problem: FitProblem, x, target, weights) -> Float[Array, ""]:
     return 0.5 * jnp.sum(r**2)
 
 
-def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAMES, **surrogate) -> FitProblem:
+def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAMES, names=fp.DEFAULT,
+                 **surrogate) -> FitProblem:
     """A :class:`FitProblem` over the perturbation cases of ``setup.config.perturbations``.
 
     Each ``[[perturbation]]`` entry is one case (one rollout); all cases must share a pulse
@@ -130,7 +138,7 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
     specs = cfg.perturbations
     if not specs:
         raise ConfigError(f"{cfg.source}: a fit needs at least one [[perturbation]] (one per case)")
-    index = body_lookup(setup.model, cfg.source)
+    index = body_lookup(setup.model, cfg.source, setup.character)
     per_case = [make_pulses([s], index) for s in specs]
     shapes = {p.shape for p in per_case}
     if len(shapes) > 1:
@@ -147,4 +155,5 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
     spec = ResponseSpec(kind, tuple(int(c) for c in columns), i0, i1,
                         tuple(features) if kind == "features" else (), **surrogate)
     start = jnp.asarray([float(s["start"]) for s in specs])
-    return FitProblem(setup.model, setup.gains, batch, setup.ref, start, setup.sim, spec)
+    names = fp.check_names(names, setup.gains.reflex is not None, cfg.source)
+    return FitProblem(setup.model, setup.gains, batch, setup.ref, start, setup.sim, spec, names)

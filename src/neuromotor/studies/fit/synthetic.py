@@ -9,16 +9,25 @@ import numpy as np
 from neuromotor.errors import ConfigError
 from neuromotor.studies.fit.calibration import Calibration
 from neuromotor.studies.fit.evaluate import ResponseEvaluator
+from neuromotor.studies.fit.parameters import describe
 from neuromotor.studies.fit.problem import make_problem
 from neuromotor.studies.fit.result import FitError
 
 
-def synthetic_target(cal: Calibration, ks: float, kd: float, noise: float = 0.0, seed: int = 0,
-                     evaluator: ResponseEvaluator | None = None) -> np.ndarray:
-    """The model output at known gains plus seeded Gaussian noise (sd ``noise``, output units)."""
-    ev = (evaluator or ResponseEvaluator(cal.problem, cal.jacobian))(np.log([ks, kd]))
+def synthetic_target(cal: Calibration, ks: float | None = None, kd: float | None = None, noise: float = 0.0,
+                     seed: int = 0, evaluator: ResponseEvaluator | None = None,
+                     values: dict | None = None) -> np.ndarray:
+    """The model output at known values of the fitted parameters (``ks``, ``kd`` and/or
+    ``values``: name -> value, every one of ``cal.problem.names``) plus seeded Gaussian noise
+    (sd ``noise``, output units)."""
+    known = dict(values or {}, **{n: v for n, v in (("ks", ks), ("kd", kd)) if v is not None})
+    missing = [n for n in cal.problem.names if n not in known]
+    if missing:
+        raise ValueError(f"synthetic_target needs a value of every fitted parameter; missing {missing}")
+    x = np.log([known[n] for n in cal.problem.names])
+    ev = (evaluator or ResponseEvaluator(cal.problem, cal.jacobian))(x)
     if np.any(ev.diverged >= 0):
-        raise FitError(f"the rollout diverges at ks={ks}, kd={kd}; cannot make a synthetic target")
+        raise FitError(f"the rollout diverges at {describe(cal.problem.names, x)}; cannot make a synthetic target")
     rng = np.random.default_rng(seed)
     return ev.y + noise * rng.standard_normal(ev.y.shape)
 
