@@ -363,3 +363,16 @@ def test_peak_acceleration_surrogate_matches_exact_value_and_central_differences
                    for e in np.eye(2)], axis=1)
     assert np.all(np.abs(ev.jac[1::2]) > 0)  # both gains move the peak acceleration
     np.testing.assert_allclose(ev.jac, fd, rtol=1e-5, atol=1e-8 * np.abs(ev.jac).max())
+
+
+def test_one_peak_value_cannot_identify_two_parameters():
+    """Two parameters from one number (e.g. a gain and a delay from a single peak value): the fit
+    reports both as not identifiable instead of quoting finite standard errors."""
+    ev = ToyEvaluator()
+    ev.a, ev.b = ev.a[:1], ev.b[:1]
+    target = ev.a * np.exp(-0.3) + ev.b * 0.2
+    res = F.fit(ev, target, np.ones(1), [0.0, 0.0], progress=False)
+    assert res.identifiable == {"ks": False, "kd": False}
+    assert "not identifiable" in res.identifiability and "singular" in res.identifiability
+    ok, note = F.identifiability(("ks", "kd"), np.array([0.01, 0.9]), np.diag([1e-4, 0.81]))
+    assert ok == {"ks": True, "kd": False} and "kd" in note and "ks," not in note

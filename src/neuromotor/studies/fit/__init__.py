@@ -53,9 +53,11 @@ from neuromotor.studies.fit.calibration import (
 from neuromotor.studies.fit.covariance import gauss_newton_covariance
 from neuromotor.studies.fit.driver import fit
 from neuromotor.studies.fit.evaluate import REVERSE_BATCH, Evaluation, ResponseEvaluator, compiled_response
+from neuromotor.studies.fit.parameters import PARAMETERS
 from neuromotor.studies.fit.problem import FitProblem, ResponseSpec, loss, make_problem
 from neuromotor.studies.fit.result import (
-    CONVERGED_STATUSES, LOSS_FLAT_ITERATIONS, LOSS_FLAT_RTOL, FitError, FitResult, loss_is_flat,
+    CONVERGED_STATUSES, IDENTIFIABLE_SE_LOG, LOSS_FLAT_ITERATIONS, LOSS_FLAT_RTOL, FitError, FitResult, identifiability,
+    loss_is_flat,
 )
 from neuromotor.studies.fit.solvers import GaussNewtonLineSearch, run_solver
 from neuromotor.studies.fit.surrogate import (
@@ -65,6 +67,7 @@ from neuromotor.studies.fit.synthetic import synthetic_target, write_synthetic_t
 
 __all__ = [
     "CONVERGED_STATUSES", "Calibration", "Evaluation", "FEATURE_NAMES", "FitError", "FitProblem", "FitResult",
+    "IDENTIFIABLE_SE_LOG", "PARAMETERS", "identifiability",
     "GaussNewtonLineSearch", "KINDS", "LOSS_FLAT_ITERATIONS", "LOSS_FLAT_RTOL", "REVERSE_BATCH", "ResponseEvaluator",
     "ResponseSpec", "SOLVERS", "SolverOptions", "acceleration_deg", "calibrate", "calibration_from_dict",
     "calibration_from_spec", "compiled_response", "deviation_deg", "exact_peak_acceleration", "fit",
