@@ -303,7 +303,7 @@ def cmd_fit(args) -> int:
 
     try:
         if args.write_synthetic:
-            path = write_synthetic_target(args.config, *args.write_synthetic, noise_deg=args.noise_deg,
+            path = write_synthetic_target(args.config, *_truth(args.write_synthetic), noise_deg=args.noise_deg,
                                           seed=args.seed)
             print(f"wrote {path}")
             return 0
@@ -325,6 +325,17 @@ def cmd_fit(args) -> int:
     if res.status != "converged":  # converged (loss flat): a success, said so
         print(f"neuromotor fit: {res.message}", file=sys.stderr)
     return 0
+
+
+def _truth(values) -> tuple:
+    """(ks, kd, values) of --write-synthetic: two bare numbers are (ks, kd)."""
+    named = dict(v for v in values if isinstance(v, tuple))
+    bare = [v for v in values if not isinstance(v, tuple)]
+    if bare and (named or len(bare) != 2):
+        from neuromotor.errors import UserError
+
+        raise UserError("--write-synthetic takes KS KD, or NAME=VALUE for each fitted parameter, not a mix")
+    return (*bare, named) if bare else (None, None, named)
 
 
 def cmd_experiment(args) -> int:
@@ -465,6 +476,12 @@ def _number_arg(text: str, low: float, strict: bool, what: str) -> float:
     return value
 
 
+def _truth_arg(text: str):
+    """A number >= 0, or NAME=NUMBER (a fitted parameter's known value)."""
+    name, _, num = text.rpartition("=")
+    return (name, _gain_arg(num)) if name else _gain_arg(num)
+
+
 def _gain_arg(text: str) -> float:
     """--ks/--kd: finite and >= 0 (a negative stiffness pushes away from the mocap)."""
     return _number_arg(text, 0.0, False, "a finite number >= 0")
@@ -593,14 +610,16 @@ def _add_sweep_command(sub) -> None:
 
 
 def _add_study_commands(sub) -> None:
-    sp = _command(sub, "fit", cmd_fit, "calibrate the gain pair (ks, kd) to a target response -> fit.json + fit.png",
+    sp = _command(sub, "fit", cmd_fit, "calibrate the gain pair (ks, kd) (or the [fit] parameters: reflex gains and "
+                  "delays too) to a target response -> fit.json + fit.png",
                   ("config", "TOML config with a [fit] table", None), "folder for fit.json and fit.png",
                   default="out/fit")
     sp.add_argument("--solver", default=None, help="override fit.solver (optimistix_lm, optimistix_gn, "
                     "optimistix_bfgs, jaxopt_lm, jaxopt_lbfgs)")
     sp.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help=PROGRESS_HELP)
-    sp.add_argument("--write-synthetic", nargs=2, type=_gain_arg, metavar=("KS", "KD"),
-                    help="instead of fitting, simulate the config's target file at these gains")
+    sp.add_argument("--write-synthetic", nargs="+", type=_truth_arg, metavar="VALUE",
+                    help="instead of fitting, simulate the config's target file at these values: KS KD, or "
+                         "NAME=VALUE for each of the [fit] parameters (e.g. reflex_gain=130 reflex_delay=0.05)")
     sp.add_argument("--noise-deg", type=_nonneg_arg, default=0.0,
                     help="with --write-synthetic: Gaussian noise added to the target angles (deg)")
     sp.add_argument("--seed", type=int, default=0, help="with --write-synthetic: random seed of the noise")

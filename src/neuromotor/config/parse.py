@@ -417,14 +417,19 @@ def _feature_target(t: Fields, n_perturbations: int) -> FitTargetSpec:
 def _trajectory_target(t: Fields, kind: str, base_dir) -> FitTargetSpec:
     file = t.get("file")
     if not isinstance(file, str):
-        t.fail("file", f"must be the path of an NPZ or CSV target, got {file!r}")
+        t.fail("file", f"must be the path of an NPZ, CSV or BVH target, got {file!r}")
     names = tuple(t.string_list("dofs" if kind == "joint_angles" else "bodies", []))
     unit = t.choice("angle_unit", default(FitTargetSpec, "angle_unit"), ("rad", "deg"))
     weights = t.get("weights", {})
     if not isinstance(weights, dict):
         t.fail("weights", f"must be a table of name = weight, got {weights!r}")
+    offset = t.number("time_offset", default(FitTargetSpec, "time_offset"))
+    if file.lower().endswith(".bvh") and "angle_unit" in t.table:
+        t.fail("angle_unit", "does not apply to a BVH target (its rotation channels are degrees, read as such)")
+    if "time_offset" in t.table and not file.lower().endswith(".bvh"):
+        t.fail("time_offset", "applies to a BVH target only (other targets give clip times)")
     t.done()
-    return FitTargetSpec(kind, resolve(file, base_dir), names, unit, dict(weights))
+    return FitTargetSpec(kind, resolve(file, base_dir), names, unit, dict(weights), time_offset=offset)
 
 
 def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:

@@ -263,6 +263,7 @@ class FitTargetSpec:
     weights: dict = dataclasses.field(default_factory=dict)
     surrogate: Surrogate = Surrogate()
     cases: tuple[dict, ...] = ()  # features: per case, feature name -> FeatureTarget
+    time_offset: float = 0.0  # BVH target: clip time (s) of the recorded trial's frame 0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,6 +23,16 @@ CSV layout (one header row, comma separated, ``#`` lines are comments)::
 the row belongs to; every case must list the same times. Angles are radians unless the config
 says ``angle_unit = "deg"``.
 
+Corridors (joint angles): mean and standard deviation over subjects as functions of time, a
+``NAME`` and a ``NAME.sd`` column for every DOF (``case,time,Chest.Xrotation,Chest.Xrotation.sd,...``;
+sd > 0, in the same unit as the mean). Each sample's residual is weighted by 1 / sd(t), so the
+fit counts misses in standard deviations and a wide corridor pulls less than a narrow one.
+
+Recorded trials (BVH): a BVH of the perturbed trial on the same skeleton (the recorded reaction)
+gives every non-root rotation channel as a joint-angle column named ``JOINT.Zrotation``, read in
+the file's degrees and unwrapped in time; frame 0 sits at clip time ``time_offset`` (the
+``[fit.target]`` field, default 0: the trial shares the clip's clock).
+
 Feature targets
 ---------------
 Numbers such as the peak deviation after a push, given per perturbation case with a standard
@@ -52,6 +62,7 @@ FEATURES = {
     "peak_acceleration_deg_s2": "largest a(t) = rms_i d^2/dt^2 (theta_i - theta_unperturbed_i) (deg/s^2)",
 }
 AXES = ("x", "y", "z")
+SD_SUFFIX = ".sd"  # corridor columns: NAME (mean over subjects) and NAME.sd (their standard deviation)
 
 
 @dataclasses.dataclass
@@ -63,14 +74,17 @@ class TargetTable:
     values: np.ndarray  # (C, T, k) angles or (C, T, k, 3) positions
     quantity: str  # "joint_angles" | "body_positions"
     source: str
+    sd: np.ndarray | None = None  # corridor: standard deviation over subjects, same shape as values
+    radians: bool = False  # angles already in radians whatever the config's angle_unit (BVH)
 
 
 def _fail(source, field, msg):
     raise ConfigError(f"{source}: field '{field}' {msg}")
 
 
-def read_target(path, quantity: str = "joint_angles") -> TargetTable:
-    """Read an NPZ or CSV trajectory target (layout in the module docstring)."""
+def read_target(path, quantity: str = "joint_angles", time_offset: float = 0.0) -> TargetTable:
+    """Read an NPZ, CSV or BVH trajectory target (layout in the module docstring); a BVH's frame
+    0 is at clip time ``time_offset``."""
     path = pathlib.Path(path)
     src = str(path)
     if not path.exists():
@@ -82,13 +96,19 @@ def read_target(path, quantity: str = "joint_angles") -> TargetTable:
         table = _read_npz(path, quantity)
     elif suffix == ".csv":
         table = _read_csv(path, quantity)
+    elif suffix == ".bvh":
+        table = _read_bvh(path, quantity, time_offset)
     else:
-        raise ConfigError(f"{src}: target file must be .npz or .csv, got {path.suffix!r}")
+        raise ConfigError(f"{src}: target file must be .npz, .csv or .bvh, got {path.suffix!r}")
     t = table.time
     if t.ndim != 1 or t.size < 2 or not np.all(np.isfinite(t)) or not np.all(np.diff(t) > 0):
         _fail(src, "time", "must be a strictly increasing finite 1-D array with at least 2 samples")
     if not np.all(np.isfinite(table.values)):
         _fail(src, "values", "contains NaN or infinite entries")
+    if table.sd is not None and not (np.all(np.isfinite(table.sd)) and np.all(table.sd > 0)):
+        c, t, k = np.argwhere(~(np.isfinite(table.sd) & (table.sd > 0)))[0]
+        _fail(src, f"{table.names[k]}.sd", f"must be finite and > 0 (case {c}, time {table.time[t]:g} s: "
+                                           f"{table.sd[c, t, k]!r})")
     if len(set(table.names)) != len(table.names):
         _fail(src, "names", "contains duplicates")
     return table
@@ -158,7 +178,7 @@ def _read_csv(path, quantity) -> TargetTable:
     values = np.stack(per_case)  # (C, T, cols)
     cols = [header[i] for i in data_cols]
     if quantity == "joint_angles":
-        return TargetTable(time, tuple(cols), values, quantity, src)
+        return _corridor(TargetTable(time, tuple(cols), values, quantity, src))
     bodies: list[str] = []
     for name in cols:
         body, _, axis = name.rpartition(".")
@@ -174,6 +194,44 @@ def _read_csv(path, quantity) -> TargetTable:
                 _fail(src, name, "column is missing (each body needs .x, .y and .z)")
             out[:, :, bi, ai] = values[:, :, cols.index(name)]
     return TargetTable(time, tuple(bodies), out, quantity, src)
+
+
+def _corridor(table: TargetTable) -> TargetTable:
+    """A table whose columns come as ``NAME`` and ``NAME.sd`` pairs becomes a corridor (mean and
+    standard deviation over subjects); a table without ``.sd`` columns is left as it is."""
+    sds = [n for n in table.names if n.endswith(SD_SUFFIX)]
+    if not sds:
+        return table
+    means = [n for n in table.names if not n.endswith(SD_SUFFIX)]
+    for n in means:
+        if n + SD_SUFFIX not in table.names:
+            _fail(table.source, n + SD_SUFFIX, "column is missing (a corridor gives every mean column its .sd)")
+    for n in sds:
+        if n[: -len(SD_SUFFIX)] not in means:
+            _fail(table.source, n, "has no mean column")
+    take = lambda names: table.values[..., [table.names.index(n) for n in names]]
+    return dataclasses.replace(table, names=tuple(means), values=take(means), sd=take([n + SD_SUFFIX for n in means]))
+
+
+def _read_bvh(path, quantity: str, time_offset: float) -> TargetTable:
+    """A recorded trial as BVH: every non-root rotation channel as joint angles (radians,
+    unwrapped in time), named like the model's DOFs (``JOINT.Zrotation``)."""
+    from neuromotor.model.bvh import read_bvh
+
+    src = str(path)
+    if quantity != "joint_angles":
+        raise ConfigError(f"{src}: a BVH target gives joint angles; use kind = \"joint_angles\"")
+    clip = read_bvh(path)
+    names, cols = [], []
+    for j in clip.joints[1:]:
+        for axis, col in zip(j.rotation_order, j.rotation_columns):
+            names.append(f"{j.name}.{axis}rotation")
+            cols.append(col)
+    if not names:
+        raise ConfigError(f"{src}: the BVH has no joint rotation channels below its root")
+    values = np.unwrap(np.deg2rad(clip.motion[:, cols]), axis=0)
+    time = time_offset + clip.frame_time * np.arange(clip.motion.shape[0])
+    return TargetTable(time, tuple(names), values[None], quantity, src, radians=True)
 
 
 def window_indices(sim_time: np.ndarray, window, source: str, field: str) -> tuple[int, int]:

@@ -89,8 +89,11 @@ def trajectory_calibration(setup, table, quantity: str, names=None, weights=None
     vals = resample(table, times, "fit.window")  # (C, T, k[, 3])
     pick = [table.names.index(n) for n in names]
     vals = vals[:, :, pick]
-    if quantity == "joint_angles" and angle_unit == "deg":
+    # A corridor weighs each sample by 1 / sd(t): the residual counts in standard deviations.
+    sd = None if table.sd is None else resample(dataclasses.replace(table, values=table.sd), times)[:, :, pick]
+    if quantity == "joint_angles" and angle_unit == "deg" and not table.radians:
         vals = np.deg2rad(vals)
+        sd = None if sd is None else np.deg2rad(sd)
     w = np.array([float(weights.get(n, 1.0)) for n in names])
     if quantity == "body_positions":
         w = np.repeat(w, 3)
@@ -98,6 +101,8 @@ def trajectory_calibration(setup, table, quantity: str, names=None, weights=None
     else:
         labels = tuple(names)
     wfull = np.broadcast_to(w, vals.reshape(vals.shape[0], vals.shape[1], -1).shape).reshape(-1)
+    if sd is not None:
+        wfull = wfull / sd.reshape(-1)
     return problem, vals.reshape(-1), np.array(wfull), labels
 
 
@@ -134,7 +139,7 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
     if t.kind == "features":
         setup = prepare(cfg, character, traj)
         return _feature_calibration(setup, spec, common)
-    table = read_target(t.file, t.kind)  # before the (slow) inverse dynamics: bad files fail fast
+    table = read_target(t.file, t.kind, t.time_offset)  # before the (slow) inverse dynamics: bad files fail fast
     setup = prepare(cfg, character, traj)
     problem, target, w, labels = trajectory_calibration(setup, table, t.kind, t.names or None, t.weights,
                                                         spec.window, t.angle_unit, cfg.source, spec.parameters)

@@ -9,7 +9,7 @@ import numpy as np
 from neuromotor.errors import ConfigError
 from neuromotor.studies.fit.calibration import Calibration
 from neuromotor.studies.fit.evaluate import ResponseEvaluator
-from neuromotor.studies.fit.parameters import describe
+from neuromotor.studies.fit.parameters import UNITS, describe
 from neuromotor.studies.fit.problem import make_problem
 from neuromotor.studies.fit.result import FitError
 
@@ -32,9 +32,11 @@ def synthetic_target(cal: Calibration, ks: float | None = None, kd: float | None
     return ev.y + noise * rng.standard_normal(ev.y.shape)
 
 
-def write_synthetic_target(config_path, ks: float, kd: float, noise_deg: float = 0.0, seed: int = 0,
-                           progress: bool = True) -> pathlib.Path:
-    """Simulate a joint-angle target at known gains and write it to the config's target file.
+def write_synthetic_target(config_path, ks: float | None = None, kd: float | None = None, values: dict | None = None,
+                           noise_deg: float = 0.0, seed: int = 0, progress: bool = True) -> pathlib.Path:
+    """Simulate a joint-angle target at known values of the config's fitted parameters (``[fit]
+    parameters``, default ks and kd: ``ks``, ``kd`` and/or ``values``) and write it to the
+    config's target file.
 
     The config's ``[fit.target]`` must be ``kind = "joint_angles"`` with ``file`` and ``dofs``;
     the CSV covers the fit window on the simulation grid, in the config's ``angle_unit``, with
@@ -60,13 +62,21 @@ def write_synthetic_target(config_path, ks: float, kd: float, noise_deg: float =
     for i, n in enumerate(dofs):
         if n not in model.dof_names:
             raise ConfigError(f"{cfg.source}: field 'fit.target.dofs[{i}]' is an unknown DOF name {n!r}")
-    problem = make_problem(setup, "joint_angles", [model.dof_names.index(n) for n in dofs], spec.window)
+    problem = make_problem(setup, "joint_angles", [model.dof_names.index(n) for n in dofs], spec.window,
+                           names=spec.parameters)
+    known = dict(values or {}, **{n: v for n, v in (("ks", ks), ("kd", kd)) if v is not None})
+    missing = [n for n in problem.names if n not in known]
+    if missing:
+        raise ConfigError(f"{cfg.source}: the synthetic target needs a value of every fitted parameter "
+                          f"(fit.parameters); missing {missing}")
     cal = Calibration(setup=setup, problem=problem, target=np.zeros(1), weights=np.zeros(1), x0=np.zeros(2))
-    y = synthetic_target(cal, ks, kd, np.deg2rad(noise_deg), seed, evaluator=ResponseEvaluator(problem))
+    y = synthetic_target(cal, noise=np.deg2rad(noise_deg), seed=seed, evaluator=ResponseEvaluator(problem),
+                         values={n: known[n] for n in problem.names})
     vals = y.reshape(problem.n_cases, -1, len(dofs))
     unit = spec.target.angle_unit
     if unit == "deg":
         vals = np.rad2deg(vals)
-    note = (f"synthetic target: neuromotor rollout at ks = {ks} 1/s^2, kd = {kd} 1/s, h = {setup.sim.h}\n"
+    at = ", ".join(f"{n} = {known[n]:g} {UNITS[n]}" for n in problem.names)
+    note = (f"synthetic target: neuromotor rollout at {at}, h = {setup.sim.h}\n"
             f"plus Gaussian noise of sd {noise_deg} deg (seed {seed}); angles in {unit}; config {config_path.name}")
     return write_target_csv(spec.target.file, cal.time, dofs, vals, "joint_angles", note)
