@@ -13,7 +13,8 @@ import numpy as np
 
 from neuromotor.io.atomic import atomic_path
 
-TEXT_COLUMNS = {"label", "controller", "body", "diverged_body", "kind", "hit_body", "dtype"}
+TEXT_COLUMNS = {"label", "controller", "body", "diverged_body", "kind", "hit_body", "dtype",
+                "feedback", "stability", "path"}  # the last three: the reflex studies (studies.reflex)
 INT_COLUMNS = {"run", "diverged_step"}
 
 

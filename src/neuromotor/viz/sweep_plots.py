@@ -12,10 +12,20 @@ from neuromotor.viz.figures import pyplot, save_png
 save_figure = save_png
 
 
+def _series_name(r: dict) -> str:
+    """The controller of a row: its gain setting's label and, with a reflex, the reflex paths."""
+    if "reflex_gain" not in r:
+        return r["label"]
+    name = f"{r['label']}, reflex {r['reflex_gain']:g}/s$^2$ at {1000 * r['reflex_delay']:g} ms"
+    if r.get("long_latency_gain"):
+        name += f" + {r['long_latency_gain']:g}/s$^2$ at {1000 * r['long_latency_delay']:g} ms"
+    return name
+
+
 def _series_key(r: dict) -> tuple:
     if r.get("kind") == "ball":  # an aimed ball's direction changes with its speed: one series
-        return (r["label"], r["body"], 0.0, 0.0, 0.0, r["start"])
-    return (r["label"], r["body"], r["direction_x"], r["direction_y"], r["direction_z"], r["start"])
+        return (_series_name(r), r["body"], 0.0, 0.0, 0.0, r["start"])
+    return (_series_name(r), r["body"], r["direction_x"], r["direction_y"], r["direction_z"], r["start"])
 
 
 def plot_sweep(rows: list[dict], path, title: str = "", xlabel: str | None = None) -> pathlib.Path:

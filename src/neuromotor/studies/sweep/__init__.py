@@ -43,6 +43,17 @@ Config (``[sweep]`` table of a simulation config; the grid is the Cartesian prod
     inner_batch = 1                   # rollouts vmapped together inside each shard's loop (64-256: faster)
     output = "out/sweep"              # folder for sweep.csv and the plots (relative to the config)
     fitted = "fit.json"               # optional: fitted (ks, kd) to mark on the gains map, or [ks, kd]
+    # With a [reflex] table (neuromotor.physics.reflex), its paths are grid axes too (lists or ranges):
+    reflex_gain = [0.0, 100.0, 400.0]  # 1/s^2, spinal path
+    reflex_delay = [0.0, 0.04]         # s; the history grows to the grid's longest delay (at most 1 s)
+    # long_latency_gain = [...]; long_latency_delay = [...]   # the long-latency path
+
+Reflex axes need a ``[reflex]`` table (the setting they vary; its other fields stay); each
+run's twin has the same reflex (the twins are shared per distinct controller, reflex included).
+The grid's reflex history holds its longest delay: ``reflex.max_delay`` is raised to it, so a
+row equals a single run of the config with that reflex. sweep.csv then has the columns
+:data:`REFLEX_COLUMNS`; a grid over reflex gain x delay at one gain setting and magnitude
+also draws reflex_map.png (stable cells, recovery time, the boundary).
 
 Ball-speed sweeps: when the config has a ``[ball]`` table, ``magnitudes`` are ball
 speeds (m/s) and every run is a contact rollout (:mod:`neuromotor.studies.sweep.ball`) of that ball at that
@@ -57,7 +68,7 @@ the character and the body that received it (:data:`BALL_COLUMNS`).
 Modules: :mod:`.grid` (the batch of a grid), :mod:`.runner` (sharded execution),
 :mod:`.ball` (ball-speed sweeps); the ``[sweep]`` table is parsed by
 :func:`neuromotor.config.sweep_spec`, the CSV is written by :mod:`neuromotor.io.tables` and the
-figures drawn by :mod:`neuromotor.viz.sweep_plots`.
+figures drawn by :mod:`neuromotor.viz.sweep_plots` (and :mod:`neuromotor.viz.reflex_plots`).
 """
 
 from __future__ import annotations
@@ -74,7 +85,9 @@ from neuromotor.io import tables
 from neuromotor.io.tables import read_csv
 from neuromotor.studies.gains import apply_gains as gains_for
 from neuromotor.studies.sweep.ball import BallBatch, BallRunOut, BallSweeper, run_ball_sweep
-from neuromotor.studies.sweep.grid import BALL_COLUMNS, COLUMNS, METRIC_KEYS, RunBatch, RunOut, build_batch, gain_keys
+from neuromotor.studies.sweep.grid import (
+    BALL_COLUMNS, COLUMNS, METRIC_KEYS, REFLEX_COLUMNS, RunBatch, RunOut, build_batch, gain_keys, with_reflex_columns,
+)
 from neuromotor.studies.sweep.runner import AXIS, Sweeper, SweepResult, device_mesh, run_sweep, sweep_batches
 from neuromotor.viz.sweep_plots import plot_gains_map, plot_sweep, save_figure
 
@@ -85,8 +98,10 @@ def write_csv(rows: list[dict], path, columns: Sequence[str] = COLUMNS) -> pathl
     return tables.write_csv(rows, path, columns)
 
 
-def _simulate(cfg, spec: SweepSpec, setup, *, devices, chunk, inner_batch, progress: bool) -> SweepResult:
-    """Every run of the grid: force pulses, or (``spec.kind == "ball"``) ball speeds."""
+def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inner_batch=None,
+                  progress: bool = True) -> SweepResult:
+    """Every run of the grid of ``spec`` on the prepared ``setup`` of ``cfg``: force pulses, or
+    (``spec.kind == "ball"``) ball speeds; ``chunk`` and ``inner_batch`` default to the spec's."""
     from neuromotor.studies.ball import balls_at_speeds
     from neuromotor.studies.simulate import body_lookup
 
@@ -102,7 +117,7 @@ def _simulate(cfg, spec: SweepSpec, setup, *, devices, chunk, inner_batch, progr
             raise ConfigError(f"{cfg.source}: field 'sweep.magnitudes': {e}") from None
         sweeper = BallSweeper(model, setup.ref, setup.sim, setup.ball, setup.pulses, **sizes)
         return run_ball_sweep(sweeper, setup, spec.magnitudes, spec.gains, balls=balls, progress=progress)
-    index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'")
+    index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'", setup.character)  # names or segment keywords
     for b in spec.bodies or []:
         index(b)
     sweeper = Sweeper(model, setup.ref, setup.sim, **sizes)
@@ -121,15 +136,28 @@ def _gains_map_title(cfg, spec: SweepSpec, name: str) -> str:
 
 
 def write_outputs(cfg, spec: SweepSpec, result: SweepResult, out: pathlib.Path, name: str) -> dict[str, pathlib.Path]:
-    """sweep.csv (with the precision of its runs, ``[sim] dtype``), sweep.png (several magnitudes)
-    and gains_map.png (ks and kd both vary)."""
+    """sweep.csv (with the precision of its runs, ``[sim] dtype``, and the reflex columns when
+    the config has a ``[reflex]``), sweep.png (several magnitudes), gains_map.png (ks and kd
+    both vary, one reflex setting) and reflex_map.png (reflex gain and delay both vary, one
+    gain setting and magnitude: :func:`neuromotor.viz.reflex_plots.plot_stability_map`)."""
     rows = [dict(r, dtype=str(cfg.dtype)) for r in result.rows]
-    files = {"csv": write_csv(rows, out / "sweep.csv", (*(BALL_COLUMNS if spec.kind == "ball" else COLUMNS), "dtype"))}
+    columns = BALL_COLUMNS if spec.kind == "ball" else COLUMNS
+    columns = with_reflex_columns(columns) if cfg.reflex is not None else columns
+    files = {"csv": write_csv(rows, out / "sweep.csv", (*columns, "dtype"))}
     if len(spec.magnitudes) > 1:
         files["plot"] = plot_sweep(result.rows, out / "sweep.png", title=name)
-    if len({g.ks for g in spec.gains}) > 1 and len({g.kd for g in spec.gains}) > 1:
+    one_reflex = len(spec.reflexes or ()) <= 1
+    if len({g.ks for g in spec.gains}) > 1 and len({g.kd for g in spec.gains}) > 1 and one_reflex:
         files["gains_map"] = plot_gains_map(result.rows, out / "gains_map.png", spec.fitted,
                                             title=_gains_map_title(cfg, spec, name))
+    reflexes = spec.reflexes or ()
+    if (len({r.gain for r in reflexes}) > 1 and len({r.delay for r in reflexes}) > 1
+            and len(spec.gains) == 1 and len(spec.runs(cfg.perturbations[0])) == len(reflexes)):
+        from neuromotor.studies.sweep.stability import classified, map_options
+        from neuromotor.viz.reflex_plots import plot_stability_map
+
+        files["reflex_map"] = plot_stability_map(classified(result.rows), out / "reflex_map.png",
+                                                 title=_gains_map_title(cfg, spec, name), **map_options(cfg))
     return files
 
 
@@ -147,7 +175,7 @@ def sweep_from_config(path, output=None, *, devices=None, chunk=None, inner_batc
     if fitted is not None:
         spec = dataclasses.replace(spec, fitted=read_fitted(fitted, "--fitted"))
     lead = jax.process_index() == 0  # with several processes, each computes its share, one writes
-    result = _simulate(cfg, spec, prepare(cfg), devices=devices, chunk=chunk, inner_batch=inner_batch,
+    result = simulate_grid(cfg, spec, prepare(cfg), devices=devices, chunk=chunk, inner_batch=inner_batch,
                        progress=progress and lead)
     if not lead:
         return result, {}
@@ -156,8 +184,8 @@ def sweep_from_config(path, output=None, *, devices=None, chunk=None, inner_batc
 
 __all__ = [
     "AXIS", "BALL_COLUMNS", "BallBatch", "BallRunOut", "BallSweeper", "COLUMNS", "CONTROLLERS", "GainSetting",
-    "METRIC_KEYS", "RunBatch", "RunOut", "SweepResult", "SweepSpec", "Sweeper", "build_batch", "device_mesh",
-    "gain_keys", "gains_for", "load_sweep_config", "plot_gains_map", "plot_sweep", "read_csv", "read_fitted",
-    "run_ball_sweep", "run_sweep", "save_figure", "sweep_batches", "sweep_from_config", "sweep_spec",
-    "write_csv", "write_outputs",
+    "METRIC_KEYS", "REFLEX_COLUMNS", "RunBatch", "RunOut", "SweepResult", "SweepSpec", "Sweeper", "build_batch",
+    "device_mesh", "gain_keys", "gains_for", "load_sweep_config", "plot_gains_map", "plot_sweep", "read_csv",
+    "read_fitted", "run_ball_sweep", "run_sweep", "save_figure", "simulate_grid", "sweep_batches",
+    "sweep_from_config", "sweep_spec", "write_csv", "write_outputs",
 ]

@@ -1,8 +1,9 @@
-"""The grid of a sweep as a batch: one row of gains and force pulses per run, and the shared
-unperturbed twin of each distinct gain setting."""
+"""The grid of a sweep as a batch: one row of gains (with the run's reflex, when the grid varies
+it) and force pulses per run, and the shared unperturbed twin of each distinct controller."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Sequence
 
 import equinox as eqx
@@ -13,6 +14,7 @@ from jaxtyping import Array, Float, Int
 from neuromotor.errors import ConfigError
 from neuromotor.physics.control import Gains
 from neuromotor.physics.perturbation import ForcePulses
+from neuromotor.physics.reflex import Reflex
 from neuromotor.studies.gains import apply_gains
 
 
@@ -23,6 +25,16 @@ METRIC_KEYS = ("peak_deviation_deg", "time_of_peak_s", "recovery_time_s", "final
 COLUMNS = ("run", "label", "controller", "ks", "kd", "body", "magnitude", "direction_x", "direction_y",
            "direction_z", "start", "duration", *METRIC_KEYS, "max_kkt_residual",
            "max_constraint_violation", "diverged", "diverged_step", "diverged_time_s", "diverged_body")
+
+
+# The reflex of a run (neuromotor.physics.reflex), written when the config has a [reflex] table.
+REFLEX_COLUMNS = ("reflex_gain", "reflex_delay", "long_latency_gain", "long_latency_delay")
+
+
+def with_reflex_columns(columns: Sequence[str]) -> tuple[str, ...]:
+    """``columns`` with :data:`REFLEX_COLUMNS` after the muscle gains (ks, kd)."""
+    i = list(columns).index("kd") + 1
+    return (*columns[:i], *REFLEX_COLUMNS, *columns[i:])
 
 
 BALL_COLUMNS = ("run", "kind", "label", "controller", "ks", "kd", "body", "magnitude", "direction_x",
@@ -52,14 +64,41 @@ def _stack(trees: Sequence[Any]):
     return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *trees)
 
 
-def build_batch(template_gains: Gains, template_pulses: ForcePulses, runs: list[dict], body_index) -> RunBatch:
-    """Batched gains and pulses for ``runs``; the grid overrides pulse 0 of the template."""
+def run_controller(template_gains: Gains, run: dict, h: float | None) -> Gains:
+    """The gains of one run: its gain setting and, when the grid varies it, its reflex
+    (a :class:`~neuromotor.config.specs.ReflexSpec` built at step ``h``)."""
+    gains = apply_gains(template_gains, run["gain"])
+    rx = run.get("reflex")
+    if rx is None:
+        return gains
+    if h is None:
+        raise ValueError("a run with a reflex setting needs the step h to build its history")
+    return dataclasses.replace(gains, reflex=rx.build(h))
+
+
+def reflex_columns(run: dict, template: Reflex | None) -> dict:
+    """The :data:`REFLEX_COLUMNS` of a run: its own reflex setting, else the template's (none: {})."""
+    rx = run.get("reflex")
+    if rx is not None:
+        return dict(zip(REFLEX_COLUMNS, (rx.gain, rx.delay, rx.long_latency_gain, rx.long_latency_delay)))
+    if template is None:
+        return {}
+    paths = (template.spinal.gain, template.spinal.delay, template.long_latency.gain, template.long_latency.delay)
+    return dict(zip(REFLEX_COLUMNS, (float(x) for x in paths)))
+
+
+def build_batch(template_gains: Gains, template_pulses: ForcePulses, runs: list[dict], body_index,
+                h: float | None = None) -> RunBatch:
+    """Batched gains and pulses for ``runs``; the grid overrides pulse 0 of the template (and
+    the reflex, built at step ``h``, for runs that carry one)."""
     if template_pulses.count == 0:
         raise ConfigError("a sweep needs at least one [[perturbation]] to vary")
     settings = {}
     for r in runs:
-        settings.setdefault(r["gain"], apply_gains(template_gains, r["gain"]))
-    gains = _stack([settings[r["gain"]] for r in runs])
+        key = (r["gain"], r.get("reflex"))
+        if key not in settings:
+            settings[key] = run_controller(template_gains, r, h)
+    gains = _stack([settings[(r["gain"], r.get("reflex"))] for r in runs])
     p = jax.tree_util.tree_map(np.asarray, template_pulses)
     n = len(runs)
     tile = lambda a: np.repeat(a[None], n, axis=0).copy()

@@ -21,7 +21,7 @@ from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Reference, SimConfig, rollout
 from neuromotor.physics.perturbation import ForcePulses
 from neuromotor.studies import metrics as mx
-from neuromotor.studies.sweep.grid import METRIC_KEYS, RunBatch, RunOut, build_batch, gain_keys
+from neuromotor.studies.sweep.grid import METRIC_KEYS, RunBatch, RunOut, build_batch, gain_keys, reflex_columns
 
 
 AXIS = "runs"
@@ -113,7 +113,7 @@ def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[di
     """Simulate every run of ``runs`` (from :meth:`SweepSpec.runs`) and measure its recovery."""
     from tqdm.auto import tqdm
 
-    batch = build_batch(gains, pulses, runs, body_index)
+    batch = build_batch(gains, pulses, runs, body_index, sweeper.sim.h)
     first, slot = gain_keys(batch)
     # Baselines: the distinct gain settings without any pulse, simulated with the same program.
     base = jax.tree_util.tree_map(lambda x: np.asarray(x)[first], batch)
@@ -126,8 +126,9 @@ def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[di
         d = np.asarray(r["direction"], float)
         d = d / np.linalg.norm(d)
         return {"run": i, "label": g.name, "controller": g.controller, "ks": g.ks, "kd": g.kd,
-                "body": r["body"], "magnitude": r["magnitude"], "direction_x": float(d[0]),
-                "direction_y": float(d[1]), "direction_z": float(d[2]), "start": r["start"], "duration": r["duration"],
+                **reflex_columns(r, gains.reflex), "body": r["body"], "magnitude": r["magnitude"],
+                "direction_x": float(d[0]), "direction_y": float(d[1]), "direction_z": float(d[2]),
+                "start": r["start"], "duration": r["duration"],
                 **mx.recovery_metrics(time, dev, float(starts[i].min())),
                 "max_kkt_residual": float(out["max_residual"]), "max_constraint_violation": float(out["max_violation"])}
 
