@@ -124,6 +124,7 @@ class _LinearEvaluator:
         import collections
 
         self.A = np.array([[1.0, 0.5], [0.2, 1.0], [0.3, 0.3]])
+        self.problem = type("P", (), {"names": ("ks", "kd"), "n_params": 2, "gains": None})()
         self._cache = collections.OrderedDict()
         self.n_evals, self.diverged_evals = 0, []
 

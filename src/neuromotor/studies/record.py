@@ -293,7 +293,7 @@ def provenance(setup: Setup) -> dict:
     """What made a run, as plain JSON values (RUN.npz ``provenance_json``): the package
     version, the clip file and its SHA-256, and the fully resolved configuration (gains, step,
     window, perturbations with their resolved body and point, units, up axis, stature, mass
-    options, ball)."""
+    options, ball, delayed reflex)."""
     from neuromotor import __version__
 
     cfg, sim = setup.config, setup.sim
@@ -313,5 +313,7 @@ def provenance(setup: Setup) -> dict:
         "driven_joints": [setup.model.body_names[b] for b in sim.driven],
         "perturbations": _perturbation_records(setup),
         "ball": _ball_record(setup),
+        # The delayed reflex (docs/reflex.md), or None: the paper's controller.
+        "reflex": None if cfg.reflex is None else dataclasses.asdict(cfg.reflex),
         **_body_record(setup),
     }
