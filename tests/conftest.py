@@ -35,3 +35,21 @@ def clip_path(request):
     if not path.exists():
         pytest.fail(f"shared mocap clip missing: {path} (CI must have ../shared beside the repo)")
     return path
+
+
+# Repeats of a default check on the second default clip whose feature the default run covers
+# elsewhere: the walk clip's inverse dynamics (and the kinematics under it) by
+# test_eq3_residual_every_frame[walk], the idyn command by its mocapbank case. About 80 s of
+# compiles; NEUROMOTOR_EXTENDED=1 runs them.
+EXTENDED_REPEATS = {
+    "tests/physics/test_inverse_dynamics.py::test_cli_idyn_writes_contract_and_fails_cleanly[walk]",
+    "tests/physics/test_inverse_dynamics.py::test_eq1_holds_with_mocap_accelerations[walk]",
+    "tests/model/test_kinematics.py::test_batched_kinematics_equal_joint_by_joint_recursion[walk]",
+}
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.nodeid in EXTENDED_REPEATS:
+            item.add_marker(pytest.mark.extended)
