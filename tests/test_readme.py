@@ -19,7 +19,7 @@ def test_readme_python_examples_run(tmp_path, monkeypatch):
     assert len(blocks) == 2
     monkeypatch.chdir(tmp_path)
     scope: dict = {}
-    exec(blocks[0].replace("duration=2.0", "duration=1.2"), scope)
+    exec(blocks[0].replace("duration=2.0", "start=0.8, duration=0.45"), scope)  # the hit is at 1.0 s
     assert (tmp_path / "run.npz").is_file()
     assert scope["result"].metrics["peak_deviation_deg"] > 0.1
     call = "jax.jacfwd(peak)(jnp.log(jnp.array([400.0, 20.0])))"

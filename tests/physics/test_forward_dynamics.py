@@ -126,7 +126,7 @@ def test_linearly_implicit_survives_where_explicit_diverges(bank):
 
 def test_gains_gradient_matches_central_differences(bank):
     character, traj = bank
-    setup = prepare(SimulationConfig(duration=0.5, perturbations=[hit(start=0.1)]), character, traj)
+    setup = prepare(SimulationConfig(duration=0.3, perturbations=[hit(start=0.1)]), character, traj)
 
     def loss(log_gains):
         g = dataclasses.replace(setup.gains, ks=jnp.exp(log_gains[0]), kd=jnp.exp(log_gains[1]))

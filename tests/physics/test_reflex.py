@@ -177,6 +177,7 @@ def test_gradient_wrt_gain_and_delay_matches_central_differences(reflex_fit):
     np.testing.assert_allclose(np.linalg.norm(jac - fd, axis=0) / np.linalg.norm(fd, axis=0), 0.0, atol=1e-5)
 
 
+@pytest.mark.extended  # runtime-heavy; experiments/reflex_fit.py runs the full check, test_fitting the driver
 def test_synthetic_truth_fit_recovers_gain_and_delay(reflex_fit):
     """Joint angles simulated at known reflex gain and delay plus 0.05 deg of noise: the fit from
     10 % and 3 ms off recovers them within 2 % and 2 ms, and says both are identifiable."""

@@ -376,3 +376,19 @@ def test_one_peak_value_cannot_identify_two_parameters():
     assert "not identifiable" in res.identifiability and "singular" in res.identifiability
     ok, note = F.identifiability(("ks", "kd"), np.array([0.01, 0.9]), np.diag([1e-4, 0.81]))
     assert ok == {"ks": True, "kd": False} and "kd" in note and "ks," not in note
+
+
+def test_any_fitted_parameters_are_reported_by_name():
+    """The driver with other parameters than (ks, kd) (here the reflex's gain and delay): values,
+    absolute standard errors, start values and identifiability keyed by name; ks and kd, not
+    fitted, reported at the problem's fixed gains."""
+    ev = ToyEvaluator()
+    gains = type("G", (), {"ks": np.asarray(400.0), "kd": np.asarray(20.0)})()
+    ev.problem.names, ev.problem.gains = ("reflex_gain", "reflex_delay"), gains
+    x_true = np.array([0.4, -0.2])
+    res = F.fit(ev, ev(x_true).y, np.ones(20), [0.0, 0.0], progress=False, strict=True)
+    assert res.parameters == ["reflex_gain", "reflex_delay"] and (res.ks, res.kd) == (400.0, 20.0)
+    np.testing.assert_allclose([res.values["reflex_gain"], res.values["reflex_delay"]], np.exp(x_true), rtol=1e-6)
+    assert set(res.standard_errors) == set(res.identifiable) == {"reflex_gain", "reflex_delay"}
+    assert res.start_values == {"reflex_gain": 1.0, "reflex_delay": 1.0} and all(res.identifiable.values())
+    assert {"reflex_gain", "reflex_delay"} <= set(res.history[-1])
