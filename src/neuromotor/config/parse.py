@@ -14,10 +14,10 @@ import numpy as np
 
 from neuromotor.config.fields import Fields, read_toml, resolve
 from neuromotor.config.specs import (
-    CONTROLLERS, EXPERIMENT_KINDS, FEATURE_NAMES, FIT_PARAMETERS, JACOBIANS, PERTURBATION_KINDS, PULSE_SHAPES,
+    CONTROLLERS, EXPERIMENT_KINDS, FEATURE_NAMES, JACOBIANS, PERTURBATION_KINDS, PULSE_SHAPES,
     SEXES, SOLVERS, TARGET_KINDS, BallSpec, ExperimentSpec, FeatureTarget, FitSpec, FitTargetSpec, GainSetting,
-    PerturbationSpec, ReflexSpec, SimulationConfig, SolverOptions, Surrogate, SweepSpec, default, reflex_grid,
-    REFLEX_AXES,
+    PerturbationSpec, ReflexSpec, SimulationConfig, SolverOptions, Surrogate, SweepSpec, check_fit_parameters,
+    default, reflex_grid, REFLEX_AXES, REFLEX_DELAY_LIMIT,
 )
 from neuromotor.errors import ConfigError
 from neuromotor.physics.precision import Precision
@@ -141,8 +141,8 @@ def parse_reflex(top: Fields) -> ReflexSpec:
     out["width"] = f.number("width", d("width"), positive=True)
     out["max_delay"] = f.number("max_delay", max(d("max_delay"), out["delay"], out["long_latency_delay"]),
                                 positive=True)
-    if out["max_delay"] > 1.0:
-        f.fail("max_delay", f"must be at most 1 s (the history buffer), got {out['max_delay']!r}")
+    if out["max_delay"] > REFLEX_DELAY_LIMIT:
+        f.fail("max_delay", f"must be at most {REFLEX_DELAY_LIMIT:g} s (the history buffer), got {out['max_delay']!r}")
     for key in ("delay", "long_latency_delay"):
         if out[key] > out["max_delay"]:
             f.fail(key, f"= {out[key]:g} s is longer than reflex.max_delay = {out['max_delay']:g} s")
@@ -290,8 +290,9 @@ def _sweep_reflex(f: Fields, cfg: SimulationConfig, kind: str) -> tuple[ReflexSp
     if kind == "ball":
         f.fail(given[0], "does not apply to a ball sweep (reflex axes sweep force pulses)")
     for key in ("reflex_delay", "long_latency_delay"):
-        if max(axes[key] or [0.0]) > 1.0:
-            f.fail(key, f"delays must be at most 1 s (the reflex history buffer), got {max(axes[key])!r}")
+        if max(axes[key] or [0.0]) > REFLEX_DELAY_LIMIT:
+            f.fail(key, f"delays must be at most {REFLEX_DELAY_LIMIT:g} s (the reflex history buffer), "
+                        f"got {max(axes[key])!r}")
     return reflex_grid(cfg.reflex, **axes)
 
 
@@ -445,14 +446,8 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
                          atol=f.number("atol", d("atol"), positive=True),
                          gtol=f.number("gtol", d("gtol"), positive=True))
     jacobian = f.choice("jacobian", default(FitSpec, "jacobian"), JACOBIANS)
-    names = f.string_list("parameters", list(default(FitSpec, "parameters")))
-    for i, n in enumerate(names):
-        if n not in FIT_PARAMETERS:
-            f.fail(f"parameters[{i}]", f"is {n!r}; choose from {list(FIT_PARAMETERS)}")
-        if n not in ("ks", "kd") and cfg.reflex is None:
-            f.fail(f"parameters[{i}]", f"= {n!r} needs a [reflex] table in the config")
-    if not names or len(set(names)) != len(names):
-        f.fail("parameters", f"must list distinct parameters, at least one, got {names!r}")
+    names = check_fit_parameters(f.string_list("parameters", list(default(FitSpec, "parameters"))),
+                                 cfg.reflex is not None, source)
     window = _fit_window(f)
     t = Fields(f.get("target", None) or f.fail("target", "is required ([fit.target] table)"), "fit.target", source)
     f.done()
@@ -461,4 +456,4 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
         target = _feature_target(t, len(cfg.perturbations))
     else:
         target = _trajectory_target(t, kind, base_dir)
-    return FitSpec(target, solver, opts, jacobian, window, tuple(names))
+    return FitSpec(target, solver, opts, jacobian, window, names)

@@ -35,6 +35,24 @@ EXPERIMENT_KINDS = ("arm", "full_body", "contrast")
 FIT_PARAMETERS = ("ks", "kd", "reflex_gain", "reflex_delay", "long_latency_gain", "long_latency_delay")
 
 
+def check_fit_parameters(names, has_reflex: bool, source: str, field: str = "fit.parameters") -> tuple[str, ...]:
+    """The fitted parameters of a config, checked: at least one, known, distinct, and the reflex
+    ones only with a ``[reflex]`` table."""
+    from neuromotor.errors import ConfigError
+
+    names = tuple(names)
+    if not names:
+        raise ConfigError(f"{source}: field '{field}' must name at least one parameter of {list(FIT_PARAMETERS)}")
+    for i, n in enumerate(names):
+        if n not in FIT_PARAMETERS:
+            raise ConfigError(f"{source}: field '{field}[{i}]' is {n!r}; choose from {list(FIT_PARAMETERS)}")
+        if n not in ("ks", "kd") and not has_reflex:
+            raise ConfigError(f"{source}: field '{field}[{i}]' = {n!r} needs a [reflex] table in the config")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{source}: field '{field}' names a parameter twice: {list(names)}")
+    return names
+
+
 def default(cls, name: str):
     """The default of field ``name`` of dataclass ``cls`` (the one place it is written)."""
     f = cls.__dataclass_fields__[name]
@@ -162,7 +180,7 @@ class ReflexSpec:
     rate_weight: float = _reflex.RATE_WEIGHT  # s
     one_sided: bool = False  # only while the loaded muscle is being stretched
     width: float = _reflex.RAMP_WIDTH  # rad, of the one-sided ramp
-    max_delay: float = _reflex.MAX_DELAY  # s: the longest delay the history holds
+    max_delay: float = _reflex.MAX_DELAY  # s: the longest delay the history holds (at most DELAY_LIMIT)
 
     def build(self, h: float):
         """The :class:`~neuromotor.physics.reflex.Reflex` of this table at step ``h``."""
@@ -281,6 +299,7 @@ class FitSpec:
 
 
 # The reflex axes of a sweep: [sweep] key -> ReflexSpec field.
+REFLEX_DELAY_LIMIT = _reflex.DELAY_LIMIT  # s
 REFLEX_AXES = {"reflex_gain": "gain", "reflex_delay": "delay", "long_latency_gain": "long_latency_gain",
                "long_latency_delay": "long_latency_delay"}
 

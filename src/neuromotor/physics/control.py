@@ -181,14 +181,15 @@ def _feedback_magnitude(gains: Gains, activation):
     return jnp.maximum(gains.signal_dependence * activation, gains.floor)
 
 
-def reflex_torque(gains: Gains, history, h: float, rot_p, inp: "ControllerInputs"):
+def reflex_torque(gains: Gains, history, h: float, axes, inp: "ControllerInputs"):
     """The delayed reflex (:mod:`neuromotor.physics.reflex`), signal-dependent and scaled like
     the muscle feedback: ``(rho, r)``, the world torque ``rho_j = sum_i h_i r_i`` on each
-    joint's child and the multipliers r_i per joint and DOF (N m along h_i)."""
+    joint's child (``axes``: the world Euler axes h_i as columns) and the multipliers r_i per
+    joint and DOF (N m along h_i)."""
     g = inp.gains(gains)
     r = reflex_multipliers(gains.reflex, history, h, _feedback_magnitude(g, inp.activation), inp.scale, inp.tau,
                            inp.reference_torque, inp.active)
-    return jnp.einsum("...ij,...j->...i", mm(rot_p, inp.local_axes), r), r
+    return jnp.einsum("...ij,...j->...i", axes, r), r
 
 
 # ---------------------------------------------------------------- the joint torque (Section 5.2)

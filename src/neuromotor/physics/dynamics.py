@@ -261,7 +261,7 @@ def delayed_reflex(sim: SimModel, gains: Gains, inputs: ControllerInputs, state:
     angle, rate = joint_errors(rot_p, rot[topo.child], omega[topo.parent], omega[topo.child], axes, inputs.rel_rot,
                                inputs.rel_omega)
     history = push(history, angle, rate)
-    return *reflex_torque(gains, history, sim.cfg.h, rot_p, inputs), history
+    return *reflex_torque(gains, history, sim.cfg.h, axes, inputs), history
 
 
 def momentum_rhs(model: Model, h: float, state: State, inertia, forces, damping_v) -> Float[Array, "B 6"]:

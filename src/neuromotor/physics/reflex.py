@@ -50,6 +50,7 @@ LONG_LATENCY_DELAY = 0.08  # s: long-latency (transcortical) response, 50-100 ms
 SPINAL_GAIN = 100.0  # 1/s^2: a quarter of the default muscle ks
 RATE_WEIGHT = 0.1  # s: stretch velocity weighs as much as 0.1 s of stretch
 MAX_DELAY = 0.12  # s: the history buffer covers delays up to this
+DELAY_LIMIT = 1.0  # s: the longest history a config may ask for (the buffer lives in the scan carry)
 RAMP_WIDTH = 0.005  # rad: width of the one-sided ramp
 SIGN_WIDTH = 0.1  # the smooth sign of tau_i turns over 10 % of the joint's RMS torque
 

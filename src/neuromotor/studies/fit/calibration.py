@@ -133,7 +133,6 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
         raise ConfigError(f"unknown solver {solver!r}; choose one of {', '.join(SOLVERS)}")
     if any(n in ("ks", "kd") for n in spec.parameters) and not (cfg.ks > 0 and cfg.kd > 0):
         raise ConfigError(f"{cfg.source}: field 'gains.ks'/'gains.kd' (the starting gains) must be > 0")
-    fp.check_names(spec.parameters, cfg.reflex is not None, cfg.source)  # before the (slow) inverse dynamics
     common = dict(solver=solver or spec.solver, options=spec.options, jacobian=spec.jacobian, source=cfg.source)
     t = spec.target
     if t.kind == "features":

@@ -40,21 +40,6 @@ def with_values(gains: Gains, names: tuple[str, ...], values) -> Gains:
     return gains
 
 
-def check_names(names, has_reflex: bool, source: str, field: str = "fit.parameters") -> tuple[str, ...]:
-    """The fitted parameters of a config, checked: known, distinct, and reflex ones only with a [reflex]."""
-    names = tuple(names)
-    if not names:
-        raise ConfigError(f"{source}: field '{field}' must name at least one parameter of {list(PARAMETERS)}")
-    for i, n in enumerate(names):
-        if n not in UNITS:
-            raise ConfigError(f"{source}: field '{field}[{i}]' is {n!r}; choose from {list(PARAMETERS)}")
-        if n in _REFLEX and not has_reflex:
-            raise ConfigError(f"{source}: field '{field}[{i}]' = {n!r} needs a [reflex] table in the config")
-    if len(set(names)) != len(names):
-        raise ConfigError(f"{source}: field '{field}' names a parameter twice: {list(names)}")
-    return names
-
-
 def start(gains: Gains, names: tuple[str, ...], source: str) -> np.ndarray:
     """x0 = log of the starting values (all must be > 0)."""
     vals = np.array([float(value(gains, n)) for n in names])
