@@ -239,6 +239,21 @@ def quat_log(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
     return scale[..., None] * v
 
 
+def right_jacobian_inv(e: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+    """Inverse right Jacobian of SO(3) at the rotation vector e (|e| <= pi):
+    ``log(exp(e) exp(d)) = e + Jr^-1(e) d + O(d^2)``, ``Jr^-1 = 1 + [e]x / 2 + beta [e]x^2`` with
+    ``beta = 1/|e|^2 - cot(|e|/2) / (2 |e|)`` (its series below |e| = 1e-2: smooth at 0)."""
+    t2 = dot(e, e)
+    small = t2 < 1e-4
+    t = jnp.sqrt(jnp.where(small, 1.0, t2))
+    half = 0.5 * t
+    beta = jnp.where(small, 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
+                     1.0 / jnp.where(small, 1.0, t2) - jnp.cos(half) / (2.0 * t * jnp.sin(half)))
+    k = skew(e)
+    eye = jnp.eye(3, dtype=e.dtype)
+    return eye + 0.5 * k + beta[..., None, None] * mm(k, k)
+
+
 def rotation_error(r_a: Float[Array, "... 3 3"], r_b: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
     """World-frame rotation vector e with exp(e) r_b = r_a."""
     return quat_log(matrix_to_quat(r_a @ jnp.swapaxes(r_b, -1, -2)))

@@ -89,11 +89,15 @@ def apply_inverse_mass(model: Model, rot, g: Float[Array, "... 6B"]) -> Float[Ar
 
 def post_stabilize(model: Model, cfg, solver, pos, quat, targets: PoseTargets):
     """Project positions onto the constraint manifold by ``cfg.stabilization_steps`` Newton steps, each
-    ``dx = M^-1 J^T mu`` with ``J dx = -C(x)`` solved by ``solver``; full Newton (refactored at
-    every iterate). Returns the positions, orientations and the constraint error left."""
+    ``dx = M^-1 J^T mu`` with ``J dx = -C(x)`` solved by ``solver``. J and C are those of every
+    iterate; the null-space solvers factor the metric once, at the first iterate
+    (:meth:`~neuromotor.physics.solvers.base.KKTSolver.project`). Returns the positions,
+    orientations and the constraint error left."""
+    reuse = None
     for _ in range(cfg.stabilization_steps):  # a fixed, small number of Newton steps (unrolled)
         rot = quat_to_matrix(quat)
         c = full_constraint_error(model, cfg.driven, pos, rot, targets, cfg.free_root)
-        pos, quat = retract(pos, quat, solver.projection_step(model, cfg, rot, c))
+        dx, reuse = solver.project(model, cfg, rot, c, reuse)
+        pos, quat = retract(pos, quat, dx)
     rot = quat_to_matrix(quat)
     return pos, quat, full_constraint_error(model, cfg.driven, pos, rot, targets, cfg.free_root)

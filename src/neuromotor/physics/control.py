@@ -52,8 +52,8 @@ from neuromotor.model.kinematics import body_kinematics
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.reflex import Reflex, reflex_multipliers
 from neuromotor.physics.system import dof_axes, dofs_to_per_joint, per_joint_to_dofs, solve3
-from neuromotor.rotations import (AXIS, axis_rotation, euler_axes, inv3, matrix_to_quat, mm, mmt, mv, quat_conj, quat_log, quat_mul,
-                                  quat_to_matrix)
+from neuromotor.rotations import (AXIS, axis_rotation, euler_axes, inv3, matrix_to_quat, mm, mmt, mtv, mv, quat_conj, quat_log,
+                                  quat_mul, quat_to_matrix)
 
 DEFAULT_KS = 400.0  # 1/s^2: natural frequency 20 rad/s (3.2 Hz) at typical load
 DEFAULT_KD = 20.0  # 1/s: damping ratio 0.5
@@ -275,35 +275,49 @@ def joint_torque(order: str, gains: Gains, rot_p, rot_c, w_p, w_c, inp: Controll
     return jnp.einsum("...ij,...j->...i", a, mult)
 
 
-def joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inp: ControllerInputs):
-    """:func:`joint_torque` of one joint from quaternions, with its damping block.
+class JointAffine(eqx.Module):
+    """A joint's Section 5.2 torque as an affine function of its errors in the parent's frame:
 
-    The same equation written for speed inside the per-joint Jacobian of Eq. 2 (component-wise
-    algebra fuses on a CPU). Returns the torque and ``d torque / d w_c`` (= -d torque / d w_p).
+        T = R_p (t0 + Ks e + Kd w),    e = R_p^T log(R_p R_d R_c^T),  w = w_d - R_p^T (w_c - w_p).
+
+    The Euler axes are ``a = R_p L`` (L: the axes at theta_d in the parent's frame), so the damped
+    pseudo-inverse that resolves the errors along them is ``P = a^T (a a^T + mu^2 1)^-1 =
+    P_L R_p^T`` with ``P_L = L^T (L L^T + mu^2 1)^-1``: the whole torque law apart from R_p is
+    state-independent, ``t0 = L (ff tau)``, ``Ks = L diag(|T| ks_i) P_L``, ``Kd = L diag(|T| kd_i)
+    P_L`` (signal dependence, gains and the active mask folded in). K and D of Eq. 2 then come
+    in closed form (:func:`neuromotor.physics.stiffness.joint_blocks`)."""
+
+    t0: Float[Array, "... 3"]
+    ks: Float[Array, "... 3 3"]
+    kd: Float[Array, "... 3 3"]
+
+
+def joint_affine(gains: Gains, inp: ControllerInputs) -> JointAffine:
+    """:class:`JointAffine` of joints (any leading shape) from their controller inputs."""
+    g = inp.gains(gains)
+    la = inp.local_axes
+    gram = mmt(la, la) + DAMPING**2 * jnp.eye(3, dtype=la.dtype)
+    p_local = mm(jnp.swapaxes(la, -1, -2), inv3(gram))
+    mag = _feedback_magnitude(g, inp.activation) * inp.active
+    ks, kd = g.per_dof()
+    weighted = lambda s: mm(la * s[..., None, :], p_local)
+    return JointAffine(mv(la, g.feedforward * inp.tau * inp.active), weighted(mag * ks), weighted(mag * kd))
+
+
+def joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inp: ControllerInputs):
+    """:func:`joint_torque` of one joint (or any leading shape) from quaternions, with its
+    damping block, through :class:`JointAffine`.
+
     The rotation error is ``log(q_p q_d q_c^-1)``, the world-frame rotation vector of
     ``R_p R_d R_c^T``, the same vector as ``R_p log(R_d R_rel^T)`` of :func:`joint_errors`.
-    The rate error ``w_err = R_p w_d - (w_c - w_p)`` enters the torque linearly, through
-    ``d_rate = P w_err`` with ``P = a^T (a a^T + mu^2 1)^-1`` and the slope of
-    :func:`rate_feedback_gains`, so the damping block is ``-a diag(slope) P`` in closed form.
+    Returns the torque and ``d torque / d w_c`` (= -d torque / d w_p) ``= -R_p Kd R_p^T``.
     """
+    aff = joint_affine(gains, inp)
     r_p = quat_to_matrix(q_p)
-    a = r_p @ inp.local_axes  # columns h_i (a dot: materialized once, used by every later line)
-    # The barrier materializes the error quaternion and its tangents: fused into its consumers,
-    # XLA recomputes the whole product chain for every entry of the Jacobian.
-    q_err = jax.lax.optimization_barrier(quat_mul(quat_mul(q_p, inp.rel_quat), quat_conj(q_c)))
-    e_world = quat_log(q_err)
-    w_err = mv(r_p, inp.rel_omega) - (w_c - w_p)
-    gram = mmt(a, a) + DAMPING**2 * jnp.eye(3, dtype=a.dtype)
-    proj = jnp.swapaxes(a, -1, -2) @ inv3(gram)  # P (a dot, materialized as above)
-    d = proj @ jnp.stack([e_world, w_err], -1)  # both right-hand sides at once
-    d_theta, d_rate = d[..., 0], d[..., 1]
-    g = inp.gains(gains)
-    damping = -(a * rate_feedback_gains(g, inp.activation, inp.active)[..., None, :]) @ proj
-    # A dot, not mv: it materializes a and the multipliers, which XLA would otherwise
-    # recompute inside every entry of the (nested) Jacobian.
-    torque = jnp.einsum("...ij,...j->...i", a, feedback_multipliers(g, inp.tau, inp.activation, d_theta, d_rate,
-                                                                    inp.active))
-    return torque, damping
+    e_world = quat_log(quat_mul(quat_mul(q_p, inp.rel_quat), quat_conj(q_c)))
+    local = lambda x: mtv(r_p, x)
+    y = aff.t0 + mv(aff.ks, local(e_world)) + mv(aff.kd, inp.rel_omega - local(w_c - w_p))
+    return mv(r_p, y), -mm(r_p, mmt(aff.kd, r_p))
 
 
 def joint_torques(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> Float[Array, "C 3"]:

@@ -57,7 +57,8 @@ from neuromotor.physics.inverse import inverse_dynamics, sim_columns
 from neuromotor.physics.perturbation import ForcePulses, generalized_forces, no_pulses
 from neuromotor.physics.solvers import Solver
 from neuromotor.physics.precision import Precision, cast
-from neuromotor.physics.stiffness import DenseStiffness, StiffBlocks, explicit_forces, stiff_blocks, stiff_jacobians
+from neuromotor.physics.stiffness import (DenseStiffness, Jacobians, StiffBlocks, explicit_forces, stiff_blocks,
+                                          stiff_jacobians)
 from neuromotor.physics.system import (State, dof_axes, gravity_forces, joint_angles, joint_rates, mass_times,
                                        retract, world_inertia)
 from neuromotor.rotations import matrix_to_quat, mm
@@ -86,6 +87,8 @@ class SimConfig(eqx.Module):
     solver: Solver = eqx.field(static=True, default=Solver.NULLSPACE, converter=Solver)
     # The dtype of the rollout's arrays (a Precision or its string): float64, or float32 (docs/float32.md).
     dtype: Precision = eqx.field(static=True, default=Precision.FLOAT64, converter=Precision)
+    # How the tree solvers get K and D: closed form (default) or jax.jacfwd (the check); equal to round-off.
+    jacobians: Jacobians = eqx.field(static=True, default=Jacobians.CLOSED_FORM, converter=Jacobians)
 
 
 class Reference(eqx.Module):
@@ -238,7 +241,7 @@ def stiff_forces(sim: SimModel, gains: Gains, inputs: ControllerInputs, state: S
     if not sim.cfg.implicit:
         return explicit_forces(model, gains, inputs, state, tree)
     if tree:
-        return stiff_blocks(model, gains, inputs, state)
+        return stiff_blocks(model, gains, inputs, state, sim.cfg.jacobians)
     return stiff_jacobians(model, gains, inputs, state.rot, state.omega)
 
 

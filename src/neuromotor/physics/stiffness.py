@@ -8,14 +8,18 @@ rotations perturbed as ``exp(d) R``). Two representations, both by ``jax.jacfwd`
 
 * :class:`StiffBlocks` (tree and null-space solvers): a joint's torque depends on its two bodies
   only, so K and D are 3x3 blocks on the body tree -- the diagonal and the body/parent couplings.
-  K by ``jacfwd`` of the per-joint quaternion form of the torque along its 6 rotation tangents,
-  vmapped over joints; D in closed form (the torque is linear in the rate error). The sparsity is
-  exact, not an approximation.
+  The sparsity is exact, not an approximation. Two ways to the blocks (:class:`Jacobians`):
+  ``CLOSED_FORM`` (default) differentiates the affine torque law of
+  :class:`~neuromotor.physics.control.JointAffine` by hand (:func:`joint_blocks`,
+  :func:`gyro_blocks`); ``JACFWD`` takes ``jax.jacfwd`` of the per-joint quaternion form along
+  its 6 rotation tangents, vmapped over joints. Tests hold the two equal to round-off.
 * :class:`DenseStiffness` (dense solver, the reference path): one ``jacfwd`` of the whole force
   vector (rotation-matrix form of the torque) over all bodies.
 """
 
 from __future__ import annotations
+
+import enum
 
 import equinox as eqx
 import jax
@@ -24,9 +28,21 @@ from jaxtyping import Array, Float
 
 from neuromotor.model.skeleton import Model
 from neuromotor.model.topology import Topology
-from neuromotor.physics.control import ControllerInputs, Gains, body_torques, joint_torque_q, joint_torques
-from neuromotor.physics.system import State, embed_angular, gyroscopic_forces
-from neuromotor.rotations import cross, mtv, mv, quat_exp, quat_mul, quat_to_matrix
+from neuromotor.physics.control import (ControllerInputs, Gains, body_torques, joint_affine, joint_torque_q,
+                                        joint_torques)
+from neuromotor.physics.system import State, embed_angular, gyroscopic_forces, world_inertia
+from neuromotor.rotations import (cross, mm, mmt, mtv, mv, quat_conj, quat_exp, quat_log, quat_mul, quat_to_matrix,
+                                  right_jacobian_inv, skew)
+
+
+class Jacobians(str, enum.Enum):
+    """How the tree blocks of K and D are computed (``SimConfig.jacobians``)."""
+
+    CLOSED_FORM = "closed_form"  # by hand from the affine torque law (fastest)
+    JACFWD = "jacfwd"  # jax.jacfwd along each joint's 6 rotation tangents (the check)
+
+    def __str__(self) -> str:
+        return self.value
 
 
 def muscle_and_gyro(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> Float[Array, " 6B"]:
@@ -85,8 +101,7 @@ def tree_matvec(topo: Topology, diag: Float[Array, "B 3 3"], up: Float[Array, "C
     (one-hot sums, no scatter under vmap)."""
     c, p = topo.child, topo.parent
     sel_c, sel_p = jnp.asarray(topo.sel_child, w.dtype), jnp.asarray(topo.sel_parent, w.dtype)  # keep w's precision
-    return (jnp.einsum("bij,bj->bi", diag, w) + jnp.einsum("cb,cij,cj->bi", sel_c, up, w[p])
-            + jnp.einsum("cb,cij,cj->bi", sel_p, down, w[c]))
+    return (mv(diag, w) + jnp.einsum("cb,ci->bi", sel_c, mv(up, w[p])) + jnp.einsum("cb,ci->bi", sel_p, mv(down, w[c])))
 
 
 def stiff_jacobians(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> DenseStiffness:
@@ -138,13 +153,52 @@ def _gyro_jacobians(model: Model, quat, omega):
     return jax.vmap(gyro_val_jac)(quat, omega, model.inertia)
 
 
-def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: State) -> StiffBlocks:
+def joint_blocks(model: Model, gains: Gains, inputs: ControllerInputs, quat, omega):
+    """Per joint, in closed form: its torque on the child and ``[dT/d rot_p, dT/d rot_c, dT/d w_c]``
+    (C, 3, 9), rotations perturbed as ``exp(d) q``. With ``T = R_p y`` (:class:`JointAffine`),
+    ``e`` the world rotation error and ``w = w_c - w_p``:
+
+        dT/d rot_c = -Ks_w Jr^-1(e),   dT/d rot_p = -[T]x - dT/d rot_c - Kd_w [w]x,   dT/d w_c = -Kd_w,
+
+    with ``Ks_w = R_p Ks R_p^T``, ``Kd_w = R_p Kd R_p^T``: the local error ``R_p^T e`` moves by
+    ``R_p^T Jr^-1(e) (d_p - d_c)`` and ``R_p^T w`` by ``R_p^T [w]x d_p``, and T turns with R_p."""
+    topo = model.topology
+    c, p = topo.child, topo.parent
+    aff = joint_affine(gains, inputs)
+    q_p = quat[p]
+    r_p = quat_to_matrix(q_p)
+    e = quat_log(quat_mul(quat_mul(q_p, inputs.rel_quat), quat_conj(quat[c])))
+    w = omega[c] - omega[p]
+    torque = mv(r_p, aff.t0 + mv(aff.ks, mtv(r_p, e)) + mv(aff.kd, inputs.rel_omega - mtv(r_p, w)))
+    world = lambda k: mm(r_p, mmt(k, r_p))
+    ks_w, kd_w = world(aff.ks), world(aff.kd)
+    d_child = -mm(ks_w, right_jacobian_inv(e))
+    d_parent = -skew(torque) - d_child - mm(kd_w, skew(w))
+    return torque, jnp.concatenate([d_parent, d_child, -kd_w], -1)
+
+
+def gyro_blocks(model: Model, rot, omega):
+    """The gyroscopic torque ``-w x L`` (L = I_w w) of every body and ``[d/d rot, d/d w]``
+    (B, 3, 6) in closed form: ``[w]x [L]x - [w]x I_w [w]x`` and ``[L]x - [w]x I_w``."""
+    iw = world_inertia(model, rot)
+    ang = mv(iw, omega)
+    wx, lx = skew(omega), skew(ang)
+    wi = mm(wx, iw)
+    return -cross(omega, ang), jnp.concatenate([mm(wx, lx) - mm(wi, wx), lx - wi], -1)
+
+
+def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: State,
+                 jacobians: Jacobians = Jacobians.CLOSED_FORM) -> StiffBlocks:
     """The same K and D as :func:`stiff_jacobians`, as blocks on the body tree, plus the stiff
     torques; orientations enter as quaternions, perturbed as ``exp(d) q`` (the tangent of Eq. 2)."""
     topo = model.topology
-    tq, jac = _joint_jacobians(model, gains, inputs, state.quat, state.omega)
+    if Jacobians(jacobians) is Jacobians.CLOSED_FORM:
+        tq, jac = joint_blocks(model, gains, inputs, state.quat, state.omega)
+        g, gj = gyro_blocks(model, state.rot, state.omega)
+    else:
+        tq, jac = _joint_jacobians(model, gains, inputs, state.quat, state.omega)
+        g, gj = _gyro_jacobians(model, state.quat, state.omega)
     jac = jnp.concatenate([jac[..., :6], -jac[..., 6:9], jac[..., 6:9]], -1)
-    g, gj = _gyro_jacobians(model, state.quat, state.omega)
     # Child rows get +dT, parent rows -dT; diagonal blocks gather both ends of every joint.
     sel_c, sel_p = jnp.asarray(topo.sel_child, jac.dtype), jnp.asarray(topo.sel_parent, jac.dtype)
     diag = lambda dp, dc: jnp.einsum("cb,cij->bij", sel_c, dc) - jnp.einsum("cb,cij->bij", sel_p, dp)

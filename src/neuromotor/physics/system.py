@@ -16,11 +16,15 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from neuromotor.rotations import (
     euler_axes,
     matrix_to_euler,
+    mm,
+    mmt,
+    mv,
     quat_to_matrix,
     quat_turn,
     rotation_error,
@@ -74,7 +78,7 @@ class State(eqx.Module):
 
 
 def world_inertia(model: Model, rot: Float[Array, "B 3 3"]) -> Float[Array, "B 3 3"]:
-    return rot @ model.inertia @ jnp.swapaxes(rot, -1, -2)
+    return mmt(mm(rot, model.inertia), rot)
 
 
 def mass_matrix(model: Model, rot: Float[Array, "B 3 3"]) -> Float[Array, "6B 6B"]:
@@ -112,12 +116,10 @@ def external_forces(model: Model, rot, omega) -> Float[Array, " 6B"]:
 
 def joint_levers(model: Model, rot) -> tuple[Float[Array, "C 3"], Float[Array, "C 3"]]:
     """World vectors from parent COM and from child COM to each ball joint point."""
-    child = jnp.arange(1, model.n_bodies)
-    parent = jnp.array(model.body_parent[1:])
-    joint = jnp.array(model.body_joint[1:])
-    anchor_parent = model.joint_offset[joint] - model.com[parent]
-    r_parent = jnp.einsum("cij,cj->ci", rot[parent], anchor_parent)
-    r_child = -jnp.einsum("cij,cj->ci", rot[child], model.com[child])
+    parent = np.asarray(model.body_parent[1:])
+    anchor_parent = model.joint_offset[np.asarray(model.body_joint[1:])] - model.com[parent]
+    r_parent = mv(rot[parent], anchor_parent)
+    r_child = -mv(rot[1:], model.com[1:])
     return r_parent, r_child
 
 
@@ -156,8 +158,7 @@ def constraint_error(model: Model, pos, rot, root_origin, root_rot) -> Float[Arr
     err_root_pos = pos[0] + r0 - root_origin
     err_root_rot = rotation_error(rot[0], root_rot)
     r_parent, r_child = joint_levers(model, rot)
-    parent = jnp.array(model.body_parent[1:])
-    gaps = (pos[parent] + r_parent) - (pos[1:] + r_child)
+    gaps = (pos[np.asarray(model.body_parent[1:])] + r_parent) - (pos[1:] + r_child)
     return jnp.concatenate([err_root_pos, err_root_rot, gaps.reshape(-1)])
 
 

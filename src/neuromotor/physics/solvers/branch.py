@@ -37,6 +37,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from neuromotor.model.topology import Topology
+from neuromotor.physics import static
 from neuromotor.rotations import dot, inv3, mm, mv
 
 
@@ -68,6 +69,20 @@ def _descendants_at(anc_at, level_d, level_t, t):
     return index, mask
 
 
+def _preorder(parent) -> np.ndarray:
+    """Position of each body in a depth-first pre-order walk of the tree (children in index order)."""
+    children = [[] for _ in parent]
+    for b, p in enumerate(parent):
+        if p >= 0:
+            children[p].append(b)
+    pos, stack, i = np.zeros(len(parent), np.int64), [0], 0
+    while stack:
+        b = stack.pop()
+        pos[b], i = i, i + 1
+        stack.extend(reversed(children[b]))
+    return pos
+
+
 def _schedule(topo: Topology) -> Schedule:
     n, depth = topo.n_bodies, np.asarray(topo.depth)
     t_max = int(depth.max())
@@ -80,7 +95,10 @@ def _schedule(topo: Topology) -> Schedule:
                 break
             k = topo.body_parent[k]
     t = np.arange(1, t_max + 1)
-    levels = tuple(np.flatnonzero(depth == d) for d in t)
+    # Within a level, bodies in depth-first pre-order: the descendants of any body then form
+    # one contiguous run of every deeper level (sums over them are sums of adjacent slices).
+    pre = _preorder(topo.body_parent)
+    levels = tuple(np.array(sorted(np.flatnonzero(depth == d), key=lambda b: pre[b]), np.int64) for d in t)
     pos = np.zeros(n, np.int64)
     for lv in levels:
         pos[lv] = np.arange(len(lv))
@@ -101,9 +119,7 @@ def schedule(topo: Topology) -> Schedule:
 
 def _gather_sum(x, index_mask):
     """For each target of ``index_mask`` (see ``Schedule.gather``), the sum of its entries of x."""
-    index, mask = index_mask
-    picked = jnp.take(x, index, axis=0) * jnp.asarray(mask, x.dtype).reshape(mask.shape + (1,) * (x.ndim - 1))
-    return jnp.sum(picked, 1)
+    return static.gather_sum(x, *index_mask)
 
 
 class Paths(eqx.Module):
@@ -123,7 +139,7 @@ def _times_skew(a: Float[Array, "... 3"], p: Float[Array, "... 3"]) -> Float[Arr
 def inertia_paths(sch: Schedule, c_blocks: Float[Array, "B 3 3"], first: Float[Array, "B 3"],
                   pivot: Float[Array, "B 3"]) -> Paths:
     """Paths of ``S^T M S`` (symmetric): ``H_kl = C_k + [a_k]x [p_l]x`` (module docstring)."""
-    p_anc = jnp.take(pivot, sch.anc_at[:, 1:], axis=0)  # (B, T, 3)
+    p_anc = static.take(pivot, sch.anc_at[:, 1:])  # (B, T, 3)
     row = jnp.asarray(sch.valid, pivot.dtype)[..., None, None] * (c_blocks[:, None] + _times_skew(first[:, None], p_anc))
     return Paths(row, jnp.swapaxes(row, -1, -2))
 
@@ -152,8 +168,8 @@ class Factor(eqx.Module):
 
 def factor(sch: Schedule, paths: Paths) -> Factor:
     """Block LDU of H without fill-in, deepest level first (module docstring)."""
-    rows = [jnp.take(paths.row, lv, axis=0)[:, :t] for t, lv in enumerate(sch.levels, 1)]
-    cols = [jnp.take(paths.col, lv, axis=0)[:, : t - 1] for t, lv in enumerate(sch.levels, 1)]
+    rows = [static.take(paths.row[:, :t], lv) for t, lv in enumerate(sch.levels, 1)]
+    cols = [static.take(paths.col[:, : t - 1], lv) for t, lv in enumerate(sch.levels, 1)]
     pinv, xs, used = [], [], []
     for d in range(sch.t_max, 0, -1):
         rk, ck = rows[d - 1], cols[d - 1]
@@ -172,7 +188,7 @@ def factor(sch: Schedule, paths: Paths) -> Factor:
 
 def solve(sch: Schedule, fac: Factor, rhs: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
     """u with ``H u = rhs`` (rows of the non-root bodies; the root row is ignored and returned 0)."""
-    r = [jnp.take(rhs, lv, axis=0) for lv in sch.levels]
+    r = [static.take(rhs, lv) for lv in sch.levels]
     z = [None] * sch.t_max
     for i, d in enumerate(range(sch.t_max, 0, -1)):  # forward: leaves first
         z[d - 1] = mv(fac.pinv[i], r[d - 1])
@@ -181,18 +197,18 @@ def solve(sch: Schedule, fac: Factor, rhs: Float[Array, "B 3"]) -> Float[Array, 
     u = [None] * sch.t_max
     for d in range(1, sch.t_max + 1):  # back: root side first
         x = fac.x[sch.t_max - d]
-        u[d - 1] = z[d - 1] - sum((mv(x[:, t - 1], jnp.take(u[t - 1], sch.anc_pos[d - 1][t - 1], axis=0))
+        u[d - 1] = z[d - 1] - sum((mv(x[:, t - 1], static.take(u[t - 1], sch.anc_pos[d - 1][t - 1]))
                                    for t in range(1, d)), jnp.zeros_like(z[d - 1]))
-    out = jnp.take(jnp.concatenate(u, 0), sch.order, axis=0)
+    out = static.take(jnp.concatenate(u, 0), sch.order)
     return out * jnp.asarray(np.arange(len(sch.order)) > 0, rhs.dtype)[:, None]
 
 
-def subtree_moments(desc: np.ndarray, mass, inertia, com):
+def subtree_moments(desc: np.ndarray, mass, inertia, com, unrolled: bool = True):
     """Per body, sums over its subtree: mass m, first moment s = sum m c, and J = sum (I + m
     (|c|^2 1 - c c^T)), the inertia about the origin of ``com`` (the root COM)."""
     eye = jnp.eye(3, dtype=com.dtype)
     own = inertia + mass[:, None, None] * (dot(com, com)[:, None, None] * eye - com[:, :, None] * com[:, None, :])
-    total = lambda x: jnp.tensordot(jnp.asarray(desc, x.dtype), x, axes=1)
+    total = lambda x: static.matrix_sum(desc, x, unrolled)
     return total(mass), total(mass[:, None] * com), total(own)
 
 
@@ -207,7 +223,7 @@ def pivot_blocks(m_sub, s_sub, j_sub, pivot):
 def matvec(sch: Schedule, paths: Paths, x: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
     """H x from the paths (root row 0): each body's row against its ancestors and itself, plus
     the columns of its strict descendants."""
-    x_anc = jnp.take(x, sch.anc_at[:, 1:], axis=0)  # (B, T, 3): x at each ancestor slot
+    x_anc = static.take(x, sch.anc_at[:, 1:])  # (B, T, 3): x at each ancestor slot
     own = jnp.sum(mv(paths.row, x_anc), 1)
     below = jnp.einsum("jsa,jsi->ai", jnp.asarray(sch.onto, x.dtype), mv(paths.col, x[:, None]))
     return (own + below) * jnp.asarray(np.arange(len(sch.order)) > 0, x.dtype)[:, None]

@@ -49,6 +49,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from neuromotor.model.topology import Topology
+from neuromotor.physics import static
 from neuromotor.physics.solvers import branch
 from neuromotor.physics.solvers.base import KKTSolver, relative_residual
 from neuromotor.physics.stiffness import tree_matvec
@@ -68,6 +69,7 @@ class Structure:
     driven: tuple[int, ...]
     free_root: bool
     tree: branch.Schedule  # elimination order of the joint-space matrix (common case)
+    unrolled: bool  # static sums as slices (batched solver) or as dots (:mod:`neuromotor.physics.static`)
 
     @property
     def by_tree(self) -> bool:
@@ -75,7 +77,7 @@ class Structure:
         return not (self.free_root or self.driven)
 
 
-def _structure(topo: Topology, driven: tuple[int, ...], free_root: bool) -> Structure:
+def _structure(topo: Topology, driven: tuple[int, ...], free_root: bool, unrolled: bool) -> Structure:
     n = topo.n_bodies
     anc = topo.anc
     strict_up = anc - np.eye(n)
@@ -84,20 +86,22 @@ def _structure(topo: Topology, driven: tuple[int, ...], free_root: bool) -> Stru
     known = np.array([3 * blk + j for blk in known_blocks for j in range(3)], dtype=np.int64)
     free = np.setdiff1d(np.arange(3 * (n + 1)), known)
     order = np.argsort(np.concatenate([free, known]))
-    return Structure(anc, strict_up, free, known, order, tuple(driven), free_root, branch.schedule(topo))
+    return Structure(anc, strict_up, free, known, order, tuple(driven), free_root, branch.schedule(topo), unrolled)
 
 
-def structure(topo: Topology, driven: tuple[int, ...] = (), free_root: bool = False) -> Structure:
-    """Static structure of the null-space basis (built once per topology and driven set)."""
+def structure(topo: Topology, driven: tuple[int, ...] = (), free_root: bool = False,
+              unrolled: bool = False) -> Structure:
+    """Static structure of the null-space basis (built once per topology and driven set);
+    ``unrolled``: sums over the tree as slices, the form for batches (:mod:`..static`)."""
     if any(b <= 0 or b >= topo.n_bodies for b in driven):
         raise ValueError(f"driven bodies must be non-root bodies of the tree, got {driven}")
     # Driven joints keep the given order: it is the row order of their constraints in J.
-    return topo.derived(_structure, tuple(driven), bool(free_root))
+    return topo.derived(_structure, tuple(driven), bool(free_root), bool(unrolled))
 
 
-def _tree_sum(mat: np.ndarray, x):
+def _tree_sum(st: Structure, mat: np.ndarray, x):
     """``mat @ x`` over the leading (body) axis with a static 0/1 matrix."""
-    return jnp.tensordot(jnp.asarray(mat, x.dtype), x, axes=1)
+    return static.matrix_sum(mat, x, st.unrolled)
 
 
 class Geometry(eqx.Module):
@@ -113,7 +117,7 @@ def geometry(st: Structure, r_parent: Float[Array, "C 3"], r_child: Float[Array,
     """COMs and pivots by chaining levers from the root: c_i = c_parent + r_parent - r_child."""
     zero = jnp.zeros((1, 3), r_parent.dtype)
     step = jnp.concatenate([zero, r_parent - r_child], 0)
-    com = _tree_sum(st.anc, step)
+    com = _tree_sum(st, st.anc, step)
     pivot = jnp.concatenate([zero, com[1:] + r_child], 0)
     return Geometry(com, pivot, r0)
 
@@ -122,8 +126,8 @@ def apply_basis(st: Structure, geo: Geometry, u: Float[Array, " N"]) -> Float[Ar
     """v = S u: per body ``[v_i, omega_i]``."""
     n = geo.com.shape[0]
     v0, uk = u[:3], u[3:].reshape(n, 3)
-    omega = _tree_sum(st.anc, uk)
-    vel = v0 + cross(omega, geo.com) - _tree_sum(st.anc, cross(uk, geo.pivot))
+    omega = _tree_sum(st, st.anc, uk)
+    vel = v0 + cross(omega, geo.com) - _tree_sum(st, st.anc, cross(uk, geo.pivot))
     return jnp.concatenate([vel, omega], -1)
 
 
@@ -132,8 +136,8 @@ def project_forces(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Floa
     subtree of k."""
     force, torque = f[:, :3], f[:, 3:]
     desc = st.anc.T
-    sub_force = _tree_sum(desc, force)
-    sub_moment = _tree_sum(desc, torque + cross(geo.com, force)) - cross(geo.pivot, sub_force)
+    sub_force = _tree_sum(st, desc, force)
+    sub_moment = _tree_sum(st, desc, torque + cross(geo.com, force)) - cross(geo.pivot, sub_force)
     return jnp.concatenate([jnp.sum(force, 0), sub_moment.reshape(-1)])
 
 
@@ -150,7 +154,7 @@ def inertia_blocks(st: Structure, geo: Geometry, mass: Float[Array, " B"], inert
     """
     dtype = geo.com.dtype
     eye = jnp.eye(3, dtype=dtype)
-    m_sub, s_sub, j_sub = branch.subtree_moments(st.anc.T, mass, inertia, geo.com)
+    m_sub, s_sub, j_sub = branch.subtree_moments(st.anc.T, mass, inertia, geo.com, st.unrolled)
     # Blocks are built in the (k, i, l, j) layout of the flattened matrix, and "the deeper of
     # k and l" is a pair of static masks rather than a gather: no transpose or gather kernels.
     at_k, at_l = _deep_masks(st, dtype)  # (B, B): d = k, d = l
@@ -214,10 +218,8 @@ def reduced_stiffness(st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[
 
 
 def _take(x, idx: np.ndarray, axis: int = 0):
-    """``x`` at static indices along ``axis``: a slice (no gather kernel) when they are contiguous."""
-    if idx.size and np.array_equal(idx, np.arange(idx[0], idx[0] + idx.size)):
-        return jax.lax.slice_in_dim(x, int(idx[0]), int(idx[0]) + idx.size, axis=axis)
-    return jnp.take(x, idx, axis=axis)
+    """``x`` at static indices along ``axis`` (slices, no gather kernel)."""
+    return static.take(x, idx, axis, unrolled=False)
 
 
 def _free_block(st: Structure, h: Float[Array, "N N"]) -> Float[Array, "F F"]:
@@ -262,7 +264,7 @@ def multipliers(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[A
     p_k of the forces on its subtree (its column of S^T f)."""
     n = geo.com.shape[0]
     proj = project_forces(st, geo, f)
-    ball = -_tree_sum(st.anc.T, f[:, :3])[1:]
+    ball = -_tree_sum(st, st.anc.T, f[:, :3])[1:]
     parts = []
     if not st.free_root:
         total = proj[:3]
@@ -323,7 +325,7 @@ def solve_reduced(st: Structure, geo: Geometry, red: Reduced, r: Float[Array, "B
 
 def _moments(st: Structure, geo: Geometry, mass, inertia_world):
     """``(C_k, a_k)`` of every body (:func:`branch.pivot_blocks`)."""
-    return branch.pivot_blocks(*branch.subtree_moments(st.anc.T, mass, inertia_world, geo.com), geo.pivot)
+    return branch.pivot_blocks(*branch.subtree_moments(st.anc.T, mass, inertia_world, geo.com, st.unrolled), geo.pivot)
 
 
 def _stiff_subtrees(st: Structure, g_diag, g_up, g_down):
@@ -331,7 +333,7 @@ def _stiff_subtrees(st: Structure, g_diag, g_up, g_down):
     zero = jnp.zeros((1, 3, 3), g_diag.dtype)
     up, down = jnp.concatenate([zero, g_up], 0), jnp.concatenate([zero, g_down], 0)
     strict_desc = st.anc.T - np.eye(st.anc.shape[0])
-    return _tree_sum(st.anc.T, g_diag) + _tree_sum(strict_desc, up + down), up, down
+    return _tree_sum(st, st.anc.T, g_diag) + _tree_sum(st, strict_desc, up + down), up, down
 
 
 def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) -> Float[Array, "B 6"]:
@@ -347,39 +349,68 @@ def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) 
         cols = np.array([3 * (1 + b) + j for b in st.driven for j in range(3)])
         u = u.at[cols].set(-c[m0 + 3 * (n - 1):])
     gaps = jnp.concatenate([jnp.zeros((1, 3), c.dtype), c[m0:m0 + 3 * (n - 1)].reshape(n - 1, 3)], 0)
-    shift = _tree_sum(st.anc, gaps)
+    shift = _tree_sum(st, st.anc, gaps)
     return apply_basis(st, geo, u) + jnp.concatenate([shift, jnp.zeros_like(shift)], -1)
 
 
-def spd_solve(a: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
+class SpdFactor(eqx.Module):
+    """A symmetric positive definite matrix and its Cholesky factor (for :func:`spd_solve`)."""
+
+    a: Float[Array, "n n"]
+    factor: tuple  # jax.scipy.linalg.cho_factor of stop_gradient(a)
+
+
+def spd_factor(a: Float[Array, "n n"]) -> SpdFactor:
+    return SpdFactor(a, jax.scipy.linalg.cho_factor(jax.lax.stop_gradient(a)))
+
+
+def spd_solve(a: Float[Array, "n n"] | SpdFactor, b: Float[Array, " n"]) -> Float[Array, " n"]:
     """a^-1 b for symmetric positive definite a by Cholesky, with derivatives by implicit
     differentiation (``lax.custom_linear_solve``): a tangent costs two triangular solves with
     the same factor, not the derivative of the factorization (as for ``jnp.linalg.solve``)."""
-    factor = jax.scipy.linalg.cho_factor(jax.lax.stop_gradient(a))
-    return jax.lax.custom_linear_solve(lambda x: a @ x, b, lambda _, y: jax.scipy.linalg.cho_solve(factor, y),
+    f = a if isinstance(a, SpdFactor) else spd_factor(a)
+    return jax.lax.custom_linear_solve(lambda x: f.a @ x, b, lambda _, y: jax.scipy.linalg.cho_solve(f.factor, y),
                                        symmetric=True)
 
 
-def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[Array, " nc"], tree: bool = False):
-    """One Newton step of post-stabilization: ``dx`` (B, 6) with ``J dx = -C`` of least M-norm,
-    ``dx = dx_p + S w`` with ``(S^T M S) w = -S^T M dx_p``; ``S^T M S`` factored along the tree
-    (:mod:`.branch`) when ``tree`` and the structure allows, else by a dense Cholesky."""
-    x_p = particular_correction(st, geo, c)
-    mx = jnp.concatenate([mass[:, None] * x_p[:, :3], jnp.einsum("bij,bj->bi", inertia_world, x_p[:, 3:])], -1)
-    rhs = -project_forces(st, geo, mx)
+class Metric(eqx.Module):
+    """The joint-space inertia ``S^T M S`` of post-stabilization at one configuration, factored:
+    along the tree (``paths``, ``factor``) or by a dense Cholesky (``dense``)."""
+
+    paths: branch.Paths | None = None
+    factor: branch.Factor | None = None
+    dense: SpdFactor | None = None
+
+
+def projection_metric(st: Structure, geo: Geometry, mass, inertia_world, tree: bool = False) -> Metric:
+    """:class:`Metric` at one configuration: along the tree (:mod:`.branch`) when ``tree`` and
+    the structure allows, else the free block by a dense Cholesky."""
     if tree and st.by_tree:
-        sch = st.tree
         c_blocks, first = _moments(st, geo, mass, inertia_world)
-        paths = branch.inertia_paths(sch, c_blocks, first, geo.pivot)
-        fac = branch.factor(sch, jax.lax.stop_gradient(paths))
-        w = branch.linear_solve(sch, paths, fac, rhs[3:].reshape(-1, 3), symmetric=True)
-        u = jnp.concatenate([jnp.zeros(6, c.dtype), w[1:].reshape(-1)])
-        return x_p + apply_basis(st, geo, u)
+        paths = branch.inertia_paths(st.tree, c_blocks, first, geo.pivot)
+        return Metric(paths, branch.factor(st.tree, jax.lax.stop_gradient(paths)))
     if st.free_root or st.driven:
         h_free = _free_block(st, reduced_inertia(st, geo, mass, inertia_world))
     else:  # driven root, free joints: the joints' blocks only
         h_free = _flat(inertia_blocks(st, geo, mass, inertia_world)[0][1:, :, 1:])
-    w = spd_solve(h_free, _take(rhs, st.free))
+    return Metric(dense=spd_factor(h_free))
+
+
+def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[Array, " nc"], tree: bool = False,
+                    metric: Metric | None = None):
+    """One Newton step of post-stabilization: ``dx`` (B, 6) with ``J dx = -C`` of least M-norm,
+    ``dx = dx_p + S w`` with ``(S^T M S) w = -S^T M dx_p`` (:func:`projection_metric`). A
+    ``metric`` of an earlier iterate may be passed: J dx = -C still holds exactly (dx_p and S
+    are this iterate's), only the M-norm is measured at that iterate."""
+    x_p = particular_correction(st, geo, c)
+    mx = jnp.concatenate([mass[:, None] * x_p[:, :3], jnp.einsum("bij,bj->bi", inertia_world, x_p[:, 3:])], -1)
+    rhs = -project_forces(st, geo, mx)
+    metric = projection_metric(st, geo, mass, inertia_world, tree) if metric is None else metric
+    if metric.dense is None:
+        w = branch.linear_solve(st.tree, metric.paths, metric.factor, rhs[3:].reshape(-1, 3), symmetric=True)
+        u = jnp.concatenate([jnp.zeros(6, c.dtype), w[1:].reshape(-1)])
+        return x_p + apply_basis(st, geo, u)
+    w = spd_solve(metric.dense, _take(rhs, st.free))
     u = _assemble(st, w, jnp.zeros(st.known.size, c.dtype))
     return x_p + apply_basis(st, geo, u)
 
@@ -392,11 +423,11 @@ def kkt_residual(st: Structure, geo: Geometry, r_parent, r_child, f: Float[Array
     m0 = 0 if st.free_root else 6
     child = np.arange(1, n)
     lam_ball = lam[m0:m0 + 3 * (n - 1)].reshape(n - 1, 3)
-    one_hot = lambda idx: jnp.asarray(np.eye(n)[idx], f.dtype)  # (rows, B): sums without scatter
-    put = lambda idx, x: jnp.tensordot(one_hot(idx), x, axes=([0], [0]))
+    put = lambda idx, x: static.matrix_sum(np.eye(n)[idx].T, x, st.unrolled)  # row sums onto bodies, no scatter
     jt = (put(parent, jnp.concatenate([lam_ball, cross(r_parent, lam_ball)], -1))
           - put(child, jnp.concatenate([lam_ball, cross(r_child, lam_ball)], -1)))
-    point = lambda body, lever: v[body, :3] + cross(v[body, 3:], lever)
+    at = lambda x, body: static.take(x, body, unrolled=st.unrolled)
+    point = lambda body, lever: at(v[:, :3], body) + cross(at(v[:, 3:], body), lever)
     rows = [(point(parent, r_parent) - point(child, r_child)).reshape(-1)]
     if not st.free_root:
         lam_lin, lam_ang = lam[0:3], lam[3:6]
@@ -445,7 +476,7 @@ class NullSpaceSolver(KKTSolver):
     tree_factor = False  # factor H along the body tree (BranchSolver) instead of by LAPACK
 
     def assemble(self, model, cfg, rot, inertia, stiff, h):
-        st = structure(model.topology, cfg.driven, cfg.free_root)
+        st = structure(model.topology, cfg.driven, cfg.free_root, self.tree_factor)
         r_par, r_chi = joint_levers(model, rot)
         geo = geometry(st, r_par, r_chi, root_lever(model, rot))
         g = stiff.g_blocks(h)
@@ -468,9 +499,15 @@ class NullSpaceSolver(KKTSolver):
         return lam, relative_residual(res, rhs_norm)
 
     def projection_step(self, model, cfg, rot, c):
-        st = structure(model.topology, cfg.driven, cfg.free_root)
+        return self.project(model, cfg, rot, c)[0]
+
+    def project(self, model, cfg, rot, c, reuse=None):
+        # The metric S^T M S of the first iterate serves the later ones (see KKTSolver.project).
+        st = structure(model.topology, cfg.driven, cfg.free_root, self.tree_factor)
         geo = geometry(st, *joint_levers(model, rot), root_lever(model, rot))
-        return projection_step(st, geo, model.mass, world_inertia(model, rot), c, self.tree_factor)
+        inertia = world_inertia(model, rot)
+        metric = projection_metric(st, geo, model.mass, inertia, self.tree_factor) if reuse is None else reuse
+        return projection_step(st, geo, model.mass, inertia, c, metric=metric), metric
 
 
 class BranchSolver(NullSpaceSolver):

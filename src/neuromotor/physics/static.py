@@ -1,0 +1,90 @@
+"""Indexing and sums by static (numpy) indices, in the form XLA:CPU runs fastest.
+
+The body tree is known when a program is traced, so every "value at a body's parent",
+"sum over a body's descendants" or "bodies of one tree level" uses indices that are numpy
+constants. Two ways to write them, with the same results to the last bit:
+
+* gathers and dots with static 0/1 matrices (``unrolled=False``): one kernel each. Best for a
+  single trajectory, whose step is bound by the number of kernels (XLA:CPU leaves dozens of tiny
+  slices and adds unfused, one kernel each);
+* contiguous slices, adds and one concatenation (``unrolled=True``): under ``vmap`` XLA:CPU
+  runs a gather with per-element index arithmetic (it was the largest share of a batched step)
+  and a dot's output comes batch-minor and is transposed back, while slices and adds fuse into a
+  few loops over the batch. The batched solver (``Solver.BRANCH``) uses this form.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def _runs(idx: np.ndarray) -> list[tuple[int, int, int]]:
+    """``idx`` (1-D) as maximal runs ``(start, length, step)``: consecutive indices (step 1) or
+    one index repeated (step 0)."""
+    out: list[list[int]] = []
+    for i in idx.tolist():
+        if out:
+            start, n, step = out[-1]
+            if (n == 1 or step == 1) and i == start + n:
+                out[-1] = [start, n + 1, 1]
+                continue
+            if (n == 1 or step == 0) and i == start:
+                out[-1] = [start, n + 1, 0]
+                continue
+        out.append([i, 1, 1])
+    return [tuple(r) for r in out]
+
+
+def _piece(x, start: int, n: int, step: int, axis: int):
+    if step == 1:
+        return jax.lax.slice_in_dim(x, start, start + n, axis=axis)
+    one = jax.lax.slice_in_dim(x, start, start + 1, axis=axis)
+    return jnp.broadcast_to(one, x.shape[:axis] + (n,) + x.shape[axis + 1:])
+
+
+def take(x, idx, axis: int = 0, unrolled: bool = True):
+    """``jnp.take(x, idx, axis)`` for a static integer array ``idx`` of any shape (the result
+    has ``idx.shape`` in place of ``axis``): slices of ``x`` when ``unrolled``, else one gather
+    (a slice where the indices are one run)."""
+    idx = np.asarray(idx, np.int64)
+    axis = axis % x.ndim
+    flat = idx.reshape(-1)
+    runs = _runs(flat)
+    if not unrolled and len(runs) > 1:
+        return jnp.take(x, idx, axis=axis)
+    if flat.size == 0:
+        shape = x.shape[:axis] + (0,) + x.shape[axis + 1:]
+        out = jnp.zeros(shape, x.dtype)
+    else:
+        parts = [_piece(x, *run, axis) for run in runs]
+        out = parts[0] if len(parts) == 1 else jnp.concatenate(parts, axis)
+    return out.reshape(x.shape[:axis] + idx.shape + x.shape[axis + 1:])
+
+
+def gather_sum(x, index, mask):
+    """Row i: ``sum_j mask[i, j] x[index[i, j]]`` over the leading axis of x (static ``index``
+    and 0/1 ``mask`` of shape (rows, width)); rows with no entry are zero. Written as sums of
+    one-row slices: under ``vmap`` they fuse into a few loops over the batch."""
+    index, mask = np.asarray(index), np.asarray(mask)
+    rows = []
+    for i in range(index.shape[0]):
+        terms = [jax.lax.slice_in_dim(x, int(j), int(j) + 1, axis=0) for j, on in zip(index[i], mask[i]) if on]
+        rows.append(sum(terms[1:], terms[0]) if terms else jnp.zeros((1,) + x.shape[1:], x.dtype))
+    return rows[0] if len(rows) == 1 else jnp.concatenate(rows, 0)
+
+
+def matrix_sum(mat, x, unrolled: bool = True):
+    """``mat @ x`` over the leading axis of x for a static 0/1 matrix ``mat`` (rows: sums of
+    the rows of x it selects): sums of slices (:func:`gather_sum`) when ``unrolled``, else one dot."""
+    if not unrolled:
+        return jnp.tensordot(jnp.asarray(mat, x.dtype), x, axes=1)
+    mat = np.asarray(mat)
+    width = max(1, int((mat != 0).sum(1).max())) if mat.size else 1
+    index = np.zeros((mat.shape[0], width), np.int64)
+    mask = np.zeros((mat.shape[0], width))
+    for i, row in enumerate(mat):
+        nz = np.flatnonzero(row)
+        index[i, : nz.size], mask[i, : nz.size] = nz, 1.0
+    return gather_sum(x, index, mask)

@@ -1,0 +1,33 @@
+"""Static indexing (physics/static.py): slices and sums equal jnp.take and dots, both forms, also
+under vmap, for runs, repeats, gaps and empty rows."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from neuromotor.physics import static
+
+
+@pytest.mark.parametrize("unrolled", [True, False])
+def test_take_equals_jnp_take(unrolled):
+    x = jnp.asarray(np.random.default_rng(0).normal(size=(9, 4, 3)))
+    for idx in ([3, 3, 3, 4, 5, 6, 6, 2, 0], [[1, 2], [2, 2], [8, 0]], [5], np.zeros(0, np.int64)):
+        idx = np.asarray(idx, np.int64)
+        for axis in (0, 1):
+            sub = idx % x.shape[axis]
+            np.testing.assert_array_equal(static.take(x, sub, axis, unrolled), jnp.take(x, sub, axis=axis))
+        batched = jax.vmap(lambda y: static.take(y, idx, 0, unrolled))(jnp.stack([x, 2 * x]))
+        np.testing.assert_array_equal(batched[1], jnp.take(2 * x, idx, axis=0))
+
+
+@pytest.mark.parametrize("unrolled", [True, False])
+def test_matrix_sum_equals_dot(unrolled):
+    rng = np.random.default_rng(1)
+    mat = (rng.random((6, 8)) < 0.4).astype(float)
+    mat[2] = 0.0  # a row that sums nothing
+    x = jnp.asarray(rng.normal(size=(8, 3, 3)))
+    want = np.tensordot(mat, np.asarray(x), axes=1)
+    np.testing.assert_allclose(static.matrix_sum(mat, x, unrolled), want, rtol=1e-15, atol=1e-15)
+    got = jax.vmap(lambda y: static.matrix_sum(mat, y, unrolled))(jnp.stack([x, -x]))
+    np.testing.assert_allclose(got[1], -want, rtol=1e-15, atol=1e-15)
