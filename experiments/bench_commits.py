@@ -1,6 +1,6 @@
 """Speed of the working tree against an earlier commit, timed in alternation in one process.
 
-    .venv/bin/python experiments/bench_commits.py REV [--batch 1] [--repeats 15] [--solver branch]
+    .venv/bin/python experiments/bench_commits.py REV [--batch 1] [--repeats 15] [--solver branch] [--rev-solver branch]
 
 The host's speed drifts by 2x between runs minutes apart, so two separate benchmark runs cannot
 resolve a 10 % change. This script extracts ``src/neuromotor`` of commit REV (``git archive``)
@@ -77,7 +77,8 @@ def main(argv=None) -> int:
     ap.add_argument("rev", help="the commit to compare with (e.g. HEAD~1)")
     ap.add_argument("--batch", type=int, default=1, help="trajectories per call (vmap over pulse magnitude)")
     ap.add_argument("--repeats", type=int, default=15, help="timed calls of each version")
-    ap.add_argument("--solver", default="nullspace", help="solver of the working tree (REV uses nullspace)")
+    ap.add_argument("--solver", default="nullspace", help="solver of the working tree")
+    ap.add_argument("--rev-solver", default="nullspace", help="solver of REV (commits before 10bfa6f have no 'branch')")
     args = ap.parse_args(argv)
     import jax
     import jax.numpy as jnp
@@ -87,7 +88,7 @@ def main(argv=None) -> int:
         sys.path.insert(0, tmp)
         old_pkg = _extract(args.rev, Path(tmp))
         runs = {}
-        for name, pkg, solver in (("working tree", "neuromotor", args.solver), (args.rev, old_pkg, "nullspace")):
+        for name, pkg, solver in (("working tree", "neuromotor", args.solver), (args.rev, old_pkg, args.rev_solver)):
             runs[name] = _program(pkg, args.batch, solver)
         (new, th_new, steps), (old, th_old, _) = runs.values()
         print(f"max |theta(working tree) - theta({args.rev})|: {float(jnp.max(jnp.abs(th_new - th_old))):.2e} rad")

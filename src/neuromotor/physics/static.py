@@ -63,11 +63,14 @@ def take(x, idx, axis: int = 0, unrolled: bool = True):
     return out.reshape(x.shape[:axis] + idx.shape + x.shape[axis + 1:])
 
 
-def gather_sum(x, index, mask):
+def gather_sum(x, index, mask, unrolled: bool = True):
     """Row i: ``sum_j mask[i, j] x[index[i, j]]`` over the leading axis of x (static ``index``
-    and 0/1 ``mask`` of shape (rows, width)); rows with no entry are zero. Written as sums of
-    one-row slices: under ``vmap`` they fuse into a few loops over the batch."""
+    and 0/1 ``mask`` of shape (rows, width)); rows with no entry are zero. Sums of one-row
+    slices when ``unrolled``, else one gather and one reduction."""
     index, mask = np.asarray(index), np.asarray(mask)
+    if not unrolled:
+        picked = jnp.take(x, index, axis=0) * jnp.asarray(mask, x.dtype).reshape(mask.shape + (1,) * (x.ndim - 1))
+        return jnp.sum(picked, 1)
     rows = []
     for i in range(index.shape[0]):
         terms = [jax.lax.slice_in_dim(x, int(j), int(j) + 1, axis=0) for j, on in zip(index[i], mask[i]) if on]
@@ -87,4 +90,4 @@ def matrix_sum(mat, x, unrolled: bool = True):
     for i, row in enumerate(mat):
         nz = np.flatnonzero(row)
         index[i, : nz.size], mask[i, : nz.size] = nz, 1.0
-    return gather_sum(x, index, mask)
+    return gather_sum(x, index, mask, unrolled)

@@ -220,15 +220,16 @@ def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
              "max_theta_diff_rad": float(jnp.max(jnp.abs(runs[n].theta - last.theta)))} for n in steps]
 
 
-def batched(setup, sizes, repeats: int, programs: dict | None = None) -> list[dict]:
+def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str = "float64") -> list[dict]:
     """Total steps per second of a vmap over pulse magnitudes. ``programs`` (a dict) receives
-    each compiled batch as a zero-argument callable, keyed ``batch<size>``."""
+    each compiled batch as a zero-argument callable, keyed ``batch<size>`` (``batch<size>_float32``
+    for ``dtype = "float32"``)."""
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     out = []
     for size in sizes:
         mags = jnp.linspace(0.5, 1.5, size)[:, None] * p.magnitude[None]
         cfg = dataclasses.replace(setup.sim, solver=solvers.Solver(setup.sim.solver).batched() if size > 1
-                                  else setup.sim.solver)
+                                  else setup.sim.solver, dtype=dtype)
 
         def many(mags, g, ref):
             one = lambda mag: dy.rollout(m, g, dataclasses.replace(p, magnitude=mag), ref, cfg).theta
@@ -237,8 +238,8 @@ def batched(setup, sizes, repeats: int, programs: dict | None = None) -> list[di
         comp, compile_s = _compile(many, mags, g, ref)
         t = _best(lambda: comp(mags, g, ref), repeats)
         if programs is not None:
-            programs[f"batch{size}"] = lambda comp=comp, mags=mags: comp(mags, g, ref)
-        out.append({"batch": size, "steps": cfg.n_steps, "seconds": t, "compile_s": compile_s,
+            programs[f"batch{size}" + ("" if dtype == "float64" else f"_{dtype}")] = lambda comp=comp, mags=mags: comp(mags, g, ref)
+        out.append({"batch": size, "dtype": dtype, "steps": cfg.n_steps, "seconds": t, "compile_s": compile_s,
                     "steps_per_s": size * cfg.n_steps / t, "real_time_factor": size * cfg.n_steps * cfg.h / t})
     return out
 
@@ -341,6 +342,8 @@ def mjx_beside(setup, batch_setup, programs: dict, res: dict, repeats: int, log=
     size = max(r["batch"] for r in res["batch"])
     ours = {"rollout": programs["rollout"], "batch": programs[f"batch{size}"],
             "jacfwd": programs["jacfwd"], "jacfwd_rollout": programs["jacfwd_rollout"]}
+    if f"batch{size}_float32" in programs:
+        ours["batch_float32"] = programs[f"batch{size}_float32"]
     mj, data = mujoco_start(setup.character, setup.sim.h, setup.ref.theta[0])
     # MJX gets the XLA options ours is compiled with (on the CPU they cut its jacfwd time ~5x).
     out = bench_mjx.compare(mj, data, ours, steps=setup.sim.n_steps, batch=size,
@@ -420,9 +423,10 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
                 f"{H / il['ours_us'] * 1e6:.0f} at that moment)")
     bsetup = _setup(clip, batch_seconds, solver, load)
     res["batch"] = batched(bsetup, sizes, max(2, repeats // 2), programs)
-    for r in res["batch"]:
+    res["batch_float32"] = batched(bsetup, [max(sizes)], max(2, repeats // 2), programs, dtype="float32")
+    for r in res["batch"] + res["batch_float32"]:
         ratio = "" if res["mujoco"] is None else f" ({r['steps_per_s'] / res['mujoco']['steps_per_s']:.2f}x MuJoCo)"
-        log(f"batch {r['batch']:4d}: {r['steps_per_s']:10.0f} steps/s{ratio}, compile {r['compile_s']:.1f} s")
+        log(f"batch {r['batch']:4d} ({r['dtype']}): {r['steps_per_s']:10.0f} steps/s{ratio}, compile {r['compile_s']:.1f} s")
     res["batch_split"] = batch_split(setup, max(sizes), max(2, repeats // 2))
     bs = res["batch_split"]
     mj_us = "" if res["mujoco"] is None else f"; one MuJoCo step {res['mujoco']['step_us']:.1f} us"

@@ -166,6 +166,8 @@ def _figures(t: dict, key: str, steps: int, batch: int, batch_steps: int) -> dic
            "batch_steps_per_s": batch * batch_steps / _median(t[f"{key}.batch"])}
     if f"{key}.jacfwd" in t:
         out["jacfwd_over_rollout"] = _median(t[f"{key}.jacfwd"] / t[f"{key}.jacfwd_rollout"])
+    if f"{key}.batch_float32" in t:
+        out["batch_float32_steps_per_s"] = batch * batch_steps / _median(t[f"{key}.batch_float32"])
     return out
 
 
@@ -180,6 +182,8 @@ def _ratios(t: dict, dtype: str, steps: int, batch: int, batch_steps: int) -> di
         ours["step_time"] = _median(t["ours.rollout"] / t[f"{mjx}.rollout"])
     if "ours.batch" in t:
         ours["batch_throughput"] = _median(t[f"{mjx}.batch"] / t["ours.batch"])
+    if f"ours.batch_{dtype}" in t:  # ours in the same precision as this MJX
+        ours["batch_throughput_same_dtype"] = _median(t[f"{mjx}.batch"] / t[f"ours.batch_{dtype}"])
     if "ours.jacfwd" in t:
         ours["jacfwd_time"] = _median(t["ours.jacfwd"] / t[f"{mjx}.jacfwd"])
     out["ours_over_mjx"] = ours
@@ -194,7 +198,7 @@ def compare(mj, d0, ours: dict[str, Callable], steps: int, batch: int, batch_ste
     ``ours``: zero-argument callables, any of ``rollout`` (one trajectory of ``steps`` steps),
     ``batch`` (``batch`` trajectories of ``batch_steps`` steps), ``jacfwd`` and
     ``jacfwd_rollout`` (jacfwd over two gains of a ``steps``-step trajectory, and that
-    trajectory). Returns the medians per engine, the ratios, MJX's compile seconds and its
+    trajectory), ``batch_float32`` (the batch in float32). Returns the medians per engine, the ratios, MJX's compile seconds and its
     largest ``qpos`` difference from MuJoCo C after ``steps`` steps. ``compiler_options``: XLA's
     for MJX's programs (None: XLA's defaults, as an MJX user compiles)."""
     import mujoco
@@ -237,7 +241,12 @@ def log_figures(r: dict, log=print, ours_compile: dict | None = None) -> None:
         f"; time MJX/C {ratio('mjx_over_c', 'step_time')}")
     log(f"  batch {r['batch']} x {r['batch_steps']} steps, steps/s: ours {ours.get('batch_steps_per_s', nan):.0f}, "
         f"MJX {mjx('batch_steps_per_s', '.0f')}, MuJoCo C one thread {c['steps_per_s']:.0f}; throughput ours/MJX "
-        f"{ratio('ours_over_mjx', 'batch_throughput')}; throughput MJX/C {ratio('mjx_over_c', 'batch_throughput')}")
+        f"{ratio('ours_over_mjx', 'batch_throughput')}; throughput MJX/C {ratio('mjx_over_c', 'batch_throughput')}; "
+        f"ours/C {ours.get('batch_steps_per_s', nan) / c['steps_per_s']:.2f}")
+    if "batch_float32_steps_per_s" in ours and "float32" in r:
+        log(f"  batch in float32, steps/s: ours {ours['batch_float32_steps_per_s']:.0f}, MJX "
+            f"{r['float32']['batch_steps_per_s']:.0f}; throughput ours/MJX "
+            f"{r['float32']['ours_over_mjx'].get('batch_throughput_same_dtype', nan):.2f}")
     if "jacfwd_over_rollout" in ours:
         log(f"  jacfwd over 2 gains / rollout ({r['steps']} steps): ours {ours['jacfwd_over_rollout']:.2f}x, "
             f"MJX {mjx('jacfwd_over_rollout', '.2f')}; jacfwd time ours/MJX {ratio('ours_over_mjx', 'jacfwd_time')}")

@@ -57,6 +57,7 @@ class Schedule:
     gather: tuple[tuple[tuple[np.ndarray, np.ndarray], ...], ...]
     anc_pos: tuple[tuple[np.ndarray, ...], ...]  # [d - 1][t - 1]: (w_d,) position of anc_t in level t
     order: np.ndarray  # (B,): position of each body in the levels' concatenation (root: 0, masked)
+    unrolled: bool  # static indexing as slices (batches) or gathers (one trajectory): physics/static.py
 
 
 def _descendants_at(anc_at, level_d, level_t, t):
@@ -83,7 +84,7 @@ def _preorder(parent) -> np.ndarray:
     return pos
 
 
-def _schedule(topo: Topology) -> Schedule:
+def _schedule(topo: Topology, unrolled: bool) -> Schedule:
     n, depth = topo.n_bodies, np.asarray(topo.depth)
     t_max = int(depth.max())
     anc_at = np.zeros((n, t_max + 1), np.int64)
@@ -109,17 +110,22 @@ def _schedule(topo: Topology) -> Schedule:
     strict = (t[None] < depth[:, None]).astype(float)
     onto = np.eye(n)[anc_at[:, 1:]] * strict[..., None]
     return Schedule(t_max, levels, anc_at, (t[None] <= depth[:, None]).astype(float), strict, onto, gather,
-                    anc_pos, order)
+                    anc_pos, order, unrolled)
 
 
-def schedule(topo: Topology) -> Schedule:
-    """The elimination schedule of a tree (built once per topology)."""
-    return topo.derived(_schedule)
+def schedule(topo: Topology, unrolled: bool = True) -> Schedule:
+    """The elimination schedule of a tree (built once per topology); ``unrolled``: static
+    indexing as slices, the form for batches (:mod:`neuromotor.physics.static`)."""
+    return topo.derived(_schedule, bool(unrolled))
 
 
-def _gather_sum(x, index_mask):
+def _gather_sum(sch: Schedule, x, index_mask):
     """For each target of ``index_mask`` (see ``Schedule.gather``), the sum of its entries of x."""
-    return static.gather_sum(x, *index_mask)
+    return static.gather_sum(x, *index_mask, unrolled=sch.unrolled)
+
+
+def _take(sch: Schedule, x, idx):
+    return static.take(x, idx, unrolled=sch.unrolled)
 
 
 class Paths(eqx.Module):
@@ -139,7 +145,7 @@ def _times_skew(a: Float[Array, "... 3"], p: Float[Array, "... 3"]) -> Float[Arr
 def inertia_paths(sch: Schedule, c_blocks: Float[Array, "B 3 3"], first: Float[Array, "B 3"],
                   pivot: Float[Array, "B 3"]) -> Paths:
     """Paths of ``S^T M S`` (symmetric): ``H_kl = C_k + [a_k]x [p_l]x`` (module docstring)."""
-    p_anc = static.take(pivot, sch.anc_at[:, 1:])  # (B, T, 3)
+    p_anc = _take(sch, pivot, sch.anc_at[:, 1:])  # (B, T, 3)
     row = jnp.asarray(sch.valid, pivot.dtype)[..., None, None] * (c_blocks[:, None] + _times_skew(first[:, None], p_anc))
     return Paths(row, jnp.swapaxes(row, -1, -2))
 
@@ -168,8 +174,8 @@ class Factor(eqx.Module):
 
 def factor(sch: Schedule, paths: Paths) -> Factor:
     """Block LDU of H without fill-in, deepest level first (module docstring)."""
-    rows = [static.take(paths.row[:, :t], lv) for t, lv in enumerate(sch.levels, 1)]
-    cols = [static.take(paths.col[:, : t - 1], lv) for t, lv in enumerate(sch.levels, 1)]
+    rows = [_take(sch, paths.row[:, :t], lv) for t, lv in enumerate(sch.levels, 1)]
+    cols = [_take(sch, paths.col[:, : t - 1], lv) for t, lv in enumerate(sch.levels, 1)]
     pinv, xs, used = [], [], []
     for d in range(sch.t_max, 0, -1):
         rk, ck = rows[d - 1], cols[d - 1]
@@ -180,35 +186,35 @@ def factor(sch: Schedule, paths: Paths) -> Factor:
         # prod[k, a, b] = U[k, a] X[k, b] lands in the row of a (b <= a) or the column of b (a < b).
         prod = mm(ck[:, :, None], x[:, None, :])
         for t in range(1, d):
-            rows[t - 1] = rows[t - 1] - _gather_sum(prod[:, t - 1, :t], sch.gather[d - 1][t - 1])
+            rows[t - 1] = rows[t - 1] - _gather_sum(sch, prod[:, t - 1, :t], sch.gather[d - 1][t - 1])
             if t > 1:
-                cols[t - 1] = cols[t - 1] - _gather_sum(prod[:, : t - 1, t - 1], sch.gather[d - 1][t - 1])
+                cols[t - 1] = cols[t - 1] - _gather_sum(sch, prod[:, : t - 1, t - 1], sch.gather[d - 1][t - 1])
     return Factor(tuple(pinv), tuple(xs), tuple(used))
 
 
 def solve(sch: Schedule, fac: Factor, rhs: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
     """u with ``H u = rhs`` (rows of the non-root bodies; the root row is ignored and returned 0)."""
-    r = [static.take(rhs, lv) for lv in sch.levels]
+    r = [_take(sch, rhs, lv) for lv in sch.levels]
     z = [None] * sch.t_max
     for i, d in enumerate(range(sch.t_max, 0, -1)):  # forward: leaves first
         z[d - 1] = mv(fac.pinv[i], r[d - 1])
         for t in range(1, d):  # rhs_a -= H_ak z_k for the ancestors a of k
-            r[t - 1] = r[t - 1] - _gather_sum(mv(fac.col[i][:, t - 1], z[d - 1]), sch.gather[d - 1][t - 1])
+            r[t - 1] = r[t - 1] - _gather_sum(sch, mv(fac.col[i][:, t - 1], z[d - 1]), sch.gather[d - 1][t - 1])
     u = [None] * sch.t_max
     for d in range(1, sch.t_max + 1):  # back: root side first
         x = fac.x[sch.t_max - d]
-        u[d - 1] = z[d - 1] - sum((mv(x[:, t - 1], static.take(u[t - 1], sch.anc_pos[d - 1][t - 1]))
+        u[d - 1] = z[d - 1] - sum((mv(x[:, t - 1], _take(sch, u[t - 1], sch.anc_pos[d - 1][t - 1]))
                                    for t in range(1, d)), jnp.zeros_like(z[d - 1]))
-    out = static.take(jnp.concatenate(u, 0), sch.order)
+    out = _take(sch, jnp.concatenate(u, 0), sch.order)
     return out * jnp.asarray(np.arange(len(sch.order)) > 0, rhs.dtype)[:, None]
 
 
-def subtree_moments(desc: np.ndarray, mass, inertia, com, unrolled: bool = True):
+def subtree_moments(desc: np.ndarray, mass, inertia, com):
     """Per body, sums over its subtree: mass m, first moment s = sum m c, and J = sum (I + m
     (|c|^2 1 - c c^T)), the inertia about the origin of ``com`` (the root COM)."""
     eye = jnp.eye(3, dtype=com.dtype)
     own = inertia + mass[:, None, None] * (dot(com, com)[:, None, None] * eye - com[:, :, None] * com[:, None, :])
-    total = lambda x: static.matrix_sum(desc, x, unrolled)
+    total = lambda x: jnp.tensordot(jnp.asarray(desc, x.dtype), x, axes=1)
     return total(mass), total(mass[:, None] * com), total(own)
 
 
@@ -223,7 +229,7 @@ def pivot_blocks(m_sub, s_sub, j_sub, pivot):
 def matvec(sch: Schedule, paths: Paths, x: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
     """H x from the paths (root row 0): each body's row against its ancestors and itself, plus
     the columns of its strict descendants."""
-    x_anc = static.take(x, sch.anc_at[:, 1:])  # (B, T, 3): x at each ancestor slot
+    x_anc = _take(sch, x, sch.anc_at[:, 1:])  # (B, T, 3): x at each ancestor slot
     own = jnp.sum(mv(paths.row, x_anc), 1)
     below = jnp.einsum("jsa,jsi->ai", jnp.asarray(sch.onto, x.dtype), mv(paths.col, x[:, None]))
     return (own + below) * jnp.asarray(np.arange(len(sch.order)) > 0, x.dtype)[:, None]

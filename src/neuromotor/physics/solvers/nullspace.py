@@ -86,7 +86,8 @@ def _structure(topo: Topology, driven: tuple[int, ...], free_root: bool, unrolle
     known = np.array([3 * blk + j for blk in known_blocks for j in range(3)], dtype=np.int64)
     free = np.setdiff1d(np.arange(3 * (n + 1)), known)
     order = np.argsort(np.concatenate([free, known]))
-    return Structure(anc, strict_up, free, known, order, tuple(driven), free_root, branch.schedule(topo), unrolled)
+    return Structure(anc, strict_up, free, known, order, tuple(driven), free_root, branch.schedule(topo, unrolled),
+                     unrolled)
 
 
 def structure(topo: Topology, driven: tuple[int, ...] = (), free_root: bool = False,
@@ -100,8 +101,9 @@ def structure(topo: Topology, driven: tuple[int, ...] = (), free_root: bool = Fa
 
 
 def _tree_sum(st: Structure, mat: np.ndarray, x):
-    """``mat @ x`` over the leading (body) axis with a static 0/1 matrix."""
-    return static.matrix_sum(mat, x, st.unrolled)
+    """``mat @ x`` over the leading (body) axis with a static 0/1 matrix: one dot (faster than
+    unrolled sums, batched or not: XLA:CPU leaves long chains of one-row sums unfused)."""
+    return jnp.tensordot(jnp.asarray(mat, x.dtype), x, axes=1)
 
 
 class Geometry(eqx.Module):
@@ -154,7 +156,7 @@ def inertia_blocks(st: Structure, geo: Geometry, mass: Float[Array, " B"], inert
     """
     dtype = geo.com.dtype
     eye = jnp.eye(3, dtype=dtype)
-    m_sub, s_sub, j_sub = branch.subtree_moments(st.anc.T, mass, inertia, geo.com, st.unrolled)
+    m_sub, s_sub, j_sub = branch.subtree_moments(st.anc.T, mass, inertia, geo.com)
     # Blocks are built in the (k, i, l, j) layout of the flattened matrix, and "the deeper of
     # k and l" is a pair of static masks rather than a gather: no transpose or gather kernels.
     at_k, at_l = _deep_masks(st, dtype)  # (B, B): d = k, d = l
@@ -325,7 +327,7 @@ def solve_reduced(st: Structure, geo: Geometry, red: Reduced, r: Float[Array, "B
 
 def _moments(st: Structure, geo: Geometry, mass, inertia_world):
     """``(C_k, a_k)`` of every body (:func:`branch.pivot_blocks`)."""
-    return branch.pivot_blocks(*branch.subtree_moments(st.anc.T, mass, inertia_world, geo.com, st.unrolled), geo.pivot)
+    return branch.pivot_blocks(*branch.subtree_moments(st.anc.T, mass, inertia_world, geo.com), geo.pivot)
 
 
 def _stiff_subtrees(st: Structure, g_diag, g_up, g_down):
@@ -423,7 +425,7 @@ def kkt_residual(st: Structure, geo: Geometry, r_parent, r_child, f: Float[Array
     m0 = 0 if st.free_root else 6
     child = np.arange(1, n)
     lam_ball = lam[m0:m0 + 3 * (n - 1)].reshape(n - 1, 3)
-    put = lambda idx, x: static.matrix_sum(np.eye(n)[idx].T, x, st.unrolled)  # row sums onto bodies, no scatter
+    put = lambda idx, x: _tree_sum(st, np.eye(n)[idx].T, x)  # row sums onto bodies, no scatter
     jt = (put(parent, jnp.concatenate([lam_ball, cross(r_parent, lam_ball)], -1))
           - put(child, jnp.concatenate([lam_ball, cross(r_child, lam_ball)], -1)))
     at = lambda x, body: static.take(x, body, unrolled=st.unrolled)
@@ -474,9 +476,10 @@ class NullSpaceSolver(KKTSolver):
 
     tree_blocks = True
     tree_factor = False  # factor H along the body tree (BranchSolver) instead of by LAPACK
+    unrolled = False  # static indexing as gathers and dots (one trajectory; physics/static.py)
 
     def assemble(self, model, cfg, rot, inertia, stiff, h):
-        st = structure(model.topology, cfg.driven, cfg.free_root, self.tree_factor)
+        st = structure(model.topology, cfg.driven, cfg.free_root, self.unrolled)
         r_par, r_chi = joint_levers(model, rot)
         geo = geometry(st, r_par, r_chi, root_lever(model, rot))
         g = stiff.g_blocks(h)
@@ -503,7 +506,7 @@ class NullSpaceSolver(KKTSolver):
 
     def project(self, model, cfg, rot, c, reuse=None):
         # The metric S^T M S of the first iterate serves the later ones (see KKTSolver.project).
-        st = structure(model.topology, cfg.driven, cfg.free_root, self.tree_factor)
+        st = structure(model.topology, cfg.driven, cfg.free_root, self.unrolled)
         geo = geometry(st, *joint_levers(model, rot), root_lever(model, rot))
         inertia = world_inertia(model, rot)
         metric = projection_metric(st, geo, model.mass, inertia, self.tree_factor) if reuse is None else reuse
@@ -517,3 +520,4 @@ class BranchSolver(NullSpaceSolver):
     or joints are driven."""
 
     tree_factor = True
+    unrolled = True  # static indexing as slices: fused loops over the batch
