@@ -40,8 +40,8 @@ def relative_residual(res: Float[Array, " m"], rhs_norm: Float[Array, ""]) -> Fl
 class Solver(str, enum.Enum):
     """Which solver of Eq. 2 a rollout uses (``SimConfig.solver``; the strings are accepted too)."""
 
-    NULLSPACE = "nullspace"  # v = S u over the joint-space basis, one small LU (fastest single run on a CPU)
-    BRANCH = "branch"  # the same, H factored along the tree without LAPACK (fastest in batches)
+    NULLSPACE = "nullspace"  # v = S u over the joint-space basis, H factored along the tree (fastest single run)
+    BRANCH = "branch"  # the same with its tree indexing as slices (fastest in vmapped batches)
     TREE = "tree"  # linear-time block elimination along the body tree (Baraff 1996)
     DENSE = "dense"  # one dense LU of the (6B + nc) matrix: the reference path
 

@@ -12,7 +12,10 @@ each ancestor l (and itself), ``R[k, l] = H_kl`` and ``U[k, l] = H_lk``, indexed
 The factorization visits the tree level by level, deepest first; all bodies of one depth are
 independent and are eliminated together by elementwise 3x3 arithmetic (no LAPACK call, so a
 ``vmap`` over trajectories vectorizes along the batch instead of looping over small
-factorizations). Pivots need no exchange: the diagonal blocks of ``S^T M S`` are positive definite
+factorizations). A level's updates of its ancestors' blocks are summed onto the parents once and
+carried up (:func:`factor`), so the factorization and the solve take a fixed number of
+operations per level, and bodies within a level are kept in depth-first order, so that the
+children of a body are adjacent. Pivots need no exchange: the diagonal blocks of ``S^T M S`` are positive definite
 and the stiff part is a small perturbation of it (the same assumption as the dense LU's).
 
 Path blocks in closed form (pivot p_l of column l, subtree quantities of k from
@@ -172,39 +175,71 @@ class Factor(eqx.Module):
     col: tuple[Float[Array, "w d 3 3"], ...]
 
 
+def _by_level(sch: Schedule, x) -> list:
+    """Per level (depth 1, 2, ...), the rows of x (per body) of that level's bodies: one take into
+    level order, then slices."""
+    flat = _take(sch, x, np.concatenate(sch.levels))
+    ends = np.cumsum([len(lv) for lv in sch.levels])
+    return [flat[e - len(lv):e] for e, lv in zip(ends, sch.levels)]
+
+
+def _to_parents(sch: Schedule, d: int, x):
+    """Sums of x (rows: the bodies at depth d) over the children of each body at depth d - 1."""
+    return _gather_sum(sch, x, sch.gather[d - 1][d - 2])
+
+
 def factor(sch: Schedule, paths: Paths) -> Factor:
-    """Block LDU of H without fill-in, deepest level first (module docstring)."""
-    rows = [_take(sch, paths.row[:, :t], lv) for t, lv in enumerate(sch.levels, 1)]
-    cols = [_take(sch, paths.col[:, : t - 1], lv) for t, lv in enumerate(sch.levels, 1)]
+    """Block LDU of H without fill-in, deepest level first (module docstring).
+
+    Eliminating body k updates ``H_ab -= H_ak P_k^-1 H_kb`` for every pair of its ancestors a, b.
+    The updates of a level are summed onto the parents once; the part for the parent's own row
+    and column is applied there and the rest (pairs of strict ancestors of the parent) is carried
+    up with the parent's own updates, so a level costs one sum over children, not one per
+    ancestor level."""
+    rows = [r[:, :t] for t, r in enumerate(_by_level(sch, paths.row), 1)]
+    cols = [c[:, : t - 1] for t, c in enumerate(_by_level(sch, paths.col), 1)]
     pinv, xs, used = [], [], []
+    carry = None  # updates (w_d, d - 1, d - 1, 3, 3) for the pairs of strict ancestors of level d
     for d in range(sch.t_max, 0, -1):
         rk, ck = rows[d - 1], cols[d - 1]
         p_inv = inv3(rk[:, d - 1])
         x = mm(p_inv[:, None], rk[:, : d - 1])
         pinv.append(p_inv), xs.append(x), used.append(ck)
-        # Schur complement onto the ancestors: H_ab -= H_ak P^-1 H_kb for ancestors a, b of k;
-        # prod[k, a, b] = U[k, a] X[k, b] lands in the row of a (b <= a) or the column of b (a < b).
+        if d == 1:
+            break
+        # prod[k, a, b] = U[k, a] X[k, b] for ancestor slots a, b of k
         prod = mm(ck[:, :, None], x[:, None, :])
-        for t in range(1, d):
-            rows[t - 1] = rows[t - 1] - _gather_sum(sch, prod[:, t - 1, :t], sch.gather[d - 1][t - 1])
-            if t > 1:
-                cols[t - 1] = cols[t - 1] - _gather_sum(sch, prod[:, : t - 1, t - 1], sch.gather[d - 1][t - 1])
+        acc = _to_parents(sch, d, prod if carry is None else prod + carry)  # (w_{d-1}, d-1, d-1, 3, 3)
+        own = d - 2  # the parent's own slot
+        rows[d - 2] = rows[d - 2] - acc[:, own, : own + 1]  # its row: H[parent, b], b <= parent
+        if own > 0:
+            cols[d - 2] = cols[d - 2] - acc[:, :own, own]  # its column: H[a, parent], a above it
+        carry = acc[:, :own, :own] if own > 0 else None
     return Factor(tuple(pinv), tuple(xs), tuple(used))
 
 
 def solve(sch: Schedule, fac: Factor, rhs: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
-    """u with ``H u = rhs`` (rows of the non-root bodies; the root row is ignored and returned 0)."""
-    r = [_take(sch, rhs, lv) for lv in sch.levels]
+    """u with ``H u = rhs`` (rows of the non-root bodies; the root row is ignored and returned 0).
+    Forward: each level's ``H_ak z_k`` for all its ancestors a summed onto the parents once (the
+    parent's own share applied, the rest carried up); back: each body's ancestors' u gathered
+    from its parent's (one take per level)."""
+    r = _by_level(sch, rhs)
     z = [None] * sch.t_max
+    carry = None  # (w_d, d - 1, 3): pending H_ak z_k for the strict ancestors of level d
     for i, d in enumerate(range(sch.t_max, 0, -1)):  # forward: leaves first
         z[d - 1] = mv(fac.pinv[i], r[d - 1])
-        for t in range(1, d):  # rhs_a -= H_ak z_k for the ancestors a of k
-            r[t - 1] = r[t - 1] - _gather_sum(sch, mv(fac.col[i][:, t - 1], z[d - 1]), sch.gather[d - 1][t - 1])
-    u = [None] * sch.t_max
-    for d in range(1, sch.t_max + 1):  # back: root side first
-        x = fac.x[sch.t_max - d]
-        u[d - 1] = z[d - 1] - sum((mv(x[:, t - 1], _take(sch, u[t - 1], sch.anc_pos[d - 1][t - 1]))
-                                   for t in range(1, d)), jnp.zeros_like(z[d - 1]))
+        if d == 1:
+            break
+        y = mv(fac.col[i], z[d - 1][:, None])  # (w_d, d - 1, 3)
+        acc = _to_parents(sch, d, y if carry is None else y + carry)
+        r[d - 2] = r[d - 2] - acc[:, d - 2]
+        carry = acc[:, : d - 2] if d > 2 else None
+    u = [z[0]]
+    anc = None  # (w_d, d - 1, 3): u of each level-d body's ancestors, slot t - 1 for depth t
+    for d in range(2, sch.t_max + 1):  # back: root side first
+        up = u[d - 2][:, None] if anc is None else jnp.concatenate([anc, u[d - 2][:, None]], 1)
+        anc = _take(sch, up, sch.anc_pos[d - 1][d - 2])
+        u.append(z[d - 1] - jnp.sum(mv(fac.x[sch.t_max - d], anc), 1))
     out = _take(sch, jnp.concatenate(u, 0), sch.order)
     return out * jnp.asarray(np.arange(len(sch.order)) > 0, rhs.dtype)[:, None]
 

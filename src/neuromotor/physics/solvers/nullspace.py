@@ -25,11 +25,14 @@ and the columns of driven joints are known from b; the others (3 per free joint)
 
 S^T M S is the joint-space inertia matrix, assembled in closed form from subtree sums
 (composite inertias, as in the composite-rigid-body algorithm; see :func:`reduced_inertia`).
-The stiff blocks of A (hD + h^2 K, angular, on the tree) reduce by subtree sums as well. One
-small dense LU then replaces the tree elimination: a handful of wide array operations instead of
-a batched elimination per tree level, which on a CPU is bound by the number of kernels, not by
-flops. The multipliers are recovered exactly from ``J^T lam = A v - r`` by subtree sums of the
-residual force (the ball joints) and by the projected residual (root and driven joints).
+The stiff blocks of A (hD + h^2 K, angular, on the tree) reduce by subtree sums as well. Where
+the root is driven and every joint is free (the common case) the joint-space matrix is never
+assembled: it is factored along the body tree (:mod:`.branch`, no fill-in, no LAPACK call);
+otherwise its free block is assembled and solved by one dense LU. (The dense LU of the common
+case, :func:`solve_kkt`, is kept as the tests' check of the tree factorization: a 54 x 54 LAPACK
+LU and its layout copies took longer than the whole level-by-level factorization.) The
+multipliers are recovered exactly from ``J^T lam = A v - r`` by subtree sums of the residual
+force (the ball joints) and by the projected residual (root and driven joints).
 
 Post-stabilization (Cline & Pai 2003) projects positions onto the constraints in the metric of M:
 ``min |dx|_M  s.t.  J dx = -C(x)``. A particular solution translates every subtree by its joint's
@@ -470,12 +473,13 @@ class NullSpaceKKT(eqx.Module):
 
 
 class NullSpaceSolver(KKTSolver):
-    """Eq. 2 by the null-space method (see the module docstring): one small dense LU per step,
-    each post-stabilization Newton step with one Cholesky (fewest kernels: the fastest single
-    trajectory and the shortest compile on a CPU)."""
+    """Eq. 2 by the null-space method (see the module docstring): H and the post-stabilization
+    metric factored along the body tree, static indexing by gathers and dots (fewest kernels:
+    the fastest single trajectory on a CPU); a dense LU where the root floats or joints are
+    driven."""
 
     tree_blocks = True
-    tree_factor = False  # factor H along the body tree (BranchSolver) instead of by LAPACK
+    tree_factor = True  # factor H along the body tree (:mod:`.branch`), not by LAPACK, where it can
     unrolled = False  # static indexing as gathers and dots (one trajectory; physics/static.py)
 
     def assemble(self, model, cfg, rot, inertia, stiff, h):
@@ -514,10 +518,9 @@ class NullSpaceSolver(KKTSolver):
 
 
 class BranchSolver(NullSpaceSolver):
-    """The null-space method with H factored along the body tree (:mod:`.branch`): elementwise
-    3x3-block arithmetic instead of LAPACK calls, so a ``vmap`` over trajectories vectorizes
-    along the batch (the solver of sweeps). Falls back to the dense LU where the root floats
-    or joints are driven."""
+    """The same equations as :class:`NullSpaceSolver` with the static indexing of the tree
+    factorization written as slices (:mod:`neuromotor.physics.static`): under ``vmap`` they fuse
+    into loops over the batch where gathers would run element by element (the solver of sweeps
+    and batches). Falls back to the dense LU where the root floats or joints are driven."""
 
-    tree_factor = True
     unrolled = True  # static indexing as slices: fused loops over the batch
