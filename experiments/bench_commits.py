@@ -1,6 +1,7 @@
 """Speed of the working tree against an earlier commit, timed in alternation in one process.
 
     .venv/bin/python experiments/bench_commits.py REV [--batch 1] [--repeats 15] [--solver branch] [--rev-solver branch]
+        [--jacobians jacfwd]
 
 The host's speed drifts by 2x between runs minutes apart, so two separate benchmark runs cannot
 resolve a 10 % change. This script extracts ``src/neuromotor`` of commit REV (``git archive``)
@@ -11,6 +12,7 @@ best of each is printed, in microseconds per trajectory-step, and their ratio.
 """
 
 import argparse
+import dataclasses
 import importlib
 import re
 import subprocess
@@ -48,7 +50,7 @@ def _module(pkg: str, *names: str):
     raise ModuleNotFoundError(f"none of {names} in {pkg}")
 
 
-def _program(pkg: str, batch: int, solver: str = "nullspace"):
+def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | None = None):
     """(zero-argument compiled call, its joint angles, trajectory-steps per call)."""
     import equinox as eqx
     import jax
@@ -59,6 +61,8 @@ def _program(pkg: str, batch: int, solver: str = "nullspace"):
     compiler = importlib.import_module(f"{pkg}.compiler")
     setup = bench._setup(None, 1.0, solver)
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    if jacobians is not None:
+        cfg = dataclasses.replace(cfg, jacobians=jacobians)
     scales = jnp.linspace(0.5, 1.5, batch)
 
     def many(scales, g, ref):
@@ -79,6 +83,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=15, help="timed calls of each version")
     ap.add_argument("--solver", default="nullspace", help="solver of the working tree")
     ap.add_argument("--rev-solver", default="nullspace", help="solver of REV (commits before 10bfa6f have no 'branch')")
+    ap.add_argument("--jacobians", default=None, help="SimConfig.jacobians of the working tree (closed_form, jacfwd)")
     args = ap.parse_args(argv)
     import jax
     import jax.numpy as jnp
@@ -88,8 +93,9 @@ def main(argv=None) -> int:
         sys.path.insert(0, tmp)
         old_pkg = _extract(args.rev, Path(tmp))
         runs = {}
-        for name, pkg, solver in (("working tree", "neuromotor", args.solver), (args.rev, old_pkg, args.rev_solver)):
-            runs[name] = _program(pkg, args.batch, solver)
+        for name, pkg, solver, jac in (("working tree", "neuromotor", args.solver, args.jacobians),
+                                       (args.rev, old_pkg, args.rev_solver, None)):
+            runs[name] = _program(pkg, args.batch, solver, jac)
         (new, th_new, steps), (old, th_old, _) = runs.values()
         print(f"max |theta(working tree) - theta({args.rev})|: {float(jnp.max(jnp.abs(th_new - th_old))):.2e} rad")
         best = {name: float("inf") for name in runs}

@@ -83,9 +83,9 @@ def test_reused_metric_keeps_the_constraint_step_exact(tree):
         turn = scale * direction
         rp2, rc2 = r_parent + np.cross(turn, r_parent), r_child + np.cross(turn, r_child)
         g2 = geo(rp2, rc2)
-        args = (st, g2, jnp.asarray(mass), jnp.asarray(inertia), jnp.asarray(c), tree)
-        fresh = np.asarray(nullspace.projection_step(*args))
-        reused = np.asarray(nullspace.projection_step(*args, metric=first))
+        step = lambda metric: np.asarray(jax.jit(lambda g: nullspace.projection_step(
+            st, g, jnp.asarray(mass), jnp.asarray(inertia), jnp.asarray(c), tree, metric))(g2))
+        fresh, reused = step(None), step(first)
         for dx in (fresh, reused):  # J dx = -C at the later iterate, whichever metric
             _, rows = nullspace.kkt_residual(st, g2, jnp.asarray(rp2), jnp.asarray(rc2), jnp.zeros((n, 6)),
                                              jnp.asarray(dx), jnp.zeros(nc), jnp.asarray(-c), of_tree(PARENT).parent)
