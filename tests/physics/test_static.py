@@ -1,5 +1,5 @@
-"""Static indexing (physics/static.py): slices and sums equal jnp.take and dots, both forms, also
-under vmap, for runs, repeats, gaps and empty rows."""
+"""Static indexing (physics/static.py): takes and masked sums equal jnp.take and numpy, both forms,
+also under vmap, for runs, repeats, gaps and empty rows."""
 
 import jax
 import jax.numpy as jnp
@@ -22,12 +22,13 @@ def test_take_equals_jnp_take(unrolled):
 
 
 @pytest.mark.parametrize("unrolled", [True, False])
-def test_matrix_sum_equals_dot(unrolled):
+def test_gather_sum_equals_masked_sums(unrolled):
     rng = np.random.default_rng(1)
-    mat = (rng.random((6, 8)) < 0.4).astype(float)
-    mat[2] = 0.0  # a row that sums nothing
+    index = rng.integers(0, 8, size=(6, 3))
+    mask = (rng.random((6, 3)) < 0.6).astype(float)
+    mask[2] = 0.0  # a row that sums nothing
     x = jnp.asarray(rng.normal(size=(8, 3, 3)))
-    want = np.tensordot(mat, np.asarray(x), axes=1)
-    np.testing.assert_allclose(static.matrix_sum(mat, x, unrolled), want, rtol=1e-15, atol=1e-15)
-    got = jax.vmap(lambda y: static.matrix_sum(mat, y, unrolled))(jnp.stack([x, -x]))
+    want = np.einsum("rw,rwij->rij", mask, np.asarray(x)[index])
+    np.testing.assert_allclose(static.gather_sum(x, index, mask, unrolled), want, rtol=1e-15, atol=1e-15)
+    got = jax.vmap(lambda y: static.gather_sum(y, index, mask, unrolled))(jnp.stack([x, -x]))
     np.testing.assert_allclose(got[1], -want, rtol=1e-15, atol=1e-15)

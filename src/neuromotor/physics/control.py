@@ -298,10 +298,19 @@ def joint_affine(gains: Gains, inp: ControllerInputs) -> JointAffine:
     la = inp.local_axes
     gram = mmt(la, la) + DAMPING**2 * jnp.eye(3, dtype=la.dtype)
     p_local = mm(jnp.swapaxes(la, -1, -2), inv3(gram))
-    mag = _feedback_magnitude(g, inp.activation) * inp.active
-    ks, kd = g.per_dof()
+    stiff = _feedback_magnitude(g, inp.activation) * g.per_dof()[0] * inp.active  # d multiplier / d angle error
     weighted = lambda s: mm(la * s[..., None, :], p_local)
-    return JointAffine(mv(la, g.feedforward * inp.tau * inp.active), weighted(mag * ks), weighted(mag * kd))
+    return JointAffine(mv(la, g.feedforward * inp.tau * inp.active), weighted(stiff),
+                       weighted(rate_feedback_gains(g, inp.activation, inp.active)))
+
+
+def affine_torque(aff: JointAffine, q_p, q_c, w_p, w_c, inp: ControllerInputs):
+    """``(T, R_p, e)``: the torque of :class:`JointAffine` from quaternions, with the parent's
+    rotation and the world rotation error ``e = log(q_p q_d q_c^-1)`` that its derivatives use."""
+    r_p = quat_to_matrix(q_p)
+    e_world = quat_log(quat_mul(quat_mul(q_p, inp.rel_quat), quat_conj(q_c)))
+    y = aff.t0 + mv(aff.ks, mtv(r_p, e_world)) + mv(aff.kd, inp.rel_omega - mtv(r_p, w_c - w_p))
+    return mv(r_p, y), r_p, e_world
 
 
 def joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inp: ControllerInputs):
@@ -313,11 +322,8 @@ def joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inp: ControllerInputs):
     Returns the torque and ``d torque / d w_c`` (= -d torque / d w_p) ``= -R_p Kd R_p^T``.
     """
     aff = joint_affine(gains, inp)
-    r_p = quat_to_matrix(q_p)
-    e_world = quat_log(quat_mul(quat_mul(q_p, inp.rel_quat), quat_conj(q_c)))
-    local = lambda x: mtv(r_p, x)
-    y = aff.t0 + mv(aff.ks, local(e_world)) + mv(aff.kd, inp.rel_omega - local(w_c - w_p))
-    return mv(r_p, y), -mm(r_p, mmt(aff.kd, r_p))
+    torque, r_p, _ = affine_torque(aff, q_p, q_c, w_p, w_c, inp)
+    return torque, -mm(r_p, mmt(aff.kd, r_p))
 
 
 def joint_torques(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> Float[Array, "C 3"]:

@@ -1,16 +1,19 @@
 """Indexing and sums by static (numpy) indices, in the form XLA:CPU runs fastest.
 
-The body tree is known when a program is traced, so every "value at a body's parent",
-"sum over a body's descendants" or "bodies of one tree level" uses indices that are numpy
-constants. Two ways to write them, with the same results to the last bit:
+The body tree is known when a program is traced, so "the bodies of one tree level", "each
+body's parent in the level above" or "the sum over each body's children" use indices that are
+numpy constants. Two ways to write them, with the same results to the last bit:
 
-* gathers and dots with static 0/1 matrices (``unrolled=False``): one kernel each. Best for a
-  single trajectory, whose step is bound by the number of kernels (XLA:CPU leaves dozens of tiny
-  slices and adds unfused, one kernel each);
+* gathers (``unrolled=False``): one kernel each. Best for a single trajectory, whose step is
+  bound by the number of kernels (XLA:CPU leaves dozens of tiny slices and adds unfused, one
+  kernel each);
 * contiguous slices, adds and one concatenation (``unrolled=True``): under ``vmap`` XLA:CPU
-  runs a gather with per-element index arithmetic (it was the largest share of a batched step)
-  and a dot's output comes batch-minor and is transposed back, while slices and adds fuse into a
-  few loops over the batch. The batched solver (``Solver.BRANCH``) uses this form.
+  runs a gather with per-element index arithmetic (it was the largest share of a batched step),
+  while slices and adds fuse into a few loops over the batch. The batched solver
+  (``Solver.BRANCH``) uses this form.
+
+Sums over whole subtrees stay dots with static 0/1 matrices in either case: unrolled into
+one-row sums they were slower, batched or not.
 """
 
 from __future__ import annotations
@@ -76,18 +79,3 @@ def gather_sum(x, index, mask, unrolled: bool = True):
         terms = [jax.lax.slice_in_dim(x, int(j), int(j) + 1, axis=0) for j, on in zip(index[i], mask[i]) if on]
         rows.append(sum(terms[1:], terms[0]) if terms else jnp.zeros((1,) + x.shape[1:], x.dtype))
     return rows[0] if len(rows) == 1 else jnp.concatenate(rows, 0)
-
-
-def matrix_sum(mat, x, unrolled: bool = True):
-    """``mat @ x`` over the leading axis of x for a static 0/1 matrix ``mat`` (rows: sums of
-    the rows of x it selects): sums of slices (:func:`gather_sum`) when ``unrolled``, else one dot."""
-    if not unrolled:
-        return jnp.tensordot(jnp.asarray(mat, x.dtype), x, axes=1)
-    mat = np.asarray(mat)
-    width = max(1, int((mat != 0).sum(1).max())) if mat.size else 1
-    index = np.zeros((mat.shape[0], width), np.int64)
-    mask = np.zeros((mat.shape[0], width))
-    for i, row in enumerate(mat):
-        nz = np.flatnonzero(row)
-        index[i, : nz.size], mask[i, : nz.size] = nz, 1.0
-    return gather_sum(x, index, mask, unrolled)

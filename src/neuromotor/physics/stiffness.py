@@ -28,10 +28,10 @@ from jaxtyping import Array, Float
 
 from neuromotor.model.skeleton import Model
 from neuromotor.model.topology import Topology
-from neuromotor.physics.control import (ControllerInputs, Gains, body_torques, joint_affine, joint_torque_q,
-                                        joint_torques)
+from neuromotor.physics.control import (ControllerInputs, Gains, affine_torque, body_torques, joint_affine,
+                                        joint_torque_q, joint_torques)
 from neuromotor.physics.system import State, embed_angular, gyroscopic_forces, world_inertia
-from neuromotor.rotations import (cross, mm, mmt, mtv, mv, quat_conj, quat_exp, quat_log, quat_mul, quat_to_matrix,
+from neuromotor.rotations import (cross, mm, mmt, mtv, mv, quat_exp, quat_mul, quat_to_matrix,
                                   right_jacobian_inv, skew)
 
 
@@ -165,11 +165,8 @@ def joint_blocks(model: Model, gains: Gains, inputs: ControllerInputs, quat, ome
     topo = model.topology
     c, p = topo.child, topo.parent
     aff = joint_affine(gains, inputs)
-    q_p = quat[p]
-    r_p = quat_to_matrix(q_p)
-    e = quat_log(quat_mul(quat_mul(q_p, inputs.rel_quat), quat_conj(quat[c])))
+    torque, r_p, e = affine_torque(aff, quat[p], quat[c], omega[p], omega[c], inputs)
     w = omega[c] - omega[p]
-    torque = mv(r_p, aff.t0 + mv(aff.ks, mtv(r_p, e)) + mv(aff.kd, inputs.rel_omega - mtv(r_p, w)))
     world = lambda k: mm(r_p, mmt(k, r_p))
     ks_w, kd_w = world(aff.ks), world(aff.kd)
     d_child = -mm(ks_w, right_jacobian_inv(e))

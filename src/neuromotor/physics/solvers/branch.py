@@ -55,19 +55,19 @@ class Schedule:
     valid: np.ndarray  # (B, t_max): slot t - 1 holds a block (t <= depth)
     strict: np.ndarray  # (B, t_max): slot t - 1 is a strict ancestor (t < depth)
     onto: np.ndarray  # (B, t_max, B): one-hot of each strict ancestor (H x's column sums)
-    # gather[d - 1][t - 1] = (index, mask), each (w_t, c): the level-d descendants of each level-t
-    # body, as positions in level d (sums over them replace a scatter, which is slow batched)
-    gather: tuple[tuple[tuple[np.ndarray, np.ndarray], ...], ...]
-    anc_pos: tuple[tuple[np.ndarray, ...], ...]  # [d - 1][t - 1]: (w_d,) position of anc_t in level t
+    # children[d - 2] = (index, mask), each (w_{d-1}, c): the children of each level-(d-1) body, as
+    # positions in level d (sums over them replace a scatter, which is slow batched)
+    children: tuple[tuple[np.ndarray, np.ndarray], ...]
+    parent_pos: tuple[np.ndarray, ...]  # [d - 2]: (w_d,) position of each level-d body's parent in level d - 1
     order: np.ndarray  # (B,): position of each body in the levels' concatenation (root: 0, masked)
     unrolled: bool  # static indexing as slices (batches) or gathers (one trajectory): physics/static.py
 
 
-def _descendants_at(anc_at, level_d, level_t, t):
-    """Per body of ``level_t``, the positions in ``level_d`` of its descendants (padded)."""
-    owners = [np.flatnonzero(anc_at[level_d, t] == b) for b in level_t]
+def _children(parent: np.ndarray, level: np.ndarray, level_up: np.ndarray):
+    """Per body of ``level_up``, the positions in ``level`` (one deeper) of its children (padded)."""
+    owners = [np.flatnonzero(parent[level] == b) for b in level_up]
     width = max(1, max(len(o) for o in owners))
-    index, mask = np.zeros((len(level_t), width), np.int64), np.zeros((len(level_t), width))
+    index, mask = np.zeros((len(level_up), width), np.int64), np.zeros((len(level_up), width))
     for i, o in enumerate(owners):
         index[i, : len(o)], mask[i, : len(o)] = o, 1.0
     return index, mask
@@ -99,32 +99,28 @@ def _schedule(topo: Topology, unrolled: bool) -> Schedule:
                 break
             k = topo.body_parent[k]
     t = np.arange(1, t_max + 1)
-    # Within a level, bodies in depth-first pre-order: the descendants of any body then form
-    # one contiguous run of every deeper level (sums over them are sums of adjacent slices).
+    # Within a level, bodies in depth-first pre-order: the children of any body are then adjacent
+    # in the next level (sums over them are sums of adjacent slices).
     pre = _preorder(topo.body_parent)
     levels = tuple(np.array(sorted(np.flatnonzero(depth == d), key=lambda b: pre[b]), np.int64) for d in t)
     pos = np.zeros(n, np.int64)
     for lv in levels:
         pos[lv] = np.arange(len(lv))
-    gather = tuple(tuple(_descendants_at(anc_at, levels[d - 1], levels[u - 1], u) for u in range(1, d)) for d in t)
-    anc_pos = tuple(tuple(pos[anc_at[levels[d - 1], u]] for u in range(1, d)) for d in t)
+    parent = np.asarray(topo.body_parent)
+    children = tuple(_children(parent, levels[d - 1], levels[d - 2]) for d in t[1:])
+    parent_pos = tuple(pos[parent[levels[d - 1]]] for d in t[1:])
     order = np.zeros(n, np.int64)
     order[np.concatenate(levels)] = np.arange(n - 1)
     strict = (t[None] < depth[:, None]).astype(float)
     onto = np.eye(n)[anc_at[:, 1:]] * strict[..., None]
-    return Schedule(t_max, levels, anc_at, (t[None] <= depth[:, None]).astype(float), strict, onto, gather,
-                    anc_pos, order, unrolled)
+    return Schedule(t_max, levels, anc_at, (t[None] <= depth[:, None]).astype(float), strict, onto, children,
+                    parent_pos, order, unrolled)
 
 
 def schedule(topo: Topology, unrolled: bool = True) -> Schedule:
     """The elimination schedule of a tree (built once per topology); ``unrolled``: static
     indexing as slices, the form for batches (:mod:`neuromotor.physics.static`)."""
     return topo.derived(_schedule, bool(unrolled))
-
-
-def _gather_sum(sch: Schedule, x, index_mask):
-    """For each target of ``index_mask`` (see ``Schedule.gather``), the sum of its entries of x."""
-    return static.gather_sum(x, *index_mask, unrolled=sch.unrolled)
 
 
 def _take(sch: Schedule, x, idx):
@@ -185,7 +181,7 @@ def _by_level(sch: Schedule, x) -> list:
 
 def _to_parents(sch: Schedule, d: int, x):
     """Sums of x (rows: the bodies at depth d) over the children of each body at depth d - 1."""
-    return _gather_sum(sch, x, sch.gather[d - 1][d - 2])
+    return static.gather_sum(x, *sch.children[d - 2], unrolled=sch.unrolled)
 
 
 def factor(sch: Schedule, paths: Paths) -> Factor:
@@ -238,7 +234,7 @@ def solve(sch: Schedule, fac: Factor, rhs: Float[Array, "B 3"]) -> Float[Array, 
     anc = None  # (w_d, d - 1, 3): u of each level-d body's ancestors, slot t - 1 for depth t
     for d in range(2, sch.t_max + 1):  # back: root side first
         up = u[d - 2][:, None] if anc is None else jnp.concatenate([anc, u[d - 2][:, None]], 1)
-        anc = _take(sch, up, sch.anc_pos[d - 1][d - 2])
+        anc = _take(sch, up, sch.parent_pos[d - 2])
         u.append(z[d - 1] - jnp.sum(mv(fac.x[sch.t_max - d], anc), 1))
     out = _take(sch, jnp.concatenate(u, 0), sch.order)
     return out * jnp.asarray(np.arange(len(sch.order)) > 0, rhs.dtype)[:, None]

@@ -72,7 +72,7 @@ class Structure:
     driven: tuple[int, ...]
     free_root: bool
     tree: branch.Schedule  # elimination order of the joint-space matrix (common case)
-    unrolled: bool  # static sums as slices (batched solver) or as dots (:mod:`neuromotor.physics.static`)
+    unrolled: bool  # static indexing as slices (batched solver) or gathers (:mod:`neuromotor.physics.static`)
 
     @property
     def by_tree(self) -> bool:
@@ -96,14 +96,14 @@ def _structure(topo: Topology, driven: tuple[int, ...], free_root: bool, unrolle
 def structure(topo: Topology, driven: tuple[int, ...] = (), free_root: bool = False,
               unrolled: bool = False) -> Structure:
     """Static structure of the null-space basis (built once per topology and driven set);
-    ``unrolled``: sums over the tree as slices, the form for batches (:mod:`..static`)."""
+    ``unrolled``: static indexing as slices, the form for batches (:mod:`neuromotor.physics.static`)."""
     if any(b <= 0 or b >= topo.n_bodies for b in driven):
         raise ValueError(f"driven bodies must be non-root bodies of the tree, got {driven}")
     # Driven joints keep the given order: it is the row order of their constraints in J.
     return topo.derived(_structure, tuple(driven), bool(free_root), bool(unrolled))
 
 
-def _tree_sum(st: Structure, mat: np.ndarray, x):
+def _tree_sum(mat: np.ndarray, x):
     """``mat @ x`` over the leading (body) axis with a static 0/1 matrix: one dot (faster than
     unrolled sums, batched or not: XLA:CPU leaves long chains of one-row sums unfused)."""
     return jnp.tensordot(jnp.asarray(mat, x.dtype), x, axes=1)
@@ -122,7 +122,7 @@ def geometry(st: Structure, r_parent: Float[Array, "C 3"], r_child: Float[Array,
     """COMs and pivots by chaining levers from the root: c_i = c_parent + r_parent - r_child."""
     zero = jnp.zeros((1, 3), r_parent.dtype)
     step = jnp.concatenate([zero, r_parent - r_child], 0)
-    com = _tree_sum(st, st.anc, step)
+    com = _tree_sum(st.anc, step)
     pivot = jnp.concatenate([zero, com[1:] + r_child], 0)
     return Geometry(com, pivot, r0)
 
@@ -131,8 +131,8 @@ def apply_basis(st: Structure, geo: Geometry, u: Float[Array, " N"]) -> Float[Ar
     """v = S u: per body ``[v_i, omega_i]``."""
     n = geo.com.shape[0]
     v0, uk = u[:3], u[3:].reshape(n, 3)
-    omega = _tree_sum(st, st.anc, uk)
-    vel = v0 + cross(omega, geo.com) - _tree_sum(st, st.anc, cross(uk, geo.pivot))
+    omega = _tree_sum(st.anc, uk)
+    vel = v0 + cross(omega, geo.com) - _tree_sum(st.anc, cross(uk, geo.pivot))
     return jnp.concatenate([vel, omega], -1)
 
 
@@ -141,8 +141,8 @@ def project_forces(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Floa
     subtree of k."""
     force, torque = f[:, :3], f[:, 3:]
     desc = st.anc.T
-    sub_force = _tree_sum(st, desc, force)
-    sub_moment = _tree_sum(st, desc, torque + cross(geo.com, force)) - cross(geo.pivot, sub_force)
+    sub_force = _tree_sum(desc, force)
+    sub_moment = _tree_sum(desc, torque + cross(geo.com, force)) - cross(geo.pivot, sub_force)
     return jnp.concatenate([jnp.sum(force, 0), sub_moment.reshape(-1)])
 
 
@@ -269,7 +269,7 @@ def multipliers(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[A
     p_k of the forces on its subtree (its column of S^T f)."""
     n = geo.com.shape[0]
     proj = project_forces(st, geo, f)
-    ball = -_tree_sum(st, st.anc.T, f[:, :3])[1:]
+    ball = -_tree_sum(st.anc.T, f[:, :3])[1:]
     parts = []
     if not st.free_root:
         total = proj[:3]
@@ -338,7 +338,7 @@ def _stiff_subtrees(st: Structure, g_diag, g_up, g_down):
     zero = jnp.zeros((1, 3, 3), g_diag.dtype)
     up, down = jnp.concatenate([zero, g_up], 0), jnp.concatenate([zero, g_down], 0)
     strict_desc = st.anc.T - np.eye(st.anc.shape[0])
-    return _tree_sum(st, st.anc.T, g_diag) + _tree_sum(st, strict_desc, up + down), up, down
+    return _tree_sum(st.anc.T, g_diag) + _tree_sum(strict_desc, up + down), up, down
 
 
 def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) -> Float[Array, "B 6"]:
@@ -354,7 +354,7 @@ def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) 
         cols = np.array([3 * (1 + b) + j for b in st.driven for j in range(3)])
         u = u.at[cols].set(-c[m0 + 3 * (n - 1):])
     gaps = jnp.concatenate([jnp.zeros((1, 3), c.dtype), c[m0:m0 + 3 * (n - 1)].reshape(n - 1, 3)], 0)
-    shift = _tree_sum(st, st.anc, gaps)
+    shift = _tree_sum(st.anc, gaps)
     return apply_basis(st, geo, u) + jnp.concatenate([shift, jnp.zeros_like(shift)], -1)
 
 
@@ -428,7 +428,8 @@ def kkt_residual(st: Structure, geo: Geometry, r_parent, r_child, f: Float[Array
     m0 = 0 if st.free_root else 6
     child = np.arange(1, n)
     lam_ball = lam[m0:m0 + 3 * (n - 1)].reshape(n - 1, 3)
-    put = lambda idx, x: _tree_sum(st, np.eye(n)[idx].T, x)  # row sums onto bodies, no scatter
+    one_hot = lambda idx: jnp.asarray(np.eye(n)[idx], f.dtype)  # (rows, B): sums without scatter
+    put = lambda idx, x: jnp.tensordot(one_hot(idx), x, axes=([0], [0]))
     jt = (put(parent, jnp.concatenate([lam_ball, cross(r_parent, lam_ball)], -1))
           - put(child, jnp.concatenate([lam_ball, cross(r_child, lam_ball)], -1)))
     at = lambda x, body: static.take(x, body, unrolled=st.unrolled)
@@ -474,20 +475,19 @@ class NullSpaceKKT(eqx.Module):
 
 class NullSpaceSolver(KKTSolver):
     """Eq. 2 by the null-space method (see the module docstring): H and the post-stabilization
-    metric factored along the body tree, static indexing by gathers and dots (fewest kernels:
+    metric factored along the body tree, static indexing by gathers (fewest kernels:
     the fastest single trajectory on a CPU); a dense LU where the root floats or joints are
     driven."""
 
     tree_blocks = True
-    tree_factor = True  # factor H along the body tree (:mod:`.branch`), not by LAPACK, where it can
-    unrolled = False  # static indexing as gathers and dots (one trajectory; physics/static.py)
+    unrolled = False  # static indexing as gathers (one trajectory; physics/static.py)
 
     def assemble(self, model, cfg, rot, inertia, stiff, h):
         st = structure(model.topology, cfg.driven, cfg.free_root, self.unrolled)
         r_par, r_chi = joint_levers(model, rot)
         geo = geometry(st, r_par, r_chi, root_lever(model, rot))
         g = stiff.g_blocks(h)
-        red = reduce_tree(st, geo, model.mass, inertia, *g) if self.tree_factor and st.by_tree else None
+        red = reduce_tree(st, geo, model.mass, inertia, *g) if st.by_tree else None  # else the dense LU
         return NullSpaceKKT(st, model.topology, geo, model.mass, inertia, *g, r_par, r_chi, red)
 
     def solve(self, system, r, b):
@@ -513,7 +513,7 @@ class NullSpaceSolver(KKTSolver):
         st = structure(model.topology, cfg.driven, cfg.free_root, self.unrolled)
         geo = geometry(st, *joint_levers(model, rot), root_lever(model, rot))
         inertia = world_inertia(model, rot)
-        metric = projection_metric(st, geo, model.mass, inertia, self.tree_factor) if reuse is None else reuse
+        metric = projection_metric(st, geo, model.mass, inertia, tree=True) if reuse is None else reuse
         return projection_step(st, geo, model.mass, inertia, c, metric=metric), metric
 
 
