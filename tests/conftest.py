@@ -6,11 +6,15 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 # The suite is mostly XLA compilation of programs that then run for a second or less: LLVM's
-# backend optimizations cost more compile time than they save here (same results; no timing is
-# tested). NEUROMOTOR_TEST_FAST_COMPILE=0 compiles as users do. Subprocesses inherit it.
-if os.environ.get("NEUROMOTOR_TEST_FAST_COMPILE", "1") != "0" and "xla_backend_optimization_level" not in \
-        os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+# backend optimizations cost more compile time than they save here, and XLA:CPU's newer fusion
+# emitters compile these small fusions 1.5x slower (the rollouts already turn them off,
+# neuromotor.compiler; same results; no timing is tested). NEUROMOTOR_TEST_FAST_COMPILE=0
+# compiles as users do. Subprocesses inherit the flags.
+FAST_COMPILE_FLAGS = {"xla_backend_optimization_level": "0", "xla_cpu_use_fusion_emitters": "false"}
+if os.environ.get("NEUROMOTOR_TEST_FAST_COMPILE", "1") != "0":
+    _flags = os.environ.get("XLA_FLAGS", "")
+    _extra = [f"--{k}={v}" for k, v in FAST_COMPILE_FLAGS.items() if k not in _flags]
+    os.environ["XLA_FLAGS"] = " ".join([_flags, *_extra]).strip()
 # Persistent compilation cache: rollouts compile once per shape, also across CLI subprocesses.
 _CACHE = pathlib.Path(__file__).resolve().parents[1] / ".jax_cache"
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(_CACHE))

@@ -30,7 +30,9 @@ def test_tuned_rollout_equals_default_build(short_hit):
     args = (s.model, s.gains, s.pulses, s.ref)
     # The module-level program (what `neuromotor simulate` runs) against XLA's default build.
     tuned = simulate_jit.lower(*args, s.sim).compile()
-    default = jax.jit(lambda m, g, p, ref: rollout(m, g, p, ref, s.sim)).lower(*args).compile()
+    # XLA's defaults restored explicitly: the suite's XLA_FLAGS (conftest) turn the emitters off.
+    default = jax.jit(lambda m, g, p, ref: rollout(m, g, p, ref, s.sim)).lower(*args).compile(
+        compiler_options={"xla_cpu_use_fusion_emitters": True})
     # The options took effect: no small dot is handed to the YNNPACK library.
     assert "__ynn_fusion" not in tuned.as_text()
     a, b = tuned(*args), default(*args)
@@ -39,3 +41,16 @@ def test_tuned_rollout_equals_default_build(short_hit):
     assert float(jnp.max(jnp.abs(a.theta - a.theta[0]))) > 1e-3
     assert float(jnp.max(jnp.abs(a.theta - b.theta))) < 1e-11
     assert float(jnp.max(jnp.abs(a.states.pos - b.states.pos))) < 1e-11
+
+
+def test_a_package_program_runs_inside_another_program():
+    """JAX takes compiler options only on top-level programs: a package program (built by
+    compiler.jit) called from inside a user's jit or grad is traced into it, with the same value."""
+    f = compiler.jit(lambda x, n: jnp.sin(x) ** n, static_argnames="n")
+    x = jnp.linspace(0.0, 1.0, 5)
+    top = f(x, n=3)
+    inner = jax.jit(lambda x: f(x, n=3))(x)
+    grad = jax.grad(lambda x: jnp.sum(f(x, n=3)))(x)
+    assert float(jnp.max(jnp.abs(top - jnp.sin(x) ** 3))) < 1e-15
+    assert float(jnp.max(jnp.abs(inner - top))) < 1e-15
+    assert float(jnp.max(jnp.abs(grad - 3 * jnp.sin(x) ** 2 * jnp.cos(x)))) < 1e-14

@@ -27,6 +27,7 @@ import numpy as np
 from jaxtyping import Array, Float
 from scipy.interpolate import CubicSpline
 
+from neuromotor import compiler
 from neuromotor.model.bvh import BvhClip
 from neuromotor.rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, mm, mmt, mv, quat_to_matrix, vee
 from neuromotor.model.skeleton import Model
@@ -93,7 +94,7 @@ def mocap_coordinates(model: Model, clip: BvhClip) -> np.ndarray:
     return np.concatenate([pos, quat.reshape(quat.shape[0], -1)], axis=1)
 
 
-@functools.partial(jax.jit, static_argnames="orders")
+@functools.partial(compiler.jit, static_argnames="orders")
 def _euler_to_quats(angles_deg: Float[Array, "T R 3"], orders: tuple[str, ...]) -> Float[Array, "T R 4"]:
     """Quaternions of the BVH Euler channels (degrees) of R joints, one batched call per
     rotation order (one small program instead of dozens of eagerly compiled ops)."""

@@ -48,6 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from neuromotor import compiler
 from neuromotor.model.kinematics import body_kinematics
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.reflex import Reflex, reflex_multipliers
@@ -104,7 +105,7 @@ def _subtrees(model: Model) -> list[list[int]]:
     return sub
 
 
-@jax.jit
+@compiler.jit
 def make_gains(
     model: Model,
     q0: Float[Array, " Q"],

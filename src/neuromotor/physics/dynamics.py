@@ -45,6 +45,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from neuromotor import compiler
 from neuromotor.errors import UserError
 from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angles_from_q
 from neuromotor.model.skeleton import Model
@@ -123,7 +124,7 @@ def make_reference(model: Model, traj: Trajectory, t0: float, h: float, n_steps:
 
 # One compiled program rather than hundreds of eagerly dispatched small ops (each eager op is
 # compiled on its own, which made preparing a run take longer than compiling the rollout).
-@functools.partial(jax.jit, static_argnames=("n_steps",))
+@functools.partial(compiler.jit, static_argnames=("n_steps",))
 def _make_reference(model: Model, traj: Trajectory, t0, h, n_steps: int) -> Reference:
     times = t0 + h * jnp.arange(n_steps + 1)
     q = jax.vmap(traj.q)(times)

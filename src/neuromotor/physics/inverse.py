@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from neuromotor import compiler
 from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angles_from_q
 from neuromotor.rotations import matrix_to_quat, skew
 from neuromotor.model.skeleton import Model
@@ -106,7 +107,7 @@ def solve_eq3(model: Model, q, qd, qdd, theta_sim):
     return x[:nc], x[nc:], axes, residual
 
 
-@eqx.filter_jit
+@compiler.jit
 def inverse_dynamics(model: Model, traj: Trajectory, times: Float[Array, " T"]) -> InverseDynamics:
     """Eq. 3 at every time in ``times`` (vmapped), from the spline of the mocap."""
 

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from neuromotor import compiler
 from neuromotor.config import ConfigError
 from neuromotor.model.kinematics import body_poses
 from neuromotor.model.skeleton import Character, Model
@@ -38,7 +39,7 @@ class BallSetup(eqx.Module):
 # ----------------------------------------------------------------------------- aiming
 
 
-@eqx.filter_jit
+@compiler.jit
 def _com_at(model: Model, traj, body, t):
     return body_poses(model, traj.q(t))[0][body]
 

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from neuromotor import compiler
 from neuromotor.model.facing import facing_direction
 from neuromotor.model.kinematics import Trajectory, body_poses, local_rotations, skeleton_edges, skeleton_points
 from neuromotor.model.skeleton import Model
@@ -63,7 +64,7 @@ def joint_frames_from_state(model: Model, pos, rot, local_ref):
     return origins, rots
 
 
-@jax.jit
+@compiler.jit
 def _skeleton_points(model: Model, traj: Trajectory, time, pos, quat):
     """Skeleton points of states (leading time axis), as one compiled program."""
     def one(pos, quat, qr):

@@ -153,14 +153,14 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     return Setup(character, traj, ref, gains, sim, pulses(specs, index), config, ball, warnings)
 
 
-@jax.jit
+@compiler.jit
 def _initial_gains(model: Model, traj: Trajectory, t0, theta, activation, ks, kd, tau_floor) -> Gains:
     """:func:`make_gains` at the clip's start, the spline evaluation included: one program
     rather than a dozen eagerly compiled scalar ops."""
     return make_gains(model, traj.q(t0), theta[0], activation, ks, kd, tau_floor)
 
 
-@jax.jit
+@compiler.jit
 def _zero(p: ForcePulses) -> ForcePulses:
     return dataclasses.replace(p, magnitude=jnp.zeros_like(p.magnitude))
 
@@ -205,7 +205,7 @@ def run_metrics(setup: Setup, pert: Rollout, base: Rollout) -> dict:
     return out
 
 
-@jax.jit
+@compiler.jit
 def _metric_arrays(theta, theta_base, residual, residual_base, violation, violation_base):
     """The array reductions of :func:`run_metrics` as one program (not a dozen eager ops)."""
     return (mx.deviation(theta, theta_base), jnp.maximum(jnp.max(residual), jnp.max(residual_base)),

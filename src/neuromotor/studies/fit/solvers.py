@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from neuromotor import compiler
 from neuromotor.config.specs import SOLVERS, SolverOptions
 
 
@@ -40,11 +41,11 @@ def _optimistix_loop(solver, fn, y0, f_struct, opts: SolverOptions, on_iter):
     state = solver.init(fn, y0, args, options, f_struct, None, tags)
     dyn0, static = eqx.partition(state, eqx.is_array)
 
-    @jax.jit
+    @compiler.jit
     def terminate(y, dyn):
         return solver.terminate(fn, y, args, options, eqx.combine(static, dyn), tags)
 
-    @jax.jit
+    @compiler.jit
     def step(y, dyn):
         new_y, new_state, _ = solver.step(fn, y, args, options, eqx.combine(static, dyn), tags)
         # As optimistix's own loop: terminate() looks at the previous y and the new state.
@@ -75,7 +76,7 @@ def _optimistix_loop(solver, fn, y0, f_struct, opts: SolverOptions, on_iter):
 
 def _jaxopt_loop(solver, x0, opts: SolverOptions, on_iter, tol):
     state = solver.init_state(x0)
-    update = jax.jit(solver.update)
+    update = compiler.jit(solver.update)
     x, k = x0, 0
     while float(state.error) > tol and k < opts.max_steps:
         x, state = update(x, state)

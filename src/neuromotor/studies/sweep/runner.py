@@ -84,7 +84,7 @@ class Sweeper:
         return self._simulate(self.shared, placed)
 
 
-@jax.jit
+@compiler.jit
 def _chunk_deviation(theta, base_theta, slot):
     return jax.vmap(mx.deviation)(theta, base_theta[slot])
 
