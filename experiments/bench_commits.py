@@ -1,7 +1,7 @@
 """Speed of the working tree against an earlier commit, timed in alternation in one process.
 
     .venv/bin/python experiments/bench_commits.py REV [--batch 1] [--repeats 15] [--solver branch] [--rev-solver branch]
-        [--jacobians jacfwd]
+        [--jacobians jacfwd] [--seconds 1.0]
 
 The host's speed drifts by 2x between runs minutes apart, so two separate benchmark runs cannot
 resolve a 10 % change. This script extracts ``src/neuromotor`` of commit REV (``git archive``)
@@ -50,7 +50,7 @@ def _module(pkg: str, *names: str):
     raise ModuleNotFoundError(f"none of {names} in {pkg}")
 
 
-def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | None = None):
+def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | None = None, seconds: float = 1.0):
     """(zero-argument compiled call, its joint angles, trajectory-steps per call)."""
     import equinox as eqx
     import jax
@@ -59,7 +59,7 @@ def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | N
     bench = _module(pkg, "studies.bench", "bench")
     dy = _module(pkg, "physics.dynamics", "dynamics")
     compiler = importlib.import_module(f"{pkg}.compiler")
-    setup = bench._setup(None, 1.0, solver)
+    setup = bench._setup(None, seconds, solver)
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     if jacobians is not None:
         cfg = dataclasses.replace(cfg, jacobians=jacobians)
@@ -84,6 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--solver", default="nullspace", help="solver of the working tree")
     ap.add_argument("--rev-solver", default="nullspace", help="solver of REV (commits before 10bfa6f have no 'branch')")
     ap.add_argument("--jacobians", default=None, help="SimConfig.jacobians of the working tree (closed_form, jacfwd)")
+    ap.add_argument("--seconds", type=float, default=1.0, help="simulated seconds per rollout (neuromotor bench's batches: 0.25)")
     args = ap.parse_args(argv)
     import jax
     import jax.numpy as jnp
@@ -95,7 +96,7 @@ def main(argv=None) -> int:
         runs = {}
         for name, pkg, solver, jac in (("working tree", "neuromotor", args.solver, args.jacobians),
                                        (args.rev, old_pkg, args.rev_solver, None)):
-            runs[name] = _program(pkg, args.batch, solver, jac)
+            runs[name] = _program(pkg, args.batch, solver, jac, args.seconds)
         (new, th_new, steps), (old, th_old, _) = runs.values()
         print(f"max |theta(working tree) - theta({args.rev})|: {float(jnp.max(jnp.abs(th_new - th_old))):.2e} rad")
         best = {name: float("inf") for name in runs}

@@ -53,8 +53,8 @@ def axis_rotation(axis: int, angle: Float[Array, "..."]) -> Float[Array, "... 3 
 def euler_to_matrix(angles: Float[Array, "... 3"], order: str) -> Float[Array, "... 3 3"]:
     """``R_a1(t1) R_a2(t2) R_a3(t3)`` for the axis order, e.g. ``"ZXY"``."""
     r = axis_rotation(AXIS[order[0]], angles[..., 0])
-    r = r @ axis_rotation(AXIS[order[1]], angles[..., 1])
-    return r @ axis_rotation(AXIS[order[2]], angles[..., 2])
+    r = mm(r, axis_rotation(AXIS[order[1]], angles[..., 1]))
+    return mm(r, axis_rotation(AXIS[order[2]], angles[..., 2]))
 
 
 def matrix_to_euler(
@@ -87,7 +87,7 @@ def matrix_to_euler(
     locked = jnp.abs(jnp.cos(sol[..., 1])) < 1e-7
     r_a = axis_rotation(i, reference[..., 0])
     r_b = axis_rotation(j, sol[..., 1])
-    rest = jnp.swapaxes(r_b, -1, -2) @ jnp.swapaxes(r_a, -1, -2) @ r
+    rest = mm(jnp.swapaxes(r_b, -1, -2), mm(jnp.swapaxes(r_a, -1, -2), r))
     # rest = R_k(t3): read t3 from the rows/cols orthogonal to axis k.
     k1, k2 = (k + 1) % 3, (k + 2) % 3
     c_locked = jnp.arctan2(rest[..., k2, k1], rest[..., k1, k1])
@@ -108,8 +108,8 @@ def euler_axes(parent_rot: Float[Array, "... 3 3"], angles: Float[Array, "... 3"
     h_1 = R_p e_a1, h_2 = R_p R_a1(t1) e_a2, h_3 = R_p R_a1(t1) R_a2(t2) e_a3.
     """
     a0, a1, a2 = (AXIS[c] for c in order)
-    r1 = parent_rot @ axis_rotation(a0, angles[..., 0])
-    r2 = r1 @ axis_rotation(a1, angles[..., 1])
+    r1 = mm(parent_rot, axis_rotation(a0, angles[..., 0]))
+    r2 = mm(r1, axis_rotation(a1, angles[..., 1]))
     return jnp.stack([parent_rot[..., :, a0], r1[..., :, a1], r2[..., :, a2]], -2)
 
 
@@ -256,4 +256,4 @@ def right_jacobian_inv(e: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
 
 def rotation_error(r_a: Float[Array, "... 3 3"], r_b: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
     """World-frame rotation vector e with exp(e) r_b = r_a."""
-    return quat_log(matrix_to_quat(r_a @ jnp.swapaxes(r_b, -1, -2)))
+    return quat_log(matrix_to_quat(mmt(r_a, r_b)))

@@ -165,7 +165,7 @@ def constraint_error(model: Model, pos, rot, root_origin, root_rot) -> Float[Arr
 def relative_rotations(model: Model, rot) -> Float[Array, "B 3 3"]:
     """Orientation of each body in its parent's frame (identity for the root)."""
     parent = model.topology.parent0
-    rel = jnp.swapaxes(rot[parent], -1, -2) @ rot
+    rel = mm(jnp.swapaxes(rot[parent], -1, -2), rot)
     return rel.at[0].set(jnp.eye(3, dtype=rot.dtype))
 
 
