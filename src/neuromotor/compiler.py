@@ -12,7 +12,7 @@ time at this size:
 
 Switching the three off makes the rollout faster with the same results to round-off (figures and
 commands: ``docs/benchmarks.md``, "Compiler options"), and compiles faster too: without the
-fusion emitters the reference grid of a run (inverse dynamics included) compiles in a third of
+fusion emitters the reference grid of a run (inverse dynamics included) compiles in about half
 the time. Every program of the package is built by :func:`jit`, which passes the options to
 ``jax.jit(..., compiler_options=...)`` of that program only, so other JAX code in the user's
 process is untouched. They are given only when the default backend is the CPU, decided at a program's first
