@@ -9,11 +9,7 @@ persistent cache; the best of each is printed with the ratio.
 """
 
 import argparse
-import os
 import time
-
-os.environ["JAX_COMPILATION_CACHE_DIR"] = ""  # cold compiles (before _common sets a default)
-os.environ["NEUROMOTOR_CACHE_DIR"] = "off"
 
 import _common  # noqa: F401,E402
 import jax  # noqa: E402

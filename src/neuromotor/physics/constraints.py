@@ -19,7 +19,7 @@ from jaxtyping import Array, Float
 
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.system import constraint_error, constraint_jacobian, retract
-from neuromotor.rotations import quat_to_matrix, rotation_error
+from neuromotor.rotations import mm, quat_to_matrix, rotation_error
 
 
 class PoseTargets(eqx.Module):
@@ -60,7 +60,7 @@ def full_constraint_error(model: Model, driven: tuple[int, ...], pos, rot, targe
         return err
     drv = jnp.array(driven)
     par = jnp.array([model.body_parent[b] for b in driven])
-    target = rot[par] @ targets.rel_rot[drv]
+    target = mm(rot[par], targets.rel_rot[drv])
     extra = rotation_error(rot[drv], target).reshape(-1)
     return jnp.concatenate([err, extra])
 

@@ -52,7 +52,7 @@ from neuromotor import compiler
 from neuromotor.model.kinematics import body_kinematics
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.reflex import Reflex, reflex_multipliers
-from neuromotor.physics.system import dof_axes, dofs_to_per_joint, per_joint_to_dofs, solve3
+from neuromotor.physics.system import dof_axes, dofs_to_per_joint, per_joint_to_dofs, solve3, world_inertia
 from neuromotor.rotations import (AXIS, axis_rotation, euler_axes, inv3, matrix_to_quat, mm, mmt, mtv, mv, quat_conj, quat_log,
                                   quat_mul, quat_to_matrix)
 
@@ -82,7 +82,7 @@ def distal_inertia(model: Model, q0: Float[Array, " Q"], theta0: Float[Array, " 
     zeros = jnp.zeros_like(q0)
     pos, rot, *_ = body_kinematics(model, q0, zeros, zeros)
     axes = dof_axes(model, rot, theta0)
-    iw = rot @ model.inertia @ jnp.swapaxes(rot, -1, -2)
+    iw = world_inertia(model, rot)
     # in_sub[b, c] = 1 if body c is in the subtree of body b (static mask: one contraction
     # instead of a Python double loop over bodies).
     in_sub = np.zeros((model.n_bodies, model.n_bodies))
@@ -190,7 +190,7 @@ def reflex_torque(gains: Gains, history, h: float, axes, inp: "ControllerInputs"
     g = inp.gains(gains)
     r = reflex_multipliers(gains.reflex, history, h, _feedback_magnitude(g, inp.activation), inp.scale, inp.tau,
                            inp.reference_torque, inp.active)
-    return jnp.einsum("...ij,...j->...i", axes, r), r
+    return mv(axes, r), r
 
 
 # ---------------------------------------------------------------- the joint torque (Section 5.2)
@@ -232,18 +232,16 @@ def controller_inputs(model: Model, gains: Gains, active: Float[Array, " n"], ta
 
 def damped_solve(a: Float[Array, "... 3 3"], e: Float[Array, "... 3"], mu: float = DAMPING):
     """x = A^T (A A^T + mu^2 I)^-1 e: A^-1 e away from singularity, bounded at gimbal lock."""
-    at = jnp.swapaxes(a, -1, -2)
-    gram = a @ at + mu**2 * jnp.eye(3, dtype=a.dtype)
-    return jnp.einsum("...ij,...j->...i", at, solve3(gram, e))
+    gram = mmt(a, a) + mu**2 * jnp.eye(3, dtype=a.dtype)
+    return mtv(a, solve3(gram, e))
 
 
 def joint_errors(rot_p, rot_c, w_p, w_c, a, rel_d, rel_w_d):
     """Angle and rate errors of joints (any leading shape) resolved along their axes ``a``
     (columns h_i); see :func:`dof_errors`."""
-    rel = jnp.swapaxes(rot_p, -1, -2) @ rot_c
-    e_local = quat_log(matrix_to_quat(rel_d @ jnp.swapaxes(rel, -1, -2)))
-    e_world = jnp.einsum("...ij,...j->...i", rot_p, e_local)
-    w_err = jnp.einsum("...ij,...j->...i", rot_p, rel_w_d) - (w_c - w_p)
+    rel = mm(jnp.swapaxes(rot_p, -1, -2), rot_c)
+    e_world = mv(rot_p, quat_log(matrix_to_quat(mmt(rel_d, rel))))
+    w_err = mv(rot_p, rel_w_d) - (w_c - w_p)
     return damped_solve(a, e_world), damped_solve(a, w_err)
 
 
@@ -273,7 +271,7 @@ def joint_torque(order: str, gains: Gains, rot_p, rot_c, w_p, w_c, inp: Controll
     a = jnp.swapaxes(euler_axes(rot_p, inp.theta_d, order), -1, -2)  # columns h_i
     d_theta, d_rate = joint_errors(rot_p, rot_c, w_p, w_c, a, inp.rel_rot, inp.rel_omega)
     mult = feedback_multipliers(inp.gains(gains), inp.tau, inp.activation, d_theta, d_rate, inp.active)
-    return jnp.einsum("...ij,...j->...i", a, mult)
+    return mv(a, mult)
 
 
 class JointAffine(eqx.Module):

@@ -11,7 +11,6 @@ import dataclasses
 import importlib.resources
 import pathlib
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
