@@ -80,6 +80,9 @@ def test_per_joint_jacobians_equal_dense_jacfwd(hit_setup):
     dense_k = jax.jit(lambda: stiff_jacobians(m, s.gains, inputs, rot, omega))()
     k, kmat, dmat = dense_k.k, dense_k.kmat, dense_k.dmat
     sb = jax.jit(lambda: stiff_blocks(m, s.gains, inputs, state))()
+    batched_form = jax.jit(lambda: stiff_blocks(m, s.gains, inputs, state, unrolled=True))()  # sums one dot each
+    for a, b in zip(jax.tree_util.tree_leaves(sb), jax.tree_util.tree_leaves(batched_form)):
+        np.testing.assert_allclose(a, b, rtol=1e-14, atol=1e-14 * float(jnp.abs(b).max()))
     n = m.n_bodies
     assert np.all(np.asarray(kmat).reshape(n, 6, n, 6)[..., :3] == 0)  # angular columns only
     dense = {"k": np.asarray(kmat).reshape(n, 6, n, 6)[..., 3:], "d": np.asarray(dmat).reshape(n, 6, n, 6)[..., 3:]}

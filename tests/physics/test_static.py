@@ -32,3 +32,17 @@ def test_gather_sum_equals_masked_sums(unrolled):
     np.testing.assert_allclose(static.gather_sum(x, index, mask, unrolled), want, rtol=1e-15, atol=1e-15)
     got = jax.vmap(lambda y: static.gather_sum(y, index, mask, unrolled))(jnp.stack([x, -x]))
     np.testing.assert_allclose(got[1], -want, rtol=1e-15, atol=1e-15)
+
+
+@pytest.mark.parametrize("unrolled", [True, False])
+def test_dot_sums_equal_matrix_products(unrolled):
+    rng = np.random.default_rng(2)
+    mat = (rng.random((5, 7)) < 0.5).astype(float)
+    xs = (jnp.asarray(rng.normal(size=(7,))), jnp.asarray(rng.normal(size=(7, 3))), jnp.asarray(rng.normal(size=(7, 3, 3))))
+    got = static.dot_sums(mat, xs, unrolled)
+    assert [g.shape for g in got] == [(5,), (5, 3), (5, 3, 3)]
+    for g, x in zip(got, xs):
+        np.testing.assert_allclose(g, np.tensordot(mat, np.asarray(x), axes=1), rtol=1e-14, atol=1e-14)
+    batched = jax.vmap(lambda *ys: static.dot_sums(mat, ys, unrolled))(*[jnp.stack([x, -2 * x]) for x in xs])
+    for g, x in zip(batched, xs):
+        np.testing.assert_allclose(g[1], -2 * np.tensordot(mat, np.asarray(x), axes=1), rtol=1e-14, atol=1e-14)

@@ -19,7 +19,7 @@ from jaxtyping import Array, Float
 
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.system import constraint_error, constraint_jacobian, retract
-from neuromotor.rotations import mm, quat_to_matrix, rotation_error
+from neuromotor.rotations import mm, mv, quat_to_matrix, rotation_error
 
 
 class PoseTargets(eqx.Module):
@@ -73,7 +73,7 @@ def constraint_velocity(model: Model, driven: tuple[int, ...], rot, root_vel, ro
     if not driven:
         return b
     par = jnp.array([model.body_parent[bb] for bb in driven])
-    extra = jnp.einsum("dij,dj->di", rot[par], rel_omega[jnp.array(driven)]).reshape(-1)
+    extra = mv(rot[par], rel_omega[jnp.array(driven)]).reshape(-1)
     return jnp.concatenate([b, extra])
 
 

@@ -235,14 +235,14 @@ def reference_inputs(sim: SimModel, gains: Gains, k) -> ControllerInputs:
 
 
 def stiff_forces(sim: SimModel, gains: Gains, inputs: ControllerInputs, state: State,
-                 tree: bool) -> StiffBlocks | DenseStiffness:
+                 tree: bool, unrolled: bool = False) -> StiffBlocks | DenseStiffness:
     """Stage 2: the muscle torques (Eq. 4 and Section 5.2) and the gyroscopic term, with their
-    K and D (by ``jax.jacfwd``) in the representation the solver takes."""
+    K and D in the representation the solver takes (``unrolled``: the batched solver's form)."""
     model = sim.model
     if not sim.cfg.implicit:
         return explicit_forces(model, gains, inputs, state, tree)
     if tree:
-        return stiff_blocks(model, gains, inputs, state, sim.cfg.jacobians)
+        return stiff_blocks(model, gains, inputs, state, sim.cfg.jacobians, unrolled)
     return stiff_jacobians(model, gains, inputs, state.rot, state.omega)
 
 
@@ -294,7 +294,7 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
     k, state = data.k, data.state
     rot = state.rot
     inputs = reference_inputs(sim, params.gains, k)
-    stiff = stiff_forces(sim, params.gains, inputs, state, solver.tree_blocks)
+    stiff = stiff_forces(sim, params.gains, inputs, state, solver.tree_blocks, solver.unrolled)
     applied, per_body, points = applied_forces(sim, params.pulses, k, state)
     reflex, history = None, None
     if params.gains.reflex is not None:

@@ -17,6 +17,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from neuromotor.rotations import mv
+
 SHAPES = ("square", "half_sine", "triangle")
 
 
@@ -105,7 +107,7 @@ def generalized_forces(p: ForcePulses, t, n_bodies: int, pos, rot, com) -> tuple
     if p.count == 0:
         return zeros.reshape(-1), jnp.zeros((n_bodies, 3), pos.dtype), jnp.zeros((0, 3), pos.dtype)
     force = pulse_forces(p, t)
-    lever = jnp.einsum("pij,pj->pi", rot[p.body], p.point - com[p.body])
+    lever = mv(rot[p.body], p.point - com[p.body])
     torque = jnp.cross(lever, force)
     gen = zeros.at[p.body, :3].add(force).at[p.body, 3:].add(torque)
     per_body = jnp.zeros((n_bodies, 3), pos.dtype).at[p.body].add(force)

@@ -13,7 +13,10 @@ numpy constants. Two ways to write them, with the same results to the last bit:
   (``Solver.BRANCH``) uses this form.
 
 Sums over whole subtrees stay dots with static 0/1 matrices in either case: unrolled into
-one-row sums they were slower, batched or not.
+one-row sums they were slower, batched or not. Several sums with one matrix are one dot over the
+operands side by side for a single trajectory (a kernel fewer each), but one dot each under
+``vmap``, where XLA:CPU fuses every operand's move of the batch axis into its producer and a
+concatenation would be a copy more (:func:`dot_sums`).
 """
 
 from __future__ import annotations
@@ -79,3 +82,14 @@ def gather_sum(x, index, mask, unrolled: bool = True):
         terms = [jax.lax.slice_in_dim(x, int(j), int(j) + 1, axis=0) for j, on in zip(index[i], mask[i]) if on]
         rows.append(sum(terms[1:], terms[0]) if terms else jnp.zeros((1,) + x.shape[1:], x.dtype))
     return rows[0] if len(rows) == 1 else jnp.concatenate(rows, 0)
+
+
+def dot_sums(mat, xs, unrolled: bool = True) -> tuple:
+    """``mat @ x`` over the leading axis for each x (static ``mat``): one dot each when
+    ``unrolled`` (the batched form), else one dot over the operands side by side."""
+    mat = jnp.asarray(mat, xs[0].dtype)
+    if unrolled or len(xs) == 1:
+        return tuple(jnp.tensordot(mat, x, axes=1) for x in xs)
+    flat = jnp.tensordot(mat, jnp.concatenate([x.reshape(x.shape[0], -1) for x in xs], 1), axes=1)
+    ends = np.cumsum([0] + [int(np.prod(x.shape[1:])) for x in xs])
+    return tuple(flat[:, a:b].reshape((mat.shape[0],) + x.shape[1:]) for a, b, x in zip(ends[:-1], ends[1:], xs))

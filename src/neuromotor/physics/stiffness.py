@@ -24,6 +24,7 @@ import enum
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from neuromotor.model.skeleton import Model
@@ -98,10 +99,10 @@ class DenseStiffness(eqx.Module):
 def tree_matvec(topo: Topology, diag: Float[Array, "B 3 3"], up: Float[Array, "C 3 3"],
                 down: Float[Array, "C 3 3"], w: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
     """An angular block-tree matrix times w: diagonal, body <- parent and parent <- child blocks
-    (one-hot sums, no scatter under vmap)."""
+    (both one-hot sums in one dot: no scatter under vmap, and a kernel fewer for one trajectory)."""
     c, p = topo.child, topo.parent
-    sel_c, sel_p = jnp.asarray(topo.sel_child, w.dtype), jnp.asarray(topo.sel_parent, w.dtype)  # keep w's precision
-    return (mv(diag, w) + jnp.einsum("cb,ci->bi", sel_c, mv(up, w[p])) + jnp.einsum("cb,ci->bi", sel_p, mv(down, w[c])))
+    ends = jnp.asarray(np.concatenate([topo.sel_child, topo.sel_parent], 0).T, w.dtype)  # keep w's precision
+    return mv(diag, w) + jnp.tensordot(ends, jnp.concatenate([mv(up, w[p]), mv(down, w[c])], 0), axes=1)
 
 
 def stiff_jacobians(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> DenseStiffness:
@@ -185,9 +186,10 @@ def gyro_blocks(model: Model, rot, omega):
 
 
 def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: State,
-                 jacobians: Jacobians = Jacobians.CLOSED_FORM) -> StiffBlocks:
+                 jacobians: Jacobians = Jacobians.CLOSED_FORM, unrolled: bool = False) -> StiffBlocks:
     """The same K and D as :func:`stiff_jacobians`, as blocks on the body tree, plus the stiff
-    torques; orientations enter as quaternions, perturbed as ``exp(d) q`` (the tangent of Eq. 2)."""
+    torques; orientations enter as quaternions, perturbed as ``exp(d) q`` (the tangent of Eq. 2).
+    ``unrolled``: the batched form of the sums over joint ends (:func:`static.dot_sums`)."""
     topo = model.topology
     if Jacobians(jacobians) is Jacobians.CLOSED_FORM:
         tq, jac = joint_blocks(model, gains, inputs, state.quat, state.omega)
@@ -197,11 +199,26 @@ def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: St
         g, gj = _gyro_jacobians(model, state.quat, state.omega)
     jac = jnp.concatenate([jac[..., :6], -jac[..., 6:9], jac[..., 6:9]], -1)
     # Child rows get +dT, parent rows -dT; diagonal blocks gather both ends of every joint.
-    sel_c, sel_p = jnp.asarray(topo.sel_child, jac.dtype), jnp.asarray(topo.sel_parent, jac.dtype)
-    diag = lambda dp, dc: jnp.einsum("cb,cij->bij", sel_c, dc) - jnp.einsum("cb,cij->bij", sel_p, dp)
-    k_diag = gj[:, :, :3] + diag(jac[:, :, 0:3], jac[:, :, 3:6])
-    d_diag = gj[:, :, 3:] + diag(jac[:, :, 6:9], jac[:, :, 9:12])
-    torque = g + body_torques(model, tq)
+    sel_c, sel_p = topo.sel_child, topo.sel_parent
+    if unrolled:  # one dot per sum (static.dot_sums)
+        ends = lambda parent, child: (jnp.tensordot(jnp.asarray(sel_c.T, jac.dtype), child, axes=1)
+                                      - jnp.tensordot(jnp.asarray(sel_p.T, jac.dtype), parent, axes=1))
+        k_sum, d_sum = ends(jac[:, :, 0:3], jac[:, :, 3:6]), ends(jac[:, :, 6:9], jac[:, :, 9:12])
+        tq_sum = body_torques(model, tq)
+    else:  # K's, D's and the torques' in one dot with [sel_c; -sel_p]^T
+        at_child = jnp.concatenate([jac[:, :, 3:6], jac[:, :, 9:12], tq[:, :, None]], -1)
+        at_parent = jnp.concatenate([jac[:, :, 0:3], jac[:, :, 6:9], tq[:, :, None]], -1)
+        sums = jnp.tensordot(jnp.asarray(np.concatenate([sel_c, -sel_p], 0).T, jac.dtype),
+                             jnp.concatenate([at_child, at_parent], 0), axes=1)  # (B, 3, 7)
+        k_sum, d_sum, tq_sum = sums[..., 0:3], sums[..., 3:6], sums[..., 6]
+    k_diag, d_diag, torque = gj[:, :, :3] + k_sum, gj[:, :, 3:] + d_sum, g + tq_sum
+    return StiffBlocks(torque, k_diag, jac[:, :, 0:3], -jac[:, :, 3:6], d_diag, jac[:, :, 6:9], -jac[:, :, 9:12])
+    at_child = jnp.concatenate([jac[:, :, 3:6], jac[:, :, 9:12], tq[:, :, None]], -1)
+    at_parent = jnp.concatenate([jac[:, :, 0:3], jac[:, :, 6:9], tq[:, :, None]], -1)
+    sums = jnp.tensordot(ends, jnp.concatenate([at_child, at_parent], 0), axes=1)  # (B, 3, 7)
+    k_diag = gj[:, :, :3] + sums[..., 0:3]
+    d_diag = gj[:, :, 3:] + sums[..., 3:6]
+    torque = g + sums[..., 6]
     return StiffBlocks(torque, k_diag, jac[:, :, 0:3], -jac[:, :, 3:6], d_diag, jac[:, :, 6:9], -jac[:, :, 9:12])
 
 

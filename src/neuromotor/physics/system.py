@@ -125,7 +125,7 @@ def joint_levers(model: Model, rot) -> tuple[Float[Array, "C 3"], Float[Array, "
 
 def root_lever(model: Model, rot) -> Float[Array, "3"]:
     """World vector from the root COM to the root joint's origin."""
-    return -rot[0] @ model.com[0]
+    return -mv(rot[0], model.com[0])
 
 
 def constraint_jacobian(model: Model, rot) -> Float[Array, "nc 6B"]:
@@ -232,7 +232,7 @@ def kkt_matrix(model: Model, rot, axes) -> Float[Array, "N N2"]:
 
 def mass_times(model: Model, inertia: Float[Array, "B 3 3"], x: Float[Array, "B 6"]) -> Float[Array, "B 6"]:
     """M x with M block diagonal (``inertia``: the world inertias of :func:`world_inertia`)."""
-    return jnp.concatenate([model.mass[:, None] * x[:, :3], jnp.einsum("bij,bj->bi", inertia, x[:, 3:])], -1)
+    return jnp.concatenate([model.mass[:, None] * x[:, :3], mv(inertia, x[:, 3:])], -1)
 
 
 def mass_blocks(model: Model, inertia: Float[Array, "B 3 3"]) -> Float[Array, "B 6 6"]:

@@ -97,7 +97,8 @@ def _stages(setup) -> dict:
     sim = lambda ref: dy.SimModel(m, ref, cfg)
 
     def jac(k, st, ref):
-        return dy.stiff_forces(sim(ref), g, dy.reference_inputs(sim(ref), g, k), st, solver.tree_blocks)
+        return dy.stiff_forces(sim(ref), g, dy.reference_inputs(sim(ref), g, k), st, solver.tree_blocks,
+                               solver.unrolled)
 
     # Stand-ins for the K, D terms (the solve's cost does not depend on their values).
     if solver.tree_blocks:

@@ -58,6 +58,9 @@ class KKTSolver(abc.ABC):
 
     # True: K and D come as 3x3 blocks on the body tree (``stiffness.StiffBlocks``); False: dense.
     tree_blocks: ClassVar[bool]
+    # True: the solver of vmapped batches, and the step's static sums take their batched form
+    # (neuromotor.physics.static).
+    unrolled: ClassVar[bool] = False
 
     @abc.abstractmethod
     def assemble(self, model, cfg, rot, inertia, stiff, h: float) -> Any:

@@ -240,13 +240,13 @@ def solve(sch: Schedule, fac: Factor, rhs: Float[Array, "B 3"]) -> Float[Array, 
     return out * jnp.asarray(np.arange(len(sch.order)) > 0, rhs.dtype)[:, None]
 
 
-def subtree_moments(desc: np.ndarray, mass, inertia, com):
+def subtree_moments(desc: np.ndarray, mass, inertia, com, unrolled: bool = True):
     """Per body, sums over its subtree: mass m, first moment s = sum m c, and J = sum (I + m
-    (|c|^2 1 - c c^T)), the inertia about the origin of ``com`` (the root COM)."""
+    (|c|^2 1 - c c^T)), the inertia about the origin of ``com`` (the root COM); ``unrolled``:
+    the batched form of the sums (:func:`static.dot_sums`)."""
     eye = jnp.eye(3, dtype=com.dtype)
     own = inertia + mass[:, None, None] * (dot(com, com)[:, None, None] * eye - com[:, :, None] * com[:, None, :])
-    total = lambda x: jnp.tensordot(jnp.asarray(desc, x.dtype), x, axes=1)
-    return total(mass), total(mass[:, None] * com), total(own)
+    return static.dot_sums(desc, (mass, mass[:, None] * com, own), unrolled)
 
 
 def pivot_blocks(m_sub, s_sub, j_sub, pivot):

@@ -103,10 +103,12 @@ def structure(topo: Topology, driven: tuple[int, ...] = (), free_root: bool = Fa
     return topo.derived(_structure, tuple(driven), bool(free_root), bool(unrolled))
 
 
-def _tree_sum(mat: np.ndarray, x):
-    """``mat @ x`` over the leading (body) axis with a static 0/1 matrix: one dot (faster than
-    unrolled sums, batched or not: XLA:CPU leaves long chains of one-row sums unfused)."""
-    return jnp.tensordot(jnp.asarray(mat, x.dtype), x, axes=1)
+def _tree_sum(st: Structure, mat: np.ndarray, *xs):
+    """``mat @ x`` over the leading (body) axis with a static 0/1 matrix, for each x: dots
+    (faster than unrolled sums, batched or not: XLA:CPU leaves long chains of one-row sums
+    unfused), one for all of them unless batched (:func:`static.dot_sums`)."""
+    out = static.dot_sums(mat, xs, st.unrolled)
+    return out[0] if len(xs) == 1 else out
 
 
 class Geometry(eqx.Module):
@@ -122,17 +124,20 @@ def geometry(st: Structure, r_parent: Float[Array, "C 3"], r_child: Float[Array,
     """COMs and pivots by chaining levers from the root: c_i = c_parent + r_parent - r_child."""
     zero = jnp.zeros((1, 3), r_parent.dtype)
     step = jnp.concatenate([zero, r_parent - r_child], 0)
-    com = _tree_sum(st.anc, step)
+    com = _tree_sum(st, st.anc, step)
     pivot = jnp.concatenate([zero, com[1:] + r_child], 0)
     return Geometry(com, pivot, r0)
 
 
-def apply_basis(st: Structure, geo: Geometry, u: Float[Array, " N"]) -> Float[Array, "B 6"]:
-    """v = S u: per body ``[v_i, omega_i]``."""
+def apply_basis(st: Structure, geo: Geometry, u: Float[Array, " N"],
+                shift: Float[Array, "B 3"] | None = None) -> Float[Array, "B 6"]:
+    """v = S u: per body ``[v_i, omega_i]``; ``shift``: per body a displacement that moves its
+    whole subtree (added to v, summed in the same dot)."""
     n = geo.com.shape[0]
     v0, uk = u[:3], u[3:].reshape(n, 3)
-    omega = _tree_sum(st.anc, uk)
-    vel = v0 + cross(omega, geo.com) - _tree_sum(st.anc, cross(uk, geo.pivot))
+    moved = cross(uk, geo.pivot) if shift is None else cross(uk, geo.pivot) - shift
+    omega, moved = _tree_sum(st, st.anc, uk, moved)
+    vel = v0 + cross(omega, geo.com) - moved
     return jnp.concatenate([vel, omega], -1)
 
 
@@ -140,9 +145,8 @@ def project_forces(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Floa
     """S^T f: the total force, and per column k the moment about p_k of the forces on the
     subtree of k."""
     force, torque = f[:, :3], f[:, 3:]
-    desc = st.anc.T
-    sub_force = _tree_sum(desc, force)
-    sub_moment = _tree_sum(desc, torque + cross(geo.com, force)) - cross(geo.pivot, sub_force)
+    sub_force, sub_moment = _tree_sum(st, st.anc.T, force, torque + cross(geo.com, force))
+    sub_moment = sub_moment - cross(geo.pivot, sub_force)
     return jnp.concatenate([jnp.sum(force, 0), sub_moment.reshape(-1)])
 
 
@@ -159,7 +163,7 @@ def inertia_blocks(st: Structure, geo: Geometry, mass: Float[Array, " B"], inert
     """
     dtype = geo.com.dtype
     eye = jnp.eye(3, dtype=dtype)
-    m_sub, s_sub, j_sub = branch.subtree_moments(st.anc.T, mass, inertia, geo.com)
+    m_sub, s_sub, j_sub = branch.subtree_moments(st.anc.T, mass, inertia, geo.com, st.unrolled)
     # Blocks are built in the (k, i, l, j) layout of the flattened matrix, and "the deeper of
     # k and l" is a pair of static masks rather than a gather: no transpose or gather kernels.
     at_k, at_l = _deep_masks(st, dtype)  # (B, B): d = k, d = l
@@ -269,7 +273,7 @@ def multipliers(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[A
     p_k of the forces on its subtree (its column of S^T f)."""
     n = geo.com.shape[0]
     proj = project_forces(st, geo, f)
-    ball = -_tree_sum(st.anc.T, f[:, :3])[1:]
+    ball = -_tree_sum(st, st.anc.T, f[:, :3])[1:]
     parts = []
     if not st.free_root:
         total = proj[:3]
@@ -330,7 +334,8 @@ def solve_reduced(st: Structure, geo: Geometry, red: Reduced, r: Float[Array, "B
 
 def _moments(st: Structure, geo: Geometry, mass, inertia_world):
     """``(C_k, a_k)`` of every body (:func:`branch.pivot_blocks`)."""
-    return branch.pivot_blocks(*branch.subtree_moments(st.anc.T, mass, inertia_world, geo.com), geo.pivot)
+    return branch.pivot_blocks(*branch.subtree_moments(st.anc.T, mass, inertia_world, geo.com, st.unrolled),
+                               geo.pivot)
 
 
 def _stiff_subtrees(st: Structure, g_diag, g_up, g_down):
@@ -338,7 +343,10 @@ def _stiff_subtrees(st: Structure, g_diag, g_up, g_down):
     zero = jnp.zeros((1, 3, 3), g_diag.dtype)
     up, down = jnp.concatenate([zero, g_up], 0), jnp.concatenate([zero, g_down], 0)
     strict_desc = st.anc.T - np.eye(st.anc.shape[0])
-    return _tree_sum(st.anc.T, g_diag) + _tree_sum(strict_desc, up + down), up, down
+    if st.unrolled:
+        return _tree_sum(st, st.anc.T, g_diag) + _tree_sum(st, strict_desc, up + down), up, down
+    both = np.concatenate([st.anc.T, strict_desc], 1)  # the two sums in one dot
+    return _tree_sum(st, both, jnp.concatenate([g_diag, up + down], 0)), up, down
 
 
 def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) -> Float[Array, "B 6"]:
@@ -354,8 +362,7 @@ def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) 
         cols = np.array([3 * (1 + b) + j for b in st.driven for j in range(3)])
         u = u.at[cols].set(-c[m0 + 3 * (n - 1):])
     gaps = jnp.concatenate([jnp.zeros((1, 3), c.dtype), c[m0:m0 + 3 * (n - 1)].reshape(n - 1, 3)], 0)
-    shift = _tree_sum(st.anc, gaps)
-    return apply_basis(st, geo, u) + jnp.concatenate([shift, jnp.zeros_like(shift)], -1)
+    return apply_basis(st, geo, u, shift=gaps)
 
 
 class SpdFactor(eqx.Module):
@@ -408,7 +415,7 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
     ``metric`` of an earlier iterate may be passed: J dx = -C still holds exactly (dx_p and S
     are this iterate's), only the M-norm is measured at that iterate."""
     x_p = particular_correction(st, geo, c)
-    mx = jnp.concatenate([mass[:, None] * x_p[:, :3], jnp.einsum("bij,bj->bi", inertia_world, x_p[:, 3:])], -1)
+    mx = jnp.concatenate([mass[:, None] * x_p[:, :3], mv(inertia_world, x_p[:, 3:])], -1)
     rhs = -project_forces(st, geo, mx)
     metric = projection_metric(st, geo, mass, inertia_world, tree) if metric is None else metric
     if metric.dense is None:
