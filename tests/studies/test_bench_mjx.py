@@ -4,6 +4,7 @@ and positive; without MJX the bench says so in one line. No timing is asserted."
 
 import math
 import sys
+import time
 
 import jax
 import numpy as np
@@ -69,6 +70,7 @@ def test_compare_gives_finite_positive_figures_on_a_tiny_model():
     mujoco.mj_forward(mj, d0)
     work = np.arange(1000.0)
     ours = {name: (lambda: np.sum(work ** 2)) for name in ("rollout", "batch", "jacfwd", "jacfwd_rollout")}
+    ours["batch"] = ours["batch_one"] = lambda: time.sleep(0.004)  # same time per call: 0.5 per trajectory
     r = bench_mjx.compare(mj, d0, ours, steps=3, batch=2, batch_steps=2, rounds=2, dtypes=("float32",),
                           compiler_options=FAST)
     f32 = dict(r["float32"])
@@ -79,7 +81,8 @@ def test_compare_gives_finite_positive_figures_on_a_tiny_model():
     assert diff < 1e-4  # the same model as MuJoCo C, to float32's precision
     lines = []
     bench_mjx.log_figures(r, lines.append, {"rollout": 1.0, "batch": 1.0, "jacfwd": 1.0})
-    assert len(lines) == 6 and not any("nan" in line for line in lines)
+    assert 0.35 < r["ours"]["batch_over_one"] < 0.65  # a batch of 2 in the time of one
+    assert len(lines) == 7 and not any("nan" in line for line in lines)
 
 
 def test_bench_says_in_one_line_why_mjx_is_skipped(monkeypatch):

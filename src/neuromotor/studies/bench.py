@@ -345,6 +345,8 @@ def mjx_beside(setup, batch_setup, programs: dict, res: dict, repeats: int, log=
             "jacfwd": programs["jacfwd"], "jacfwd_rollout": programs["jacfwd_rollout"]}
     if f"batch{size}_float32" in programs:
         ours["batch_float32"] = programs[f"batch{size}_float32"]
+    if size > 1 and "batch1" in programs:
+        ours["batch_one"] = programs["batch1"]
     mj, data = mujoco_start(setup.character, setup.sim.h, setup.ref.theta[0])
     # MJX gets the XLA options ours is compiled with (on the CPU they cut its jacfwd time ~5x).
     out = bench_mjx.compare(mj, data, ours, steps=setup.sim.n_steps, batch=size,

@@ -168,6 +168,8 @@ def _figures(t: dict, key: str, steps: int, batch: int, batch_steps: int) -> dic
         out["jacfwd_over_rollout"] = _median(t[f"{key}.jacfwd"] / t[f"{key}.jacfwd_rollout"])
     if f"{key}.batch_float32" in t:
         out["batch_float32_steps_per_s"] = batch * batch_steps / _median(t[f"{key}.batch_float32"])
+    if f"{key}.batch_one" in t:  # a trajectory-step in the batch over one in a batch of 1, per round
+        out["batch_over_one"] = _median(t[f"{key}.batch"] / batch / t[f"{key}.batch_one"])
     return out
 
 
@@ -198,7 +200,8 @@ def compare(mj, d0, ours: dict[str, Callable], steps: int, batch: int, batch_ste
     ``ours``: zero-argument callables, any of ``rollout`` (one trajectory of ``steps`` steps),
     ``batch`` (``batch`` trajectories of ``batch_steps`` steps), ``jacfwd`` and
     ``jacfwd_rollout`` (jacfwd over two gains of a ``steps``-step trajectory, and that
-    trajectory), ``batch_float32`` (the batch in float32). Returns the medians per engine, the ratios, MJX's compile seconds and its
+    trajectory), ``batch_float32`` (the batch in float32), ``batch_one`` (one trajectory of
+    ``batch_steps`` steps in the batch's program shape). Returns the medians per engine, the ratios, MJX's compile seconds and its
     largest ``qpos`` difference from MuJoCo C after ``steps`` steps. ``compiler_options``: XLA's
     for MJX's programs (None: XLA's defaults, as an MJX user compiles)."""
     import mujoco
@@ -243,6 +246,9 @@ def log_figures(r: dict, log=print, ours_compile: dict | None = None) -> None:
         f"MJX {mjx('batch_steps_per_s', '.0f')}, MuJoCo C one thread {c['steps_per_s']:.0f}; throughput ours/MJX "
         f"{ratio('ours_over_mjx', 'batch_throughput')}; throughput MJX/C {ratio('mjx_over_c', 'batch_throughput')}; "
         f"ours/C {ours.get('batch_steps_per_s', nan) / c['steps_per_s']:.2f}")
+    if "batch_over_one" in ours:
+        log(f"  a trajectory-step in the batch of {r['batch']} costs {ours['batch_over_one']:.2f} of one in a "
+            "batch of 1 (interleaved)")
     if "batch_float32_steps_per_s" in ours and "float32" in r:
         log(f"  batch in float32, steps/s: ours {ours['batch_float32_steps_per_s']:.0f}, MJX "
             f"{r['float32']['batch_steps_per_s']:.0f}; throughput ours/MJX "
