@@ -213,13 +213,6 @@ def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: St
         k_sum, d_sum, tq_sum = sums[..., 0:3], sums[..., 3:6], sums[..., 6]
     k_diag, d_diag, torque = gj[:, :, :3] + k_sum, gj[:, :, 3:] + d_sum, g + tq_sum
     return StiffBlocks(torque, k_diag, jac[:, :, 0:3], -jac[:, :, 3:6], d_diag, jac[:, :, 6:9], -jac[:, :, 9:12])
-    at_child = jnp.concatenate([jac[:, :, 3:6], jac[:, :, 9:12], tq[:, :, None]], -1)
-    at_parent = jnp.concatenate([jac[:, :, 0:3], jac[:, :, 6:9], tq[:, :, None]], -1)
-    sums = jnp.tensordot(ends, jnp.concatenate([at_child, at_parent], 0), axes=1)  # (B, 3, 7)
-    k_diag = gj[:, :, :3] + sums[..., 0:3]
-    d_diag = gj[:, :, 3:] + sums[..., 3:6]
-    torque = g + sums[..., 6]
-    return StiffBlocks(torque, k_diag, jac[:, :, 0:3], -jac[:, :, 3:6], d_diag, jac[:, :, 6:9], -jac[:, :, 9:12])
 
 
 def explicit_forces(model: Model, gains: Gains, inputs: ControllerInputs, state: State,
