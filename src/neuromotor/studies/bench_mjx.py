@@ -201,8 +201,9 @@ def compare(mj, d0, ours: dict[str, Callable], steps: int, batch: int, batch_ste
     ``batch`` (``batch`` trajectories of ``batch_steps`` steps), ``jacfwd`` and
     ``jacfwd_rollout`` (jacfwd over two gains of a ``steps``-step trajectory, and that
     trajectory), ``batch_float32`` (the batch in float32), ``batch_one`` (one trajectory of
-    ``batch_steps`` steps in the batch's program shape). Returns the medians per engine, the ratios, MJX's compile seconds and its
-    largest ``qpos`` difference from MuJoCo C after ``steps`` steps. ``compiler_options``: XLA's
+    ``batch_steps`` steps in the batch's program shape). Returns the medians per engine, the
+    ratios, MJX's compile seconds and its largest ``qpos`` difference from MuJoCo C after
+    ``steps`` steps. ``compiler_options``: XLA's
     for MJX's programs (None: XLA's defaults, as an MJX user compiles)."""
     import mujoco
 
