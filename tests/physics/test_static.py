@@ -46,3 +46,14 @@ def test_dot_sums_equal_matrix_products(unrolled):
     batched = jax.vmap(lambda *ys: static.dot_sums(mat, ys, unrolled))(*[jnp.stack([x, -2 * x]) for x in xs])
     for g, x in zip(batched, xs):
         np.testing.assert_allclose(g[1], -2 * np.tensordot(mat, np.asarray(x), axes=1), rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("unrolled", [True, False])
+def test_dot_sum_equals_sum_of_matrix_products(unrolled):
+    rng = np.random.default_rng(3)
+    mats = ((rng.random((5, 7)) < 0.5).astype(float), -(rng.random((5, 4)) < 0.5).astype(float))
+    xs = (jnp.asarray(rng.normal(size=(7, 3, 3))), jnp.asarray(rng.normal(size=(4, 3, 3))))
+    want = sum(np.tensordot(m, np.asarray(x), axes=1) for m, x in zip(mats, xs))
+    np.testing.assert_allclose(static.dot_sum(mats, xs, unrolled), want, rtol=1e-14, atol=1e-14)
+    got = jax.vmap(lambda a, b: static.dot_sum(mats, (a, b), unrolled))(*[jnp.stack([x, 3 * x]) for x in xs])
+    np.testing.assert_allclose(got[1], 3 * want, rtol=1e-14, atol=1e-14)

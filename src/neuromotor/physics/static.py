@@ -16,7 +16,8 @@ Sums over whole subtrees stay dots with static 0/1 matrices in either case: unro
 one-row sums they were slower, batched or not. Several sums with one matrix are one dot over the
 operands side by side for a single trajectory (a kernel fewer each), but one dot each under
 ``vmap``, where XLA:CPU fuses every operand's move of the batch axis into its producer and a
-concatenation would be a copy more (:func:`dot_sums`).
+concatenation would be a copy more (:func:`dot_sums`); a sum of products with several matrices
+likewise (:func:`dot_sum`).
 """
 
 from __future__ import annotations
@@ -93,3 +94,12 @@ def dot_sums(mat, xs, unrolled: bool = True) -> tuple:
     flat = jnp.tensordot(mat, jnp.concatenate([x.reshape(x.shape[0], -1) for x in xs], 1), axes=1)
     ends = np.cumsum([0] + [int(np.prod(x.shape[1:])) for x in xs])
     return tuple(flat[:, a:b].reshape((mat.shape[0],) + x.shape[1:]) for a, b, x in zip(ends[:-1], ends[1:], xs))
+
+
+def dot_sum(mats, xs, unrolled: bool = True):
+    """``sum_i mats[i] @ xs[i]`` over the leading axes (static ``mats``): one dot each when
+    ``unrolled`` (the batched form), else one dot with the matrices side by side and the
+    operands stacked."""
+    if unrolled:
+        return sum(jnp.tensordot(jnp.asarray(m, x.dtype), x, axes=1) for m, x in zip(mats, xs))
+    return jnp.tensordot(jnp.asarray(np.concatenate(mats, 1), xs[0].dtype), jnp.concatenate(xs, 0), axes=1)

@@ -24,13 +24,13 @@ import enum
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
 from neuromotor.model.skeleton import Model
 from neuromotor.model.topology import Topology
 from neuromotor.physics.control import (ControllerInputs, Gains, affine_torque, body_torques, joint_affine,
                                         joint_torque_q, joint_torques)
+from neuromotor.physics import static
 from neuromotor.physics.system import State, embed_angular, gyroscopic_forces, world_inertia
 from neuromotor.rotations import (cross, mm, mmt, mtv, mv, quat_exp, quat_mul, quat_to_matrix,
                                   right_jacobian_inv, skew)
@@ -101,8 +101,9 @@ def tree_matvec(topo: Topology, diag: Float[Array, "B 3 3"], up: Float[Array, "C
     """An angular block-tree matrix times w: diagonal, body <- parent and parent <- child blocks
     (both one-hot sums in one dot: no scatter under vmap, and a kernel fewer for one trajectory)."""
     c, p = topo.child, topo.parent
-    ends = jnp.asarray(np.concatenate([topo.sel_child, topo.sel_parent], 0).T, w.dtype)  # keep w's precision
-    return mv(diag, w) + jnp.tensordot(ends, jnp.concatenate([mv(up, w[p]), mv(down, w[c])], 0), axes=1)
+    # the one-hot matrices take w's dtype (keeps float32 runs in float32)
+    return mv(diag, w) + static.dot_sum((topo.sel_child.T, topo.sel_parent.T), (mv(up, w[p]), mv(down, w[c])),
+                                        unrolled=False)
 
 
 def stiff_jacobians(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> DenseStiffness:
@@ -199,17 +200,15 @@ def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: St
         g, gj = _gyro_jacobians(model, state.quat, state.omega)
     jac = jnp.concatenate([jac[..., :6], -jac[..., 6:9], jac[..., 6:9]], -1)
     # Child rows get +dT, parent rows -dT; diagonal blocks gather both ends of every joint.
-    sel_c, sel_p = topo.sel_child, topo.sel_parent
-    if unrolled:  # one dot per sum (static.dot_sums)
-        ends = lambda parent, child: (jnp.tensordot(jnp.asarray(sel_c.T, jac.dtype), child, axes=1)
-                                      - jnp.tensordot(jnp.asarray(sel_p.T, jac.dtype), parent, axes=1))
-        k_sum, d_sum = ends(jac[:, :, 0:3], jac[:, :, 3:6]), ends(jac[:, :, 6:9], jac[:, :, 9:12])
+    ends = (topo.sel_child.T, -topo.sel_parent.T)
+    if unrolled:  # one sum per block: under vmap a concatenation of the blocks is a copy more
+        k_sum = static.dot_sum(ends, (jac[:, :, 3:6], jac[:, :, 0:3]))
+        d_sum = static.dot_sum(ends, (jac[:, :, 9:12], jac[:, :, 6:9]))
         tq_sum = body_torques(model, tq)
-    else:  # K's, D's and the torques' in one dot with [sel_c; -sel_p]^T
+    else:  # K's, D's and the torques' in one dot
         at_child = jnp.concatenate([jac[:, :, 3:6], jac[:, :, 9:12], tq[:, :, None]], -1)
         at_parent = jnp.concatenate([jac[:, :, 0:3], jac[:, :, 6:9], tq[:, :, None]], -1)
-        sums = jnp.tensordot(jnp.asarray(np.concatenate([sel_c, -sel_p], 0).T, jac.dtype),
-                             jnp.concatenate([at_child, at_parent], 0), axes=1)  # (B, 3, 7)
+        sums = static.dot_sum(ends, (at_child, at_parent), unrolled=False)  # (B, 3, 7)
         k_sum, d_sum, tq_sum = sums[..., 0:3], sums[..., 3:6], sums[..., 6]
     k_diag, d_diag, torque = gj[:, :, :3] + k_sum, gj[:, :, 3:] + d_sum, g + tq_sum
     return StiffBlocks(torque, k_diag, jac[:, :, 0:3], -jac[:, :, 3:6], d_diag, jac[:, :, 6:9], -jac[:, :, 9:12])

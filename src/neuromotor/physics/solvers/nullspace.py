@@ -343,10 +343,7 @@ def _stiff_subtrees(st: Structure, g_diag, g_up, g_down):
     zero = jnp.zeros((1, 3, 3), g_diag.dtype)
     up, down = jnp.concatenate([zero, g_up], 0), jnp.concatenate([zero, g_down], 0)
     strict_desc = st.anc.T - np.eye(st.anc.shape[0])
-    if st.unrolled:
-        return _tree_sum(st, st.anc.T, g_diag) + _tree_sum(st, strict_desc, up + down), up, down
-    both = np.concatenate([st.anc.T, strict_desc], 1)  # the two sums in one dot
-    return _tree_sum(st, both, jnp.concatenate([g_diag, up + down], 0)), up, down
+    return static.dot_sum((st.anc.T, strict_desc), (g_diag, up + down), st.unrolled), up, down
 
 
 def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) -> Float[Array, "B 6"]:
