@@ -373,6 +373,30 @@ def hold(last, new, bad):
     return jax.tree_util.tree_map(lambda a, b: jnp.where(bad, a, b), last, new)
 
 
+def depending_on(params, carry, skip=None):
+    """``carry`` as it is, but traced as a function of every inexact leaf of ``params`` (a
+    select that always picks ``carry``; XLA folds it away), except the leaf ``skip`` and any
+    boolean leaves.
+
+    ``lax.scan``'s JVP and batching rules find which carries have a tangent or a batch axis by
+    iterating to a fixed point, tracing the step again each round. A rollout's state depends on
+    the gains and pulses after one step, so starting it as dependent makes the first round the
+    last: ``jacfwd``, ``grad`` and ``vmap`` of a rollout trace the step half as often, with the
+    same program (docs/benchmarks.md, "Trace time"). The grid index is skipped: it does not
+    depend on them, and batched it would turn the reference's slices into gathers."""
+    leaves = [x for x in jax.tree_util.tree_leaves(params) if eqx.is_inexact_array(x)]
+    if not leaves:
+        return carry
+    zero = sum(jnp.sum(x) for x in leaves) * 0  # unused values: a NaN here cannot reach the carry
+
+    def tie(a):
+        if a is skip or not eqx.is_array(a) or not jnp.issubdtype(a.dtype, jnp.number):
+            return a
+        return jax.lax.select(jnp.ones(a.shape, bool), a, a + zero.astype(a.dtype))
+
+    return jax.tree_util.tree_map(tie, carry)
+
+
 def scan_steps(sim: SimModel, params: Params, data0, step_fn=step):
     """``sim.cfg.n_steps`` steps of ``step_fn(sim, params, data) -> data`` from ``data0`` in one
     ``lax.scan``: ``(data stacked over the steps, first diverged step, its body)``. Any data with
@@ -391,8 +415,8 @@ def scan_steps(sim: SimModel, params: Params, data0, step_fn=step):
         new = new.held(data, bad_step >= 0)
         return (new, bad_step, bad_body), new
 
-    (_, bad_step, bad_body), out = jax.lax.scan(body, (data0, jnp.asarray(-1), jnp.asarray(-1)), None,
-                                                length=cfg.n_steps)
+    init = depending_on(params, (data0, jnp.asarray(-1), jnp.asarray(-1)), skip=data0.k)
+    (_, bad_step, bad_body), out = jax.lax.scan(body, init, None, length=cfg.n_steps)
     return out, bad_step, bad_body
 
 
