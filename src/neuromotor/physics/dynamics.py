@@ -382,8 +382,9 @@ def depending_on(params, carry, skip=None):
     iterating to a fixed point, tracing the step again each round. A rollout's state depends on
     the gains and pulses after one step, so starting it as dependent makes the first round the
     last: ``jacfwd``, ``grad`` and ``vmap`` of a rollout trace the step half as often, with the
-    same program (docs/benchmarks.md, "Trace time"). The grid index is skipped: it does not
-    depend on them, and batched it would turn the reference's slices into gathers."""
+    same program (docs/benchmarks.md, "Issue 17: one trace per transformation"). The grid index
+    is skipped: it does not depend on them, and batched it would turn the reference's slices
+    into gathers."""
     leaves = [x for x in jax.tree_util.tree_leaves(params) if eqx.is_inexact_array(x)]
     if not leaves:
         return carry
