@@ -101,6 +101,30 @@ def test_per_joint_jacobians_equal_dense_jacfwd(hit_setup):
     np.testing.assert_array_equal(np.asarray(k).reshape(n, 6)[:, :3], 0.0)  # stiff forces are pure torques
 
 
+def test_batched_form_of_the_blocks_differentiates_like_the_merged_form(hit_setup):
+    """The batched form fences the blocks off from the sums (an optimization barrier); reverse
+    and forward derivatives through it, and under vmap, equal the merged form's."""
+    s = hit_setup
+    m, ref = s.model, s.ref
+    inputs = reference_inputs(SimModel(m, ref, dataclasses.replace(s.sim, driven=())), s.gains, 3)
+    weights = jax.random.normal(jax.random.PRNGKey(1), (m.n_bodies, 3))
+
+    def score(omega, unrolled):
+        sb = stiff_blocks(m, s.gains, inputs, dataclasses.replace(ref.init, omega=omega), unrolled=unrolled)
+        return jnp.sum(weights * sb.k) + jnp.sum(sb.d_diag**2) + jnp.sum(sb.k_up * sb.d_down)
+
+    omega = ref.init.omega + 0.5
+    grads = [jax.jit(jax.grad(lambda w, u=u: score(w, u)))(omega) for u in (False, True)]
+    tangents = [jax.jit(jax.jacfwd(lambda w, u=u: score(w, u)))(omega) for u in (False, True)]
+    batched = jax.jit(jax.vmap(jax.grad(lambda w: score(w, True))))(jnp.stack([omega, 2.0 * omega]))
+    scale = float(jnp.abs(grads[0]).max())
+    assert scale > 0
+    for got in (grads[1], tangents[0], tangents[1], batched[0]):
+        np.testing.assert_allclose(got, grads[0], rtol=0, atol=1e-12 * scale)
+    # the second trajectory of the batch is its own, not a copy of the first
+    assert float(jnp.abs(batched[1] - grads[0]).max()) > 1e-3 * scale
+
+
 @pytest.mark.parametrize("solver", ["nullspace", "branch", "tree"])
 def test_fast_rollout_equals_dense_rollout_with_a_hit(hit_setup, solver):
     s = hit_setup

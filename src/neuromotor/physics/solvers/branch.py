@@ -237,7 +237,7 @@ def solve(sch: Schedule, fac: Factor, rhs: Float[Array, "B 3"]) -> Float[Array, 
         anc = _take(sch, up, sch.parent_pos[d - 2])
         u.append(z[d - 1] - jnp.sum(mv(fac.x[sch.t_max - d], anc), 1))
     out = _take(sch, jnp.concatenate(u, 0), sch.order)
-    return out * jnp.asarray(np.arange(len(sch.order)) > 0, rhs.dtype)[:, None]
+    return out * jnp.asarray(np.arange(len(sch.order)) > 0, rhs.dtype).reshape((-1,) + (1,) * (out.ndim - 1))
 
 
 def subtree_moments(desc: np.ndarray, mass, inertia, com, unrolled: bool = True):
