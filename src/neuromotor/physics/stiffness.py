@@ -202,8 +202,8 @@ def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: St
     # Child rows get +dT, parent rows -dT; diagonal blocks gather both ends of every joint.
     ends = (topo.sel_child.T, -topo.sel_parent.T)
     if unrolled:  # one sum per block: under vmap a concatenation of the blocks is a copy more
-        # The blocks are computed once: unfenced, XLA:CPU fuses their arithmetic into each of the
-        # sums that read them and repeats it there (a batched step 1.1x slower).
+        # Fenced so that the blocks are computed once: unfenced, XLA:CPU fuses their arithmetic
+        # into each kernel that reads them and repeats it there (docs/benchmarks.md, issue 17).
         tq, jac, g, gj = jax.lax.optimization_barrier((tq, jac, g, gj))
         k_sum = static.dot_sum(ends, (jac[:, :, 3:6], jac[:, :, 0:3]))
         d_sum = static.dot_sum(ends, (jac[:, :, 9:12], jac[:, :, 6:9]))
