@@ -1,14 +1,15 @@
 """Speed of the working tree against an earlier commit, timed in alternation in one process.
 
     .venv/bin/python experiments/bench_commits.py REV [--batch 1] [--repeats 15] [--solver branch] [--rev-solver branch]
-        [--jacobians jacfwd] [--seconds 1.0]
+        [--jacobians jacfwd] [--seconds 1.0] [--gain-jacobian]
 
 The host's speed drifts by 2x between runs minutes apart, so two separate benchmark runs cannot
 resolve a 10 % change. This script extracts ``src/neuromotor`` of commit REV (``git archive``)
 into a temporary folder as the package ``neuromotor_at_rev``, compiles the default 1 s rollout of
 both versions on the embedded clip (one trajectory, or ``--batch N`` pulse magnitudes under
-``vmap``), checks that they compute the same joint angles, and times the two alternately; the
-best of each is printed, in microseconds per trajectory-step, and the speedup both as the ratio
+``vmap``), checks that they compute the same joint angles, and times the two alternately
+(``--gain-jacobian``: ``jax.jacfwd`` of the joint angles over (ks, kd) instead, as in
+``neuromotor bench``); the best of each is printed, in microseconds per trajectory-step, and the speedup both as the ratio
 of the bests and as the median of the rounds' ratios (the steadier of the two when the host
 drifts within the run).
 """
@@ -54,7 +55,8 @@ def _module(pkg: str, *names: str):
     raise ModuleNotFoundError(f"none of {names} in {pkg}")
 
 
-def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | None = None, seconds: float = 1.0):
+def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | None = None, seconds: float = 1.0,
+             gain_jacobian: bool = False):
     """(zero-argument compiled call, its joint angles, trajectory-steps per call)."""
     import equinox as eqx
     import jax
@@ -68,10 +70,13 @@ def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | N
     if jacobians is not None:
         cfg = dataclasses.replace(cfg, jacobians=jacobians)
     scales = jnp.linspace(0.5, 1.5, batch)
+    set_gains = _module(pkg, "studies.gains").set_gains
 
     def many(scales, g, ref):
-        one = lambda s: dy.rollout(m, g, eqx.tree_at(lambda q: q.magnitude, p, p.magnitude * s), ref, cfg).theta
-        return jax.vmap(one)(scales) if batch > 1 else one(scales[0])[None]
+        one = lambda s, g: dy.rollout(m, g, eqx.tree_at(lambda q: q.magnitude, p, p.magnitude * s), ref, cfg).theta
+        if gain_jacobian:
+            one = lambda s, g, one=one: jax.jacfwd(lambda x: one(s, set_gains(g, x[0], x[1])))(jnp.stack([g.ks, g.kd]))
+        return jax.vmap(one, (0, None))(scales, g) if batch > 1 else one(scales[0], g)[None]
 
     fn = compiler.jit(many)
     start = time.perf_counter()
@@ -89,6 +94,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rev-solver", default="nullspace", help="solver of REV (commits before 10bfa6f have no 'branch')")
     ap.add_argument("--jacobians", default=None, help="SimConfig.jacobians of the working tree (closed_form, jacfwd)")
     ap.add_argument("--seconds", type=float, default=1.0, help="simulated seconds per rollout (neuromotor bench's batches: 0.25)")
+    ap.add_argument("--gain-jacobian", action="store_true", help="time jacfwd over (ks, kd) instead of the rollout")
     args = ap.parse_args(argv)
     import jax
     import jax.numpy as jnp
@@ -100,9 +106,10 @@ def main(argv=None) -> int:
         runs = {}
         for name, pkg, solver, jac in (("working tree", "neuromotor", args.solver, args.jacobians),
                                        (args.rev, old_pkg, args.rev_solver, None)):
-            runs[name] = _program(pkg, args.batch, solver, jac, args.seconds)
+            runs[name] = _program(pkg, args.batch, solver, jac, args.seconds, args.gain_jacobian)
         (new, th_new, steps), (old, th_old, _) = runs.values()
-        print(f"max |theta(working tree) - theta({args.rev})|: {float(jnp.max(jnp.abs(th_new - th_old))):.2e} rad")
+        what = "d theta / d(ks, kd)" if args.gain_jacobian else "theta"
+        print(f"max |{what}: working tree - {args.rev}|: {float(jnp.max(jnp.abs(th_new - th_old))):.2e}")
         times = {name: [] for name in runs}
         for _ in range(args.repeats):
             for name, (call, _, _) in runs.items():

@@ -54,7 +54,6 @@ class Schedule:
     anc_at: np.ndarray  # (B, t_max + 1): ancestor of each body at depth t (0 past its own depth)
     valid: np.ndarray  # (B, t_max): slot t - 1 holds a block (t <= depth)
     strict: np.ndarray  # (B, t_max): slot t - 1 is a strict ancestor (t < depth)
-    onto: np.ndarray  # (B, t_max, B): one-hot of each strict ancestor (H x's column sums)
     # children[d - 2] = (index, mask), each (w_{d-1}, c): the children of each level-(d-1) body, as
     # positions in level d (sums over them replace a scatter, which is slow batched)
     children: tuple[tuple[np.ndarray, np.ndarray], ...]
@@ -112,8 +111,7 @@ def _schedule(topo: Topology, unrolled: bool) -> Schedule:
     order = np.zeros(n, np.int64)
     order[np.concatenate(levels)] = np.arange(n - 1)
     strict = (t[None] < depth[:, None]).astype(float)
-    onto = np.eye(n)[anc_at[:, 1:]] * strict[..., None]
-    return Schedule(t_max, levels, anc_at, (t[None] <= depth[:, None]).astype(float), strict, onto, children,
+    return Schedule(t_max, levels, anc_at, (t[None] <= depth[:, None]).astype(float), strict, children,
                     parent_pos, order, unrolled)
 
 
@@ -128,11 +126,13 @@ def _take(sch: Schedule, x, idx):
 
 
 class Paths(eqx.Module):
-    """Each non-root body's row and column blocks of H against its ancestors and itself, slot
-    ``t - 1`` for the ancestor at depth t (the diagonal at the body's own depth; zero beyond)."""
+    """Per tree level (depth d = 1..t_max, entry d - 1), each of its bodies' row and column
+    blocks of H against its ancestors: ``row[d - 1][i, t - 1] = H[k, anc_t(k)]`` for t = 1..d
+    (the diagonal last) and ``col[d - 1][i, t - 1] = H[anc_t(k), k]`` for the strict ancestors
+    (t < d), k the i-th body of the level. Built level by level, so no slot is padding."""
 
-    row: Float[Array, "B T 3 3"]  # H[k, anc_t(k)]
-    col: Float[Array, "B T 3 3"]  # H[anc_t(k), k] (the diagonal slot is unused)
+    row: tuple[Float[Array, "w d 3 3"], ...]
+    col: tuple[Float[Array, "w d-1 3 3"], ...]
 
 
 def _times_skew(a: Float[Array, "... 3"], p: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
@@ -141,25 +141,51 @@ def _times_skew(a: Float[Array, "... 3"], p: Float[Array, "... 3"]) -> Float[Arr
     return p[..., :, None] * a[..., None, :] - dot(a, p)[..., None, None] * eye
 
 
-def inertia_paths(sch: Schedule, c_blocks: Float[Array, "B 3 3"], first: Float[Array, "B 3"],
-                  pivot: Float[Array, "B 3"]) -> Paths:
-    """Paths of ``S^T M S`` (symmetric): ``H_kl = C_k + [a_k]x [p_l]x`` (module docstring)."""
-    p_anc = _take(sch, pivot, sch.anc_at[:, 1:])  # (B, T, 3)
-    row = jnp.asarray(sch.valid, pivot.dtype)[..., None, None] * (c_blocks[:, None] + _times_skew(first[:, None], p_anc))
-    return Paths(row, jnp.swapaxes(row, -1, -2))
+def _level_paths(sch: Schedule, c_blocks, first, pivot, stiff) -> Paths:
+    """:func:`paths_of` level by level: each level's blocks in one loop over its own slots."""
+    rows, cols = [], []
+    for d, lv in enumerate(sch.levels, 1):
+        at = lambda x: _take(sch, x, lv)[:, None]
+        row = at(c_blocks) + _times_skew(at(first), _take(sch, pivot, sch.anc_at[lv, 1:d + 1]))
+        col = jnp.swapaxes(row[:, :-1], -1, -2)
+        if stiff is not None:
+            inner, up, down = map(at, stiff)
+            row = row - inner - jnp.asarray(np.arange(d) < d - 1, up.dtype)[:, None, None] * up
+            col = col - inner - down
+        rows.append(row), cols.append(col)
+    return Paths(tuple(rows), tuple(cols))
 
 
-def stiffness_paths(sch: Schedule, inner: Float[Array, "B 3 3"], up: Float[Array, "B 3 3"],
-                    down: Float[Array, "B 3 3"]) -> Paths:
-    """Paths of ``S^T G S`` from the subtree sums ``inner`` and the parent couplings (zero rows
-    for the root)."""
-    valid = jnp.asarray(sch.valid, inner.dtype)[..., None, None]
-    strict = jnp.asarray(sch.strict, inner.dtype)[..., None, None]
-    return Paths(valid * inner[:, None] + strict * up[:, None], valid * inner[:, None] + strict * down[:, None])
+def _body_paths(sch: Schedule, c_blocks, first, pivot, stiff) -> Paths:
+    """:func:`paths_of` over every body and slot at once (padded), then split by level: fewer
+    kernels, the form for one trajectory."""
+    valid = jnp.asarray(sch.valid, pivot.dtype)[..., None, None]
+    row = valid * (c_blocks[:, None] + _times_skew(first[:, None], _take(sch, pivot, sch.anc_at[:, 1:])))
+    col = jnp.swapaxes(row, -1, -2)
+    if stiff is not None:
+        inner, up, down = stiff
+        strict = jnp.asarray(sch.strict, pivot.dtype)[..., None, None]
+        row = row - valid * inner[:, None] - strict * up[:, None]
+        col = col - valid * inner[:, None] - strict * down[:, None]
+    return of_bodies(sch, row, col)
 
 
-def subtract(a: Paths, b: Paths) -> Paths:
-    return Paths(a.row - b.row, a.col - b.col)
+def paths_of(sch: Schedule, c_blocks: Float[Array, "B 3 3"], first: Float[Array, "B 3"], pivot: Float[Array, "B 3"],
+             stiff: tuple | None = None) -> Paths:
+    """Paths of ``S^T M S`` (``H_kl = C_k + [a_k]x [p_l]x``, symmetric), minus those of
+    ``S^T G S`` when ``stiff = (inner, up, down)``: G's blocks summed within each subtree and its
+    body/parent couplings (zero rows for the root), ``inner_k + up_k`` in the row of a strict
+    ancestor, ``inner_k + down_k`` in its column, ``inner_k`` on the diagonal (module docstring).
+    Built level by level in the batched form (no padded slot is computed or moved), over all
+    bodies at once otherwise."""
+    return (_level_paths if sch.unrolled else _body_paths)(sch, c_blocks, first, pivot, stiff)
+
+
+def of_bodies(sch: Schedule, row: Float[Array, "B T 3 3"], col: Float[Array, "B T 3 3"]) -> Paths:
+    """Paths from per-body arrays, slot ``t - 1`` for the ancestor at depth t (one take of each
+    into level order, then slices)."""
+    cut = lambda x, extra: tuple(a[:, :d + extra] for d, a in enumerate(_by_level(sch, x), 1))
+    return Paths(cut(row, 0), cut(col, -1))
 
 
 class Factor(eqx.Module):
@@ -192,8 +218,7 @@ def factor(sch: Schedule, paths: Paths) -> Factor:
     and column is applied there and the rest (pairs of strict ancestors of the parent) is carried
     up with the parent's own updates, so a level costs one sum over children, not one per
     ancestor level."""
-    rows = [r[:, :t] for t, r in enumerate(_by_level(sch, paths.row), 1)]
-    cols = [c[:, : t - 1] for t, c in enumerate(_by_level(sch, paths.col), 1)]
+    rows, cols = list(paths.row), list(paths.col)
     pinv, xs, used = [], [], []
     carry = None  # updates (w_d, d - 1, d - 1, 3, 3) for the pairs of strict ancestors of level d
     for d in range(sch.t_max, 0, -1):
@@ -258,20 +283,21 @@ def pivot_blocks(m_sub, s_sub, j_sub, pivot):
 
 
 def matvec(sch: Schedule, paths: Paths, x: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
-    """H x from the paths (root row 0): each body's row against its ancestors and itself, plus
-    the columns of its strict descendants."""
-    x_anc = _take(sch, x, sch.anc_at[:, 1:])  # (B, T, 3): x at each ancestor slot
-    own = jnp.sum(mv(paths.row, x_anc), 1)
-    below = jnp.einsum("jsa,jsi->ai", jnp.asarray(sch.onto, x.dtype), mv(paths.col, x[:, None]))
-    return (own + below) * jnp.asarray(np.arange(len(sch.order)) > 0, x.dtype)[:, None]
+    """H x from the paths (root row 0): every stored block times x at its column's body, summed
+    into its row's body (one product over all blocks, one sum by a 0/1 matrix)."""
+    per_level = list(enumerate(sch.levels, 1))
+    src = np.concatenate([sch.anc_at[lv, 1:d + 1].ravel() for d, lv in per_level]  # row blocks H[k, anc]
+                         + [np.repeat(lv, d - 1) for d, lv in per_level])  # column blocks H[anc, k]
+    dst = np.concatenate([np.repeat(lv, d) for d, lv in per_level] + [sch.anc_at[lv, 1:d].ravel() for d, lv in per_level])
+    blocks = jnp.concatenate([b.reshape(-1, 3, 3) for b in (*paths.row, *paths.col)])
+    return jnp.tensordot(jnp.asarray(np.eye(len(sch.order))[dst].T, x.dtype), mv(blocks, _take(sch, x, src)), axes=1)
 
 
 def transposed(sch: Schedule, paths: Paths) -> Paths:
     """The paths of H^T: a body's row against its strict ancestors is its column transposed."""
     swap = lambda a: jnp.swapaxes(a, -1, -2)
-    strict = jnp.asarray(sch.strict, paths.row.dtype)[..., None, None]
-    diag = jnp.asarray(sch.valid - sch.strict, paths.row.dtype)[..., None, None]
-    return Paths(strict * swap(paths.col) + diag * swap(paths.row), swap(paths.row))
+    return Paths(tuple(jnp.concatenate([swap(c), swap(r[:, -1:])], 1) for r, c in zip(paths.row, paths.col)),
+                 tuple(swap(r[:, :-1]) for r in paths.row))
 
 
 def linear_solve(sch: Schedule, paths: Paths, fac: Factor, rhs: Float[Array, "B 3"],

@@ -317,8 +317,7 @@ def reduce_tree(st: Structure, geo: Geometry, mass, inertia_world, g_diag, g_up,
     sch = st.tree
     c_blocks, first = _moments(st, geo, mass, inertia_world)
     inner, up, down = _stiff_subtrees(st, g_diag, g_up, g_down)
-    paths = branch.subtract(branch.inertia_paths(sch, c_blocks, first, geo.pivot),
-                            branch.stiffness_paths(sch, inner, up, down))
+    paths = branch.paths_of(sch, c_blocks, first, geo.pivot, (inner, up, down))
     return Reduced(paths, branch.factor(sch, jax.lax.stop_gradient(paths)), c_blocks - inner - up, first)
 
 
@@ -396,7 +395,7 @@ def projection_metric(st: Structure, geo: Geometry, mass, inertia_world, tree: b
     the structure allows, else the free block by a dense Cholesky."""
     if tree and st.by_tree:
         c_blocks, first = _moments(st, geo, mass, inertia_world)
-        paths = branch.inertia_paths(st.tree, c_blocks, first, geo.pivot)
+        paths = branch.paths_of(st.tree, c_blocks, first, geo.pivot)
         return Metric(paths, branch.factor(st.tree, jax.lax.stop_gradient(paths)))
     if st.free_root or st.driven:
         h_free = _free_block(st, reduced_inertia(st, geo, mass, inertia_world))
