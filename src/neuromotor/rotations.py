@@ -228,35 +228,27 @@ def quat_turn(q: Float[Array, "... 4"], w: Float[Array, "... 3"]) -> Float[Array
     return quat_normalize(quat_mul(quat_exp(w), q))
 
 
-def quat_log_cot(q: Float[Array, "... 4"]) -> tuple[Float[Array, "... 3"], Float[Array, "..."]]:
-    """:func:`quat_log` and ``cot(|e| / 2)`` of the same rotation, ``w / |v|`` of the quaternion
-    with ``w >= 0`` (for :func:`right_jacobian_inv` without a cosine and a sine)."""
+def quat_log(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
+    """Rotation vector of a unit quaternion (shortest rotation: q and -q give the same)."""
     q = jnp.where(q[..., :1] < 0, -q, q)
     w, v = q[..., 0], q[..., 1:]
     s2 = dot(v, v)
     s = jnp.sqrt(jnp.where(s2 > 1e-24, s2, 1.0))
     angle = 2.0 * jnp.arctan2(s, w)
     scale = jnp.where(s2 > 1e-24, angle / s, 2.0 / w)
-    return scale[..., None] * v, w / s
+    return scale[..., None] * v
 
 
-def quat_log(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
-    """Rotation vector of a unit quaternion (shortest rotation: q and -q give the same)."""
-    return quat_log_cot(q)[0]
-
-
-def right_jacobian_inv(e: Float[Array, "... 3"], cot_half: Float[Array, "..."] | None = None) -> Float[Array, "... 3 3"]:
+def right_jacobian_inv(e: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
     """Inverse right Jacobian of SO(3) at the rotation vector e (|e| <= pi):
     ``log(exp(e) exp(d)) = e + Jr^-1(e) d + O(d^2)``, ``Jr^-1 = 1 + [e]x / 2 + beta [e]x^2`` with
-    ``beta = 1/|e|^2 - cot(|e|/2) / (2 |e|)`` (its series below |e| = 1e-2: smooth at 0).
-    ``cot_half``: ``cot(|e|/2)`` where the caller has it (:func:`quat_log_cot`)."""
+    ``beta = 1/|e|^2 - cot(|e|/2) / (2 |e|)`` (its series below |e| = 1e-2: smooth at 0)."""
     t2 = dot(e, e)
     small = t2 < 1e-4
     t = jnp.sqrt(jnp.where(small, 1.0, t2))
-    if cot_half is None:
-        cot_half = jnp.cos(0.5 * t) / jnp.sin(0.5 * t)
+    half = 0.5 * t
     beta = jnp.where(small, 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
-                     1.0 / jnp.where(small, 1.0, t2) - jnp.where(small, 0.0, cot_half) / (2.0 * t))
+                     1.0 / jnp.where(small, 1.0, t2) - jnp.cos(half) / (2.0 * t * jnp.sin(half)))
     k = skew(e)
     eye = jnp.eye(3, dtype=e.dtype)
     return eye + 0.5 * k + beta[..., None, None] * mm(k, k)

@@ -54,7 +54,7 @@ from neuromotor.model.skeleton import Model
 from neuromotor.physics.reflex import Reflex, reflex_multipliers
 from neuromotor.physics.system import dof_axes, dofs_to_per_joint, per_joint_to_dofs, solve3, world_inertia
 from neuromotor.rotations import (AXIS, axis_rotation, euler_axes, inv3, matrix_to_quat, mm, mmt, mtv, mv, quat_conj, quat_log,
-                                  quat_log_cot, quat_mul, quat_to_matrix)
+                                  quat_mul, quat_to_matrix)
 
 DEFAULT_KS = 400.0  # 1/s^2: natural frequency 20 rad/s (3.2 Hz) at typical load
 DEFAULT_KD = 20.0  # 1/s: damping ratio 0.5
@@ -304,13 +304,12 @@ def joint_affine(gains: Gains, inp: ControllerInputs) -> JointAffine:
 
 
 def affine_torque(aff: JointAffine, q_p, q_c, w_p, w_c, inp: ControllerInputs):
-    """``(T, R_p, e, cot(|e|/2))``: the torque of :class:`JointAffine` from quaternions, with the
-    parent's rotation and the world rotation error ``e = log(q_p q_d q_c^-1)`` that its
-    derivatives use (:func:`~neuromotor.rotations.quat_log_cot`)."""
+    """``(T, R_p, e)``: the torque of :class:`JointAffine` from quaternions, with the parent's
+    rotation and the world rotation error ``e = log(q_p q_d q_c^-1)`` that its derivatives use."""
     r_p = quat_to_matrix(q_p)
-    e_world, cot_half = quat_log_cot(quat_mul(quat_mul(q_p, inp.rel_quat), quat_conj(q_c)))
+    e_world = quat_log(quat_mul(quat_mul(q_p, inp.rel_quat), quat_conj(q_c)))
     y = aff.t0 + mv(aff.ks, mtv(r_p, e_world)) + mv(aff.kd, inp.rel_omega - mtv(r_p, w_c - w_p))
-    return mv(r_p, y), r_p, e_world, cot_half
+    return mv(r_p, y), r_p, e_world
 
 
 def joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inp: ControllerInputs):
@@ -322,7 +321,7 @@ def joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inp: ControllerInputs):
     Returns the torque and ``d torque / d w_c`` (= -d torque / d w_p) ``= -R_p Kd R_p^T``.
     """
     aff = joint_affine(gains, inp)
-    torque, r_p, *_ = affine_torque(aff, q_p, q_c, w_p, w_c, inp)
+    torque, r_p, _ = affine_torque(aff, q_p, q_c, w_p, w_c, inp)
     return torque, -mm(r_p, mmt(aff.kd, r_p))
 
 

@@ -167,11 +167,11 @@ def joint_blocks(model: Model, gains: Gains, inputs: ControllerInputs, quat, ome
     topo = model.topology
     c, p = topo.child, topo.parent
     aff = joint_affine(gains, inputs)
-    torque, r_p, e, cot_half = affine_torque(aff, quat[p], quat[c], omega[p], omega[c], inputs)
+    torque, r_p, e = affine_torque(aff, quat[p], quat[c], omega[p], omega[c], inputs)
     w = omega[c] - omega[p]
     world = lambda k: mm(r_p, mmt(k, r_p))
     ks_w, kd_w = world(aff.ks), world(aff.kd)
-    d_child = -mm(ks_w, right_jacobian_inv(e, cot_half))
+    d_child = -mm(ks_w, right_jacobian_inv(e))
     d_parent = -skew(torque) - d_child - mm(kd_w, skew(w))
     return torque, jnp.concatenate([d_parent, d_child, -kd_w], -1)
 
