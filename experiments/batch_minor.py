@@ -60,7 +60,7 @@ def main(argv=None) -> int:
     c_blocks = jnp.einsum("nbij,nbkj->nbik", a, a)
     first, pivot = 0.1 * jax.random.normal(k2, (n, b, 3)), 0.1 * jax.random.normal(k3, (n, b, 3))
     rhs = jax.random.normal(k4, (n, b, 3))
-    paths = jax.vmap(lambda c, f, p: branch.inertia_paths(sch, c, f, p))(c_blocks, first, pivot)
+    paths = jax.vmap(lambda c, f, p: branch.paths_of(sch, c, f, p))(c_blocks, first, pivot)
     to_minor = lambda tree: jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, -1), tree)
     build = lambda f, *x: compiler.jit(f).lower(*x).compile()
 

@@ -9,9 +9,9 @@ into a temporary folder as the package ``neuromotor_at_rev``, compiles the defau
 both versions on the embedded clip (one trajectory, or ``--batch N`` pulse magnitudes under
 ``vmap``), checks that they compute the same joint angles, and times the two alternately
 (``--gain-jacobian``: ``jax.jacfwd`` of the joint angles over (ks, kd) instead, as in
-``neuromotor bench``); the best of each is printed, in microseconds per trajectory-step, and the speedup both as the ratio
-of the bests and as the median of the rounds' ratios (the steadier of the two when the host
-drifts within the run).
+``neuromotor bench``). The best of each is printed, in microseconds per trajectory-step, and the
+speedup both as the ratio of the bests and as the median of the rounds' ratios (the steadier of
+the two when the host drifts within the run).
 """
 
 import argparse

@@ -129,7 +129,7 @@ class Paths(eqx.Module):
     """Per tree level (depth d = 1..t_max, entry d - 1), each of its bodies' row and column
     blocks of H against its ancestors: ``row[d - 1][i, t - 1] = H[k, anc_t(k)]`` for t = 1..d
     (the diagonal last) and ``col[d - 1][i, t - 1] = H[anc_t(k), k]`` for the strict ancestors
-    (t < d), k the i-th body of the level. Built level by level, so no slot is padding."""
+    (t < d), k the i-th body of the level. Stored level by level, so no slot is padding."""
 
     row: tuple[Float[Array, "w d 3 3"], ...]
     col: tuple[Float[Array, "w d-1 3 3"], ...]
