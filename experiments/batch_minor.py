@@ -12,7 +12,7 @@ matrix axes in front of the batch axis. Both layouts give the same numbers to th
 
 * ``factor`` alone, and ``solve`` alone, each with its inputs already in its layout;
 * the moves between the layouts that a batch-minor solver inside a batch-first step would pay:
-  the paths (two (B, T, 3, 3) arrays per trajectory) and a right-hand side (B, 3) in and out.
+  the paths (row and column blocks of every tree level) and a right-hand side (B, 3) in and out.
 """
 
 import argparse
