@@ -1,7 +1,7 @@
 """Speed of the working tree against an earlier commit, timed in alternation in one process.
 
     .venv/bin/python experiments/bench_commits.py REV [--batch 1] [--repeats 15] [--solver branch] [--rev-solver branch]
-        [--jacobians jacfwd] [--seconds 1.0] [--gain-jacobian]
+        [--jacobians jacfwd] [--seconds 1.0] [--gain-jacobian] [--rates]
 
 The host's speed drifts by 2x between runs minutes apart, so two separate benchmark runs cannot
 resolve a 10 % change. This script extracts ``src/neuromotor`` of commit REV (``git archive``)
@@ -9,9 +9,10 @@ into a temporary folder as the package ``neuromotor_at_rev``, compiles the defau
 both versions on the embedded clip (one trajectory, or ``--batch N`` pulse magnitudes under
 ``vmap``), checks that they compute the same joint angles, and times the two alternately
 (``--gain-jacobian``: ``jax.jacfwd`` of the joint angles over (ks, kd) instead, as in
-``neuromotor bench``). The best of each is printed, in microseconds per trajectory-step, and the
-speedup both as the ratio of the bests and as the median of the rounds' ratios (the steadier of
-the two when the host drifts within the run).
+``neuromotor bench``; ``--rates``: the joint rates theta_dot returned beside the angles, as
+sweeps that write them and the acceleration targets of ``fit`` use them). The best of each is
+printed, in microseconds per trajectory-step, and the speedup both as the ratio of the bests and
+as the median of the rounds' ratios (the steadier of the two when the host drifts within the run).
 """
 
 import argparse
@@ -56,7 +57,7 @@ def _module(pkg: str, *names: str):
 
 
 def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | None = None, seconds: float = 1.0,
-             gain_jacobian: bool = False):
+             gain_jacobian: bool = False, rates: bool = False):
     """(zero-argument compiled call, its joint angles, trajectory-steps per call)."""
     import equinox as eqx
     import jax
@@ -73,7 +74,9 @@ def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | N
     set_gains = _module(pkg, "studies.gains").set_gains
 
     def many(scales, g, ref):
-        one = lambda s, g: dy.rollout(m, g, eqx.tree_at(lambda q: q.magnitude, p, p.magnitude * s), ref, cfg).theta
+        def one(s, g):
+            run = dy.rollout(m, g, eqx.tree_at(lambda q: q.magnitude, p, p.magnitude * s), ref, cfg)
+            return jnp.concatenate([run.theta, run.theta_dot], -1) if rates else run.theta
         if gain_jacobian:
             one = lambda s, g, one=one: jax.jacfwd(lambda x: one(s, set_gains(g, x[0], x[1])))(jnp.stack([g.ks, g.kd]))
         return jax.vmap(one, (0, None))(scales, g) if batch > 1 else one(scales[0], g)[None]
@@ -95,6 +98,7 @@ def main(argv=None) -> int:
     ap.add_argument("--jacobians", default=None, help="SimConfig.jacobians of the working tree (closed_form, jacfwd)")
     ap.add_argument("--seconds", type=float, default=1.0, help="simulated seconds per rollout (neuromotor bench's batches: 0.25)")
     ap.add_argument("--gain-jacobian", action="store_true", help="time jacfwd over (ks, kd) instead of the rollout")
+    ap.add_argument("--rates", action="store_true", help="return the joint rates beside the angles")
     args = ap.parse_args(argv)
     import jax
     import jax.numpy as jnp
@@ -106,9 +110,10 @@ def main(argv=None) -> int:
         runs = {}
         for name, pkg, solver, jac in (("working tree", "neuromotor", args.solver, args.jacobians),
                                        (args.rev, old_pkg, args.rev_solver, None)):
-            runs[name] = _program(pkg, args.batch, solver, jac, args.seconds, args.gain_jacobian)
+            runs[name] = _program(pkg, args.batch, solver, jac, args.seconds, args.gain_jacobian, args.rates)
         (new, th_new, steps), (old, th_old, _) = runs.values()
-        what = "d theta / d(ks, kd)" if args.gain_jacobian else "theta"
+        what = ("theta, theta_dot" if args.rates else "theta")
+        what = f"d({what}) / d(ks, kd)" if args.gain_jacobian else what
         print(f"max |{what}: working tree - {args.rev}|: {float(jnp.max(jnp.abs(th_new - th_old))):.2e}")
         times = {name: [] for name in runs}
         for _ in range(args.repeats):

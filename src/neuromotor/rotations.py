@@ -57,6 +57,55 @@ def euler_to_matrix(angles: Float[Array, "... 3"], order: str) -> Float[Array, "
     return mm(r, axis_rotation(AXIS[order[2]], angles[..., 2]))
 
 
+def _euler_parts(entry, order: str, reference: Float[Array, "... 3"] | None):
+    """Euler angles of the matrix whose entry (a, b) is ``entry(a, b)``, component by component
+    (see :func:`matrix_to_euler`): ``((t1, t2, t3), (cos t1, sin t1, cos t2, sin t2))``, the
+    cosines and sines read from the matrix, not from the angles."""
+    i, j, k = (AXIS[a] for a in order)
+    s = order_parity(order)
+    r_ik, r_jk, r_kk = entry(i, k), entry(j, k), entry(k, k)
+    # cos t2 of the first solution. Not jnp.hypot: its tangent, fused with the quaternion entries
+    # of euler_angles_and_rates, came out wrong from XLA:CPU at -O0 without fusion emitters (the
+    # tests' compile flags); a square root of a masked sum is the same value here (entries <= 1).
+    h2 = r_jk * r_jk + r_kk * r_kk
+    hyp = jnp.where(h2 > 0, jnp.sqrt(jnp.where(h2 > 0, h2, 1.0)), 0.0)
+    # atan2 rather than arcsin: near lock sin(t2) rounds to 1 but cos(t2) is still resolved.
+    a = jnp.arctan2(-s * r_jk, r_kk)
+    b = jnp.arctan2(s * r_ik, hyp)
+    c = jnp.arctan2(-s * entry(i, j), entry(i, i))
+    safe = jnp.where(hyp > 0, hyp, 1.0)
+    cos1, sin1, cos2, sin2 = r_kk / safe, -s * r_jk / safe, hyp, s * r_ik
+    if reference is None:
+        return (a, b, c), (cos1, sin1, cos2, sin2)
+    ref1, ref2, ref3 = reference[..., 0], reference[..., 1], reference[..., 2]
+    near = lambda x, r: r + wrap_angle(x - r)
+    # Of (t1, t2, t3) and (t1 + pi, pi - t2, t3 + pi), the one nearest the reference.
+    a1, b1, c1 = near(a, ref1), near(b, ref2), near(c, ref3)
+    a2, b2, c2 = near(a + jnp.pi, ref1), near(jnp.pi - b, ref2), near(c + jnp.pi, ref3)
+    first = ((a1 - ref1) ** 2 + (b1 - ref2) ** 2 + (c1 - ref3) ** 2
+             <= (a2 - ref1) ** 2 + (b2 - ref2) ** 2 + (c2 - ref3) ** 2)
+    t1, t2, t3 = jnp.where(first, a1, a2), jnp.where(first, b1, b2), jnp.where(first, c1, c2)
+    cos1, sin1, cos2 = jnp.where(first, cos1, -cos1), jnp.where(first, sin1, -sin1), jnp.where(first, cos2, -cos2)
+    # Gimbal lock: R depends on t1 + s' t3 only; keep t1 at the reference, and read t3 from
+    # column k1 of R_k(t3) = R_a2(t2)^T R_a1(t1)^T R (a vector orthogonal to axis k).
+    locked = jnp.abs(cos2) < 1e-7
+    cr, sr = jnp.cos(ref1), jnp.sin(ref1)
+    k1, k2 = (k + 1) % 3, (k + 2) % 3
+    col = _unrotate(j, cos2, sin2, _unrotate(i, cr, sr, [entry(0, k1), entry(1, k1), entry(2, k1)]))
+    t3_locked = near(jnp.arctan2(col[k2], col[k1]), ref3)
+    return ((jnp.where(locked, ref1, t1), t2, jnp.where(locked, t3_locked, t3)),
+            (jnp.where(locked, cr, cos1), jnp.where(locked, sr, sin1), cos2, sin2))
+
+
+def _unrotate(axis: int, c, s, v: list) -> list:
+    """The components of ``R^T v``, R the rotation about coordinate ``axis`` with cosine c and sine s."""
+    p, q = (axis + 1) % 3, (axis + 2) % 3
+    out = list(v)
+    out[p] = c * v[p] + s * v[q]
+    out[q] = c * v[q] - s * v[p]
+    return out
+
+
 def matrix_to_euler(
     r: Float[Array, "... 3 3"], order: str, reference: Float[Array, "... 3"] | None = None
 ) -> Float[Array, "... 3"]:
@@ -68,32 +117,25 @@ def matrix_to_euler(
     unwrapped ones. Near gimbal lock (|cos t2| < 1e-7) only t1 + s t3 is determined; t1 is
     then taken from the reference so the result stays continuous.
     """
+    angles, _ = _euler_parts(lambda a, b: r[..., a, b], order, reference)
+    return jnp.stack(angles, -1)
+
+
+def euler_angles_and_rates(entry, w: Float[Array, "... 3"], order: str,
+                           reference: Float[Array, "... 3"] | None = None):
+    """The Euler angles of :func:`matrix_to_euler`, of the matrix R whose entry (a, b) is
+    ``entry(a, b)``, and their rates for ``w``, the angular velocity in the frame R maps into.
+
+    ``w = t1' e_a1 + t2' R_a1 e_a2 + t3' R_a1 R_a2 e_a3``; turned back by ``R_a1(t1)`` it reads
+    ``u = t1' e_a1 + t2' e_a2 + t3' (cos t2 e_a3 + s sin t2 e_a1)`` (s: the order's parity), so
+    the rates need no 3x3 solve, and the cosines and sines come from R itself. Singular at
+    gimbal lock, like the Euler axes. Returns ``(angles (..., 3), rates (..., 3))``.
+    """
+    angles, (cos1, sin1, cos2, sin2) = _euler_parts(entry, order, reference)
     i, j, k = (AXIS[a] for a in order)
-    s = order_parity(order)
-    # atan2 rather than arcsin: near lock sin(t2) rounds to 1 but cos(t2) is still resolved.
-    b = jnp.arctan2(s * r[..., i, k], jnp.hypot(r[..., j, k], r[..., k, k]))
-    a = jnp.arctan2(-s * r[..., j, k], r[..., k, k])
-    c = jnp.arctan2(-s * r[..., i, j], r[..., i, i])
-    sol1 = jnp.stack([a, b, c], -1)
-    if reference is None:
-        return sol1
-    sol2 = jnp.stack([a + jnp.pi, jnp.pi - b, c + jnp.pi], -1)
-    sol1 = reference + wrap_angle(sol1 - reference)
-    sol2 = reference + wrap_angle(sol2 - reference)
-    d1 = jnp.sum((sol1 - reference) ** 2, -1, keepdims=True)
-    d2 = jnp.sum((sol2 - reference) ** 2, -1, keepdims=True)
-    sol = jnp.where(d1 <= d2, sol1, sol2)
-    # Gimbal lock: R depends on t1 + s' t3 only; keep t1 at the reference.
-    locked = jnp.abs(jnp.cos(sol[..., 1])) < 1e-7
-    r_a = axis_rotation(i, reference[..., 0])
-    r_b = axis_rotation(j, sol[..., 1])
-    rest = mm(jnp.swapaxes(r_b, -1, -2), mm(jnp.swapaxes(r_a, -1, -2), r))
-    # rest = R_k(t3): read t3 from the rows/cols orthogonal to axis k.
-    k1, k2 = (k + 1) % 3, (k + 2) % 3
-    c_locked = jnp.arctan2(rest[..., k2, k1], rest[..., k1, k1])
-    c_locked = reference[..., 2] + wrap_angle(c_locked - reference[..., 2])
-    locked_sol = jnp.stack([reference[..., 0], sol[..., 1], c_locked], -1)
-    return jnp.where(locked[..., None], locked_sol, sol)
+    u = _unrotate(i, cos1, sin1, [w[..., 0], w[..., 1], w[..., 2]])
+    t3 = u[k] / cos2
+    return jnp.stack(angles, -1), jnp.stack([u[i] - order_parity(order) * sin2 * t3, u[j], t3], -1)
 
 
 def wrap_angle(x: Float[Array, "..."]) -> Float[Array, "..."]:
@@ -178,15 +220,8 @@ def quat_normalize(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
 
 
 def quat_to_matrix(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return jnp.stack(
-        [
-            jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+    entry = quat_entries(q)
+    return jnp.stack([jnp.stack([entry(a, b) for b in range(3)], -1) for a in range(3)], -2)
 
 
 def matrix_to_quat(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4"]:
@@ -210,6 +245,22 @@ def matrix_to_quat(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4"]:
     q = jnp.take_along_axis(cands, best[..., None, None], -2)[..., 0, :]
     q = quat_normalize(q)
     return jnp.where(q[..., :1] < 0, -q, q)  # (a select of +-q, not of +-1.0: no float64 constant in float32)
+
+
+def quat_rotate(q: Float[Array, "... 4"], v: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """``quat_to_matrix(q) v`` for a unit q, without the matrix: ``v + w t + u x t``, ``t = 2 u x v``."""
+    u = q[..., 1:]
+    t = 2.0 * cross(u, v)
+    return v + q[..., :1] * t + cross(u, t)
+
+
+def quat_entries(q: Float[Array, "... 4"]):
+    """``entry(a, b)``: the entry (a, b) of ``quat_to_matrix(q)`` alone (a component array)."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = ((lambda: 1 - 2 * (y * y + z * z), lambda: 2 * (x * y - w * z), lambda: 2 * (x * z + w * y)),
+            (lambda: 2 * (x * y + w * z), lambda: 1 - 2 * (x * x + z * z), lambda: 2 * (y * z - w * x)),
+            (lambda: 2 * (x * z - w * y), lambda: 2 * (y * z + w * x), lambda: 1 - 2 * (x * x + y * y)))
+    return lambda a, b: rows[a][b]()
 
 
 def quat_exp(w: Float[Array, "... 3"]) -> Float[Array, "... 4"]:

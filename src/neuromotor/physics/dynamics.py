@@ -60,7 +60,7 @@ from neuromotor.physics.solvers import Solver
 from neuromotor.physics.precision import Precision, cast
 from neuromotor.physics.stiffness import (DenseStiffness, Jacobians, StiffBlocks, explicit_forces, stiff_blocks,
                                           stiff_jacobians)
-from neuromotor.physics.system import (State, dof_axes, gravity_forces, joint_angles, joint_rates, mass_times,
+from neuromotor.physics.system import (State, gravity_forces, joint_angles_and_rates, joint_rates, mass_times,
                                        retract, world_inertia)
 from neuromotor.rotations import matrix_to_quat, mm
 
@@ -362,10 +362,7 @@ def badness(state: State, max_speed: float) -> Float[Array, " B"]:
 
 def observe(model: Model, state: State, ref: Reference, k):
     """Simulated joint angles (on the branch nearest the mocap's) and rates of a state."""
-    rot = state.rot
-    theta = joint_angles(model, rot, reference=ref.theta[k])
-    axes = dof_axes(model, rot, theta)
-    return theta, joint_rates(model, axes, state.omega)
+    return joint_angles_and_rates(model, state.quat, state.omega, reference=ref.theta[k])
 
 
 def hold(last, new, bad):

@@ -20,17 +20,22 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from neuromotor.rotations import (
+    euler_angles_and_rates,
     euler_axes,
-    matrix_to_euler,
     mm,
     mmt,
     mv,
+    quat_conj,
+    quat_entries,
+    quat_mul,
+    quat_rotate,
     quat_to_matrix,
     quat_turn,
     rotation_error,
     skew,
 )
 from neuromotor.model.skeleton import Model
+from neuromotor.physics import static
 
 
 def per_joint_to_dofs(model: Model, values: Float[Array, "C 3 ..."]) -> Float[Array, "n ..."]:
@@ -162,25 +167,30 @@ def constraint_error(model: Model, pos, rot, root_origin, root_rot) -> Float[Arr
     return jnp.concatenate([err_root_pos, err_root_rot, gaps.reshape(-1)])
 
 
-def relative_rotations(model: Model, rot) -> Float[Array, "B 3 3"]:
-    """Orientation of each body in its parent's frame (identity for the root)."""
-    parent = model.topology.parent0
-    rel = mm(jnp.swapaxes(rot[parent], -1, -2), rot)
-    return rel.at[0].set(jnp.eye(3, dtype=rot.dtype))
-
-
-def joint_angles(model: Model, rot, reference: Float[Array, " n"] | None = None) -> Float[Array, " n"]:
-    """Simulated DOF angles theta_i from the body orientations (same Euler decomposition as the
-    mocap; with a ``reference`` the branch and 2 pi multiple nearest it)."""
+def joint_angles_and_rates(model: Model, quat, omega, reference: Float[Array, " n"] | None = None):
+    """Simulated DOF angles theta_i (the mocap's Euler decomposition of each body's rotation in
+    its parent's frame; with a ``reference`` the branch and 2 pi multiple nearest it) and their
+    rates theta_dot (what :func:`joint_rates` solves for over :func:`dof_axes`), from body
+    quaternions and angular velocities. Written for observing many states at once: parents by
+    static slices rather than gathers, relative rotations as quaternions, and the rates by
+    :func:`neuromotor.rotations.euler_angles_and_rates` rather than a 3x3 solve per joint."""
     if model.n_bodies < 2:
-        return jnp.zeros((0,), rot.dtype)
-    rel = relative_rotations(model, rot)
+        return jnp.zeros((0,), quat.dtype), jnp.zeros((0,), quat.dtype)
+    topo = model.topology
+    q_p = static.take(quat, topo.parent)
+    rel = quat_mul(quat_conj(q_p), static.take(quat, topo.child))
+    w_rel = quat_rotate(quat_conj(q_p), static.take(omega, topo.child) - static.take(omega, topo.parent))
     ref = None if reference is None else dofs_to_per_joint(model, reference)
-    out = jnp.zeros((model.n_bodies - 1, 3), rot.dtype)
-    for order, bodies, rows in model.topology.groups:  # usually one order per skeleton
-        part = matrix_to_euler(rel[bodies], order, None if ref is None else ref[rows])
-        out = part if len(bodies) == model.n_bodies - 1 else out.at[rows].set(part)
-    return per_joint_to_dofs(model, out)
+    theta, rates = jnp.zeros((2, model.n_bodies - 1, 3), quat.dtype)
+    for order, bodies, rows in topo.groups:  # usually one order per skeleton
+        pick = (lambda x: x) if len(rows) == model.n_bodies - 1 else (lambda x: static.take(x, rows))
+        ang, rate = euler_angles_and_rates(quat_entries(pick(rel)), pick(w_rel), order,
+                                           None if ref is None else pick(ref))
+        if len(rows) == model.n_bodies - 1:
+            theta, rates = ang, rate
+        else:
+            theta, rates = theta.at[rows].set(ang), rates.at[rows].set(rate)
+    return per_joint_to_dofs(model, theta), per_joint_to_dofs(model, rates)
 
 
 def joint_axes(model: Model, rot, angles: Float[Array, " n"]) -> Float[Array, "C 3 3"]:
