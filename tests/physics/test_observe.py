@@ -75,15 +75,15 @@ def _per_joint(model, quat, omega, reference):
 
 
 def test_angles_and_rates_equal_the_per_joint_definitions(models):
-    """With and without a reference branch, on every clip and on rigs whose joints mix rotation
-    orders (several groups in one skeleton)."""
+    """With a reference branch (as rollouts observe) on every clip and on rigs whose joints mix
+    rotation orders (several groups in one skeleton); without one on the first skeleton."""
     mixed = False
-    for model in models:
+    for n, model in enumerate(models):
         mixed |= len(model.topology.groups) > 1
         quat, omega = _random_states(model.n_bodies, 64)
         plain, _ = _per_joint(model, quat, omega, None)
         reference = plain + 0.6 * np.asarray(jax.random.normal(jax.random.PRNGKey(1), plain.shape))
-        for ref in (None, reference):
+        for ref in ((None, reference) if n == 0 else (reference,)):
             want, want_rates = _per_joint(model, quat, omega, ref)
             args = (quat, omega) if ref is None else (quat, omega, ref)
             theta, rates = _observe(model, ref is not None)(*args)
