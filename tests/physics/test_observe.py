@@ -2,29 +2,24 @@
 (:func:`neuromotor.physics.system.joint_angles_and_rates`, :func:`neuromotor.rotations.euler_angles_and_rates`).
 
 Held to the definitions joint by joint (the Euler decomposition of each relative rotation and
-the solve ``sum_i h_i theta_dot_i = w_child - w_parent`` over the Euler axes), to central differences of the angles
-along the motion, and at gimbal lock in every Euler order, on every shipped clip and on
-generated skeletons with mixed rotation orders.
+the solve ``sum_i h_i theta_dot_i = w_child - w_parent`` over the Euler axes), to central
+differences of the angles along the motion, and at gimbal lock in every Euler order, on every
+shipped clip and on generated skeletons with mixed rotation orders.
 """
 
 from __future__ import annotations
-
-import glob
-import os
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conftest import ALL_CLIPS
 from neuromotor.physics import system
-from neuromotor.rotations import (euler_angles_and_rates, euler_axes, euler_to_matrix, matrix_to_euler, quat_entries, quat_exp,
-                                  quat_mul, quat_normalize, quat_to_matrix)
+from neuromotor.rotations import (euler_angles_and_rates, euler_axes, euler_to_matrix, matrix_to_euler, quat_entries,
+                                  quat_exp, quat_mul, quat_normalize, quat_to_matrix)
 from neuromotor.studies.simulate import load_character
 from tests.synthetic_rigs import ORDERS, make_rig
-
-SHARED = os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "mocap")
-CLIPS = sorted(glob.glob(os.path.join(SHARED, "*.bvh")))
 
 
 def _random_states(n_bodies: int, count: int, seed: int = 0):
@@ -37,7 +32,7 @@ def _random_states(n_bodies: int, count: int, seed: int = 0):
 def models(tmp_path_factory):
     """The embedded clip, every shipped clip, and two generated rigs (random Euler orders per joint,
     fingers, six channels on every joint in one)."""
-    out = [load_character(None)[0].model] + [load_character(c)[0].model for c in CLIPS]
+    out = [load_character(None)[0].model] + [load_character(c)[0].model for c in ALL_CLIPS.values()]
     for seed in (2, 5):
         path = tmp_path_factory.mktemp("rigs") / f"rig{seed}.bvh"
         path.write_text(make_rig(seed, frames=40, fingers=True, six_channels=seed == 5).text)
@@ -53,7 +48,7 @@ def _observe(model, with_reference: bool):
 
 
 def test_clips_are_found():
-    assert len(CLIPS) >= 4
+    assert len(ALL_CLIPS) >= 4, "../shared/mocap must be beside the repository"
 
 
 def _per_joint(model, quat, omega, reference):
