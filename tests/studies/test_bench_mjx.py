@@ -61,16 +61,23 @@ def _finite_positive(tree) -> list:
     return bad
 
 
-def test_compare_gives_finite_positive_figures_on_a_tiny_model():
+def test_compare_gives_finite_positive_figures_on_a_tiny_model(monkeypatch):
     """float32 only, to keep the compile cost low: the float64 programs are the same code, and the
-    float64 trajectory is checked against MuJoCo C above."""
+    float64 trajectory is checked against MuJoCo C above. Our batch programs advance a virtual
+    clock by 1000 s a call, so the batch-over-one figure is the arithmetic's, not the host's."""
+    offset, real = [0.0], time.perf_counter
+    monkeypatch.setattr(bench_mjx.time, "perf_counter", lambda: real() + offset[0])
+
+    def virtual_call():
+        offset[0] += 1000.0  # the same time per call: 0.5 of it per trajectory in a batch of 2
+
     mj = mujoco.MjModel.from_xml_string(TINY)
     d0 = mujoco.MjData(mj)
     d0.qpos[7:] = [0.3, -0.2]  # the servos pull towards ctrl = 0
     mujoco.mj_forward(mj, d0)
     work = np.arange(1000.0)
     ours = {name: (lambda: np.sum(work ** 2)) for name in ("rollout", "batch", "jacfwd", "jacfwd_rollout")}
-    ours["batch"] = ours["batch_one"] = lambda: time.sleep(0.004)  # same time per call: 0.5 per trajectory
+    ours["batch"] = ours["batch_one"] = virtual_call
     r = bench_mjx.compare(mj, d0, ours, steps=3, batch=2, batch_steps=2, rounds=2, dtypes=("float32",),
                           compiler_options=FAST)
     f32 = dict(r["float32"])
@@ -81,7 +88,7 @@ def test_compare_gives_finite_positive_figures_on_a_tiny_model():
     assert diff < 1e-4  # the same model as MuJoCo C, to float32's precision
     lines = []
     bench_mjx.log_figures(r, lines.append, {"rollout": 1.0, "batch": 1.0, "jacfwd": 1.0})
-    assert 0.35 < r["ours"]["batch_over_one"] < 0.65  # a batch of 2 in the time of one
+    assert abs(r["ours"]["batch_over_one"] - 0.5) < 1e-3  # a batch of 2 in the time of one
     assert len(lines) == 7 and not any("nan" in line for line in lines)
 
 
