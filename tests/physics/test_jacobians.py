@@ -1,5 +1,5 @@
 """K and D in closed form (physics/stiffness.joint_blocks, gyro_blocks) against jax.jacfwd, the
-SO(3) log-map derivative they use, and the post-stabilization metric reused across Newton steps."""
+SO(3) log-map derivative they use, and post-stabilization's closing Newton step."""
 
 import dataclasses
 
@@ -11,10 +11,13 @@ import pytest
 from conftest import CLIPS
 from neuromotor.config import DEFAULT_HIT, SimulationConfig
 from neuromotor.model.topology import of_tree
+from neuromotor.physics import solvers
+from neuromotor.physics.constraints import closing_step, full_constraint_error
 from neuromotor.physics.dynamics import SimModel, reference_inputs, rollout
 from neuromotor.physics.solvers import nullspace
+from neuromotor.physics.system import retract
 from neuromotor.physics.stiffness import Jacobians, stiff_blocks
-from neuromotor.rotations import quat_exp, quat_log, quat_mul, right_jacobian_inv
+from neuromotor.rotations import quat_exp, quat_log, quat_mul, quat_to_matrix, right_jacobian_inv
 from neuromotor.studies.simulate import load_character, prepare
 
 from test_nullspace import PARENT, _random_tree
@@ -66,30 +69,33 @@ def test_rollout_with_closed_form_blocks_equals_jacfwd_rollout(hit):
     assert float(jnp.abs(run.states.omega - other.states.omega).max()) < 1e-9
 
 
-@pytest.mark.parametrize("tree", [False, True])
-def test_reused_metric_keeps_the_constraint_step_exact(tree):
-    """Post-stabilization factors S^T M S once: at a later iterate the step with the first
-    iterate's metric still satisfies J dx = -C exactly, and differs from the step with a fresh
-    metric in proportion to how far the configuration moved (first order)."""
-    rng, n, mass, inertia, r_parent, r_child, r0 = _random_tree(4)
-    st = nullspace.structure(of_tree(PARENT), unrolled=tree)
-    geo = lambda rp, rc: nullspace.geometry(st, jnp.asarray(rp), jnp.asarray(rc), jnp.asarray(r0))
-    first = nullspace.projection_metric(st, geo(r_parent, r_child), jnp.asarray(mass), jnp.asarray(inertia), tree)
-    nc = 6 + 3 * (n - 1)
-    c = 1e-6 * rng.normal(size=nc)
-    direction = rng.normal(size=r_parent.shape)
-    gaps = []
-    for scale in (1e-4, 1e-5):  # the later iterate: levers turned by about this many radians
-        turn = scale * direction
-        rp2, rc2 = r_parent + np.cross(turn, r_parent), r_child + np.cross(turn, r_child)
-        g2 = geo(rp2, rc2)
-        step = lambda metric: np.asarray(jax.jit(lambda g: nullspace.projection_step(
-            st, g, jnp.asarray(mass), jnp.asarray(inertia), jnp.asarray(c), tree, metric))(g2))
-        fresh, reused = step(None), step(first)
-        for dx in (fresh, reused):  # J dx = -C at the later iterate, whichever metric
-            _, rows = nullspace.kkt_residual(st, g2, jnp.asarray(rp2), jnp.asarray(rc2), jnp.zeros((n, 6)),
-                                             jnp.asarray(dx), jnp.zeros(nc), jnp.asarray(-c), of_tree(PARENT).parent)
-            np.testing.assert_allclose(rows, 0.0, atol=1e-15 * np.abs(c).max())
-        gaps.append(np.abs(reused - fresh).max() / np.abs(fresh).max())
-    assert 0 < gaps[0] < 0.05
-    assert 5 < gaps[0] / gaps[1] < 20  # first order in the configuration change
+@pytest.mark.parametrize("unrolled", [False, True])
+def test_closing_step_closes_what_the_projection_leaves(hit, unrolled):
+    """Post-stabilization's later Newton steps (constraints.closing_step) close the 1e-8-scale
+    error that the linearized projection leaves, to round-off and without a solve, and land within
+    that error's size of where a second projection would."""
+    setup, _ = hit
+    model, cfg, targets = setup.model, setup.sim, setup.ref.pose_targets(0)
+    rng = np.random.default_rng(7)
+    quat = quat_mul(quat_exp(jnp.asarray(1e-4 * rng.normal(size=(model.n_bodies, 3)))), setup.ref.init.quat)
+    pos = setup.ref.init.pos + 1e-4 * rng.normal(size=(model.n_bodies, 3))
+    solver = solvers.get(cfg.solver)
+    err = lambda p, q: np.asarray(full_constraint_error(model, cfg.driven, p, quat_to_matrix(q), targets, cfg.free_root))
+
+    @jax.jit
+    def stages(pos, quat):
+        pos1, quat1 = retract(pos, quat, solver.projection_step(model, cfg, quat_to_matrix(quat), jnp.asarray(err0)))
+        c1 = full_constraint_error(model, cfg.driven, pos1, quat_to_matrix(quat1), targets, cfg.free_root)
+        rot1 = quat_to_matrix(quat1)
+        closed = retract(pos1, quat1, closing_step(model, cfg, rot1, c1, unrolled))
+        projected = retract(pos1, quat1, solver.projection_step(model, cfg, rot1, c1))
+        return (pos1, quat1), closed, projected
+
+    err0 = err(pos, quat)
+    first, closed, projected = stages(pos, quat)
+    left = np.abs(err(*first)).max()
+    assert np.abs(err0).max() > 1e-4 and 1e-12 < left < 1e-6  # the projection leaves a second-order error
+    assert np.abs(err(*closed)).max() < 1e-14 and np.abs(err(*projected)).max() < 1e-12
+    assert 1e-3 * left < np.abs(np.asarray(closed[0]) - np.asarray(first[0])).max() < 10 * left  # it moved
+    assert np.abs(np.asarray(closed[0]) - np.asarray(projected[0])).max() < 10 * left
+    assert np.abs(np.asarray(closed[1]) - np.asarray(projected[1])).max() < 10 * left

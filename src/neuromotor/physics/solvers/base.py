@@ -14,8 +14,7 @@ K and D, r and b -- once; a solver only assembles its own form of the matrix and
   ``(r, b)``, so ``jax.vmap`` over extra right-hand sides (responses to unit contact impulses,
   ``A^-1 [Jc^T; 0]``) reuses one factorization;
 * :meth:`KKTSolver.multipliers` -- lam and the relative residual of the whole of Eq. 2;
-* :meth:`KKTSolver.projection_step` -- one Newton step of post-stabilization (:meth:`KKTSolver.project`:
-  the same, reusing what an earlier Newton step of the same projection factored).
+* :meth:`KKTSolver.projection_step` -- the projection of post-stabilization (its first Newton step).
 
 To add a solver: subclass :class:`KKTSolver` in a module of this package, add a member to
 :class:`Solver` and register the class in ``neuromotor.physics.solvers.SOLVERS``.
@@ -78,12 +77,4 @@ class KKTSolver(abc.ABC):
 
     @abc.abstractmethod
     def projection_step(self, model, cfg, rot, c: Float[Array, " nc"]) -> Float[Array, "B 6"]:
-        """dx of least M-norm with ``J dx = -C``: one Newton step of post-stabilization."""
-
-    def project(self, model, cfg, rot, c: Float[Array, " nc"], reuse: Any = None) -> tuple[Float[Array, "B 6"], Any]:
-        """``(dx, reuse)``: :meth:`projection_step`, and what a later Newton step of the same
-        post-stabilization may reuse (passed back as ``reuse``). A solver may keep the metric
-        factored at the first iterate: J dx = -C holds exactly at every iterate whatever the
-        metric, and the later corrections are too small (1e-8 m after the first) for the metric's
-        change between iterates to show. By default nothing is reused."""
-        return self.projection_step(model, cfg, rot, c), None
+        """dx of least M-norm with ``J dx = -C``: the projection of post-stabilization."""

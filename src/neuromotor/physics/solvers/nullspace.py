@@ -509,15 +509,9 @@ class NullSpaceSolver(KKTSolver):
         return lam, relative_residual(res, rhs_norm)
 
     def projection_step(self, model, cfg, rot, c):
-        return self.project(model, cfg, rot, c)[0]
-
-    def project(self, model, cfg, rot, c, reuse=None):
-        # The metric S^T M S of the first iterate serves the later ones (see KKTSolver.project).
         st = structure(model.topology, cfg.driven, cfg.free_root, self.unrolled)
         geo = geometry(st, *joint_levers(model, rot), root_lever(model, rot))
-        inertia = world_inertia(model, rot)
-        metric = projection_metric(st, geo, model.mass, inertia, tree=True) if reuse is None else reuse
-        return projection_step(st, geo, model.mass, inertia, c, metric=metric), metric
+        return projection_step(st, geo, model.mass, world_inertia(model, rot), c, tree=True)
 
 
 class BranchSolver(NullSpaceSolver):
