@@ -16,9 +16,9 @@ Simulation config (every table and key optional)::
     duration = 3.0                 # simulated seconds (default: to the clip's end)
     implicit = true                # linearly implicit step (false: K = D = 0)
     driven_joints = []             # joints driven along the mocap like the root
-    stabilization_steps = 2        # Newton steps of post-stabilization per step (1..5): 2 reach
-                                   # round-off; 1 (one projection, as Cline & Pai) is faster
-                                   # and leaves up to ~4e-8 m at the joints
+    stabilization_steps = 2        # Newton steps of post-stabilization per step (1..5): 2 (a
+                                   # projection, then a closing step) reach round-off; 1 (the
+                                   # projection only, as Cline & Pai) leaves up to ~4e-8 m
     dtype = "float64"              # float64 | float32 (sweeps, accelerators; docs/float32.md)
 
     [gains]
