@@ -10,17 +10,13 @@ import pytest
 
 from conftest import CLIPS
 from neuromotor.config import DEFAULT_HIT, SimulationConfig
-from neuromotor.model.topology import of_tree
 from neuromotor.physics import solvers
 from neuromotor.physics.constraints import closing_step, full_constraint_error
 from neuromotor.physics.dynamics import SimModel, reference_inputs, rollout
-from neuromotor.physics.solvers import nullspace
 from neuromotor.physics.system import retract
 from neuromotor.physics.stiffness import Jacobians, stiff_blocks
 from neuromotor.rotations import quat_exp, quat_log, quat_mul, quat_to_matrix, right_jacobian_inv
 from neuromotor.studies.simulate import load_character, prepare
-
-from test_nullspace import PARENT, _random_tree
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-7, 3e-3, 0.02, 0.7, 2.0, 3.1])
@@ -69,13 +65,15 @@ def test_rollout_with_closed_form_blocks_equals_jacfwd_rollout(hit):
     assert float(jnp.abs(run.states.omega - other.states.omega).max()) < 1e-9
 
 
-@pytest.mark.parametrize("unrolled", [False, True])
-def test_closing_step_closes_what_the_projection_leaves(hit, unrolled):
+@pytest.mark.parametrize("unrolled, rows", [(False, "root"), (True, "root"), (False, "driven"), (False, "free_root")])
+def test_closing_step_closes_what_the_projection_leaves(hit, unrolled, rows):
     """Post-stabilization's later Newton steps (constraints.closing_step) close the 1e-8-scale
     error that the linearized projection leaves, to round-off and without a solve, and land within
-    that error's size of where a second projection would."""
+    that error's size of where a second projection would: with the driven root's rows, with
+    driven joints' rows too, and with the root floating free."""
     setup, _ = hit
-    model, cfg, targets = setup.model, setup.sim, setup.ref.pose_targets(0)
+    model, targets = setup.model, setup.ref.pose_targets(0)
+    cfg = dataclasses.replace(setup.sim, driven=(2, 5) if rows == "driven" else (), free_root=rows == "free_root")
     rng = np.random.default_rng(7)
     quat = quat_mul(quat_exp(jnp.asarray(1e-4 * rng.normal(size=(model.n_bodies, 3)))), setup.ref.init.quat)
     pos = setup.ref.init.pos + 1e-4 * rng.normal(size=(model.n_bodies, 3))

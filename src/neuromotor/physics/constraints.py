@@ -106,11 +106,8 @@ def post_stabilize(model: Model, cfg, solver, pos, quat, targets: PoseTargets):
     """Project positions onto the constraint manifold in ``cfg.stabilization_steps`` Newton steps:
     the first ``dx = M^-1 J^T mu`` with ``J dx = -C`` solved by ``solver``, the later ones
     :func:`closing_step` (J and C of every iterate, so J dx = -C holds at each). Returns the
-    positions, orientations and the constraint error left.
-
-    At batch 256 a second projection cost about 11 % of the step, the closing step a third of that;
-    the motion moves by 2e-7 (quaternion) over a hit, the violation stays at round-off
-    (docs/benchmarks.md, issue 17)."""
+    positions, orientations and the constraint error left. (Why a closing step rather than a
+    second projection, and what it changes: docs/benchmarks.md, issue 17.)"""
     for i in range(cfg.stabilization_steps):  # a fixed, small number of Newton steps (unrolled)
         rot = quat_to_matrix(quat)
         c = full_constraint_error(model, cfg.driven, pos, rot, targets, cfg.free_root)
