@@ -65,10 +65,10 @@ def main(argv=None) -> int:
         lam, residual = solver.multipliers(eq.system, eq.r, eq.b, v_new, aux)
         st, red, targets = eq.system.st, eq.system.reduced, sim.ref.pose_targets(data.k + 1)
         pos, quat = retract(data.state.pos, data.state.quat, sim.cfg.h * v_new)
-        for _ in range(sim.cfg.stabilization_steps + 1):
+        for i in range(sim.cfg.stabilization_steps + 1):
             rot = quat_to_matrix(quat)
             c = cs.full_constraint_error(m, sim.cfg.driven, pos, rot, targets, sim.cfg.free_root)
-            if _ == sim.cfg.stabilization_steps:
+            if i == sim.cfg.stabilization_steps:  # the last error is the violation left
                 break
             geo = ns.geometry(st, *joint_levers(m, rot), root_lever(m, rot))
             x_p = ns.particular_correction(st, geo, c)
