@@ -105,12 +105,11 @@ def main(argv=None) -> int:
 
     rot0 = quat_to_matrix(ref.init.quat)
 
-    def fixed_metric(self, model, cfg, rot, c):
-        st = ns.structure(model.topology, cfg.driven, cfg.free_root, self.unrolled)
-        geo0 = ns.geometry(st, *joint_levers(model, rot0), root_lever(model, rot0))
-        metric = ns.projection_metric(st, geo0, model.mass, world_inertia(model, rot0), tree=True)
-        geo = ns.geometry(st, *joint_levers(model, rot), root_lever(model, rot))
-        return ns.projection_step(st, geo, model.mass, world_inertia(model, rot), c, metric=metric)
+    projection_metric = ns.projection_metric
+
+    def fixed_metric(st, geo, mass, inertia_world, tree=False):
+        geo0 = ns.geometry(st, *joint_levers(m, rot0), root_lever(m, rot0))
+        return projection_metric(st, geo0, mass, world_inertia(m, rot0), tree)
 
     def second_projection(model, cfg, rot, c, unrolled=False):
         return solvers.get(cfg.solver).projection_step(model, cfg, rot, c)
@@ -122,7 +121,7 @@ def main(argv=None) -> int:
                 "scan of a step vmapped on axis 0": (stepwise(0), ()),
                 "scan of a step vmapped on axis -1": (stepwise(-1), ()),
                 "metric from a fixed pose": (lambda scales, ref: package(scales, ref),
-                                             ((ns.NullSpaceSolver, "projection_step", fixed_metric),)),
+                                             ((ns, "projection_metric", fixed_metric),)),
                 "metric: Eq. 2's factored S^T A S at t_k": (system_metric, ()),
                 "one Newton step": (lambda scales, ref: package(scales, ref, one_newton), ()),
                 "second Newton step a projection too": (lambda scales, ref: package(scales, ref),

@@ -81,8 +81,8 @@ def test_closing_step_closes_what_the_projection_leaves(hit, unrolled, rows):
     err = lambda p, q: np.asarray(full_constraint_error(model, cfg.driven, p, quat_to_matrix(q), targets, cfg.free_root))
 
     @jax.jit
-    def stages(pos, quat):
-        pos1, quat1 = retract(pos, quat, solver.projection_step(model, cfg, quat_to_matrix(quat), jnp.asarray(err0)))
+    def stages(pos, quat, c0):
+        pos1, quat1 = retract(pos, quat, solver.projection_step(model, cfg, quat_to_matrix(quat), c0))
         c1 = full_constraint_error(model, cfg.driven, pos1, quat_to_matrix(quat1), targets, cfg.free_root)
         rot1 = quat_to_matrix(quat1)
         closed = retract(pos1, quat1, closing_step(model, cfg, rot1, c1, unrolled))
@@ -90,7 +90,7 @@ def test_closing_step_closes_what_the_projection_leaves(hit, unrolled, rows):
         return (pos1, quat1), closed, projected
 
     err0 = err(pos, quat)
-    first, closed, projected = stages(pos, quat)
+    first, closed, projected = stages(pos, quat, jnp.asarray(err0))
     left = np.abs(err(*first)).max()
     assert np.abs(err0).max() > 1e-4 and 1e-12 < left < 1e-6  # the projection leaves a second-order error
     assert np.abs(err(*closed)).max() < 1e-14 and np.abs(err(*projected)).max() < 1e-12

@@ -183,13 +183,11 @@ def joint_angles_and_rates(model: Model, quat, omega, reference: Float[Array, " 
     ref = None if reference is None else dofs_to_per_joint(model, reference)
     theta, rates = jnp.zeros((2, model.n_bodies - 1, 3), quat.dtype)
     for order, bodies, rows in topo.groups:  # usually one order per skeleton
-        pick = (lambda x: x) if len(rows) == model.n_bodies - 1 else (lambda x: static.take(x, rows))
+        whole = len(rows) == model.n_bodies - 1
+        pick = (lambda x: x) if whole else (lambda x: static.take(x, rows))
         ang, rate = euler_angles_and_rates(quat_entries(pick(rel)), pick(w_rel), order,
                                            None if ref is None else pick(ref))
-        if len(rows) == model.n_bodies - 1:
-            theta, rates = ang, rate
-        else:
-            theta, rates = theta.at[rows].set(ang), rates.at[rows].set(rate)
+        theta, rates = (ang, rate) if whole else (theta.at[rows].set(ang), rates.at[rows].set(rate))
     return per_joint_to_dofs(model, theta), per_joint_to_dofs(model, rates)
 
 

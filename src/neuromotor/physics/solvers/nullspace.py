@@ -404,16 +404,13 @@ def projection_metric(st: Structure, geo: Geometry, mass, inertia_world, tree: b
     return Metric(dense=spd_factor(h_free))
 
 
-def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[Array, " nc"], tree: bool = False,
-                    metric: Metric | None = None):
-    """One Newton step of post-stabilization: ``dx`` (B, 6) with ``J dx = -C`` of least M-norm,
-    ``dx = dx_p + S w`` with ``(S^T M S) w = -S^T M dx_p`` (:func:`projection_metric`). A
-    ``metric`` of an earlier iterate may be passed: J dx = -C still holds exactly (dx_p and S
-    are this iterate's), only the M-norm is measured at that iterate."""
+def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[Array, " nc"], tree: bool = False):
+    """The projection of post-stabilization: ``dx`` (B, 6) with ``J dx = -C`` of least M-norm,
+    ``dx = dx_p + S w`` with ``(S^T M S) w = -S^T M dx_p`` (:func:`projection_metric`)."""
     x_p = particular_correction(st, geo, c)
     mx = jnp.concatenate([mass[:, None] * x_p[:, :3], mv(inertia_world, x_p[:, 3:])], -1)
     rhs = -project_forces(st, geo, mx)
-    metric = projection_metric(st, geo, mass, inertia_world, tree) if metric is None else metric
+    metric = projection_metric(st, geo, mass, inertia_world, tree)
     if metric.dense is None:
         w = branch.linear_solve(st.tree, metric.paths, metric.factor, rhs[3:].reshape(-1, 3), symmetric=True)
         u = jnp.concatenate([jnp.zeros(6, c.dtype), w[1:].reshape(-1)])
