@@ -54,3 +54,51 @@ def test_a_package_program_runs_inside_another_program():
     assert float(jnp.max(jnp.abs(top - jnp.sin(x) ** 3))) < 1e-15
     assert float(jnp.max(jnp.abs(inner - top))) < 1e-15
     assert float(jnp.max(jnp.abs(grad - 3 * jnp.sin(x) ** 2 * jnp.cos(x)))) < 1e-14
+
+
+CORES_SCRIPT = """
+import json, jax
+from neuromotor import compiler
+from neuromotor.errors import UserError
+try:
+    got = compiler.use_cpu_cores()
+except UserError as e:
+    got = "error: " + str(e)
+print("RESULT" + json.dumps([got, len(jax.devices())]))
+"""
+
+
+def _cores(env: dict, script: str = CORES_SCRIPT):
+    import json
+    import os
+    import subprocess
+    import sys
+
+    base = {k: v for k, v in os.environ.items() if k not in ("NEUROMOTOR_CPU_DEVICES", "JAX_NUM_CPU_DEVICES")}
+    base["XLA_FLAGS"] = " ".join(f for f in base.get("XLA_FLAGS", "").split()
+                                 if "device_count" not in f and "intra_op" not in f)
+    proc = subprocess.run([sys.executable, "-c", script], env={**base, "JAX_PLATFORMS": "cpu", **env},
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT")][-1][6:])
+
+
+def test_use_cpu_cores_gives_one_device_per_core_unless_the_count_was_chosen():
+    import os
+
+    assert _cores({"NEUROMOTOR_CPU_DEVICES": "3"}) == [3, 3]
+    assert _cores({"NEUROMOTOR_CPU_DEVICES": "off"}) == [None, 1]
+    assert _cores({"NEUROMOTOR_CPU_DEVICES": "1"}) == [None, 1]
+    auto = compiler.cpu_cores()
+    assert _cores({}) == ([auto, auto] if auto > 1 else [None, 1])
+    # Chosen already: the host device count or one thread per process (distributed sweeps), or jax's own.
+    flags = os.environ.get("XLA_FLAGS", "")
+    assert _cores({"NEUROMOTOR_CPU_DEVICES": "3", "XLA_FLAGS": flags + " --xla_force_host_platform_device_count=2"}) \
+        == [None, 2]
+    assert _cores({"NEUROMOTOR_CPU_DEVICES": "3", "XLA_FLAGS": flags + " intra_op_parallelism_threads=1"})[0] is None
+    assert _cores({"NEUROMOTOR_CPU_DEVICES": "3", "JAX_NUM_CPU_DEVICES": "2"}) == [None, 2]
+    # Too late once JAX's backends run: the count is fixed at start-up.
+    late = CORES_SCRIPT.replace("try:", "jax.devices()\ntry:")
+    assert _cores({"NEUROMOTOR_CPU_DEVICES": "3"}, late) == [None, 1]
+    got = _cores({"NEUROMOTOR_CPU_DEVICES": "many"})[0]
+    assert got.startswith("error: NEUROMOTOR_CPU_DEVICES:") and "'many'" in got

@@ -739,13 +739,14 @@ def _preflight(args) -> None:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # for `sweep --local-processes`
-    from neuromotor.compiler import enable_compile_cache
+    from neuromotor.compiler import enable_compile_cache, use_cpu_cores
 
     if args.command != "bench":  # bench reports compile times: it compiles for real
         enable_compile_cache()  # persistent XLA cache: a second `simulate` loads instead of compiling
     from neuromotor.errors import UserError
 
     try:
+        use_cpu_cores()  # before JAX starts: batches and sweeps split over the cores
         _preflight(args)  # SIGINT/SIGTERM while an output is being written: atomic.atomic_path
         status = args.func(args)
         sys.stdout.flush()  # a closed pipe shows here, not at exit

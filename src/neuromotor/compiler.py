@@ -125,3 +125,52 @@ def enable_compile_cache(min_compile_time_s: float = 0.0) -> "str | None":
     if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
     return str(path)
+
+
+# --- One CPU device per core (the CLI asks for it; importing the package does not) ---
+
+_LEAVE = ("xla_force_host_platform_device_count", "intra_op_parallelism_threads")
+
+
+def cpu_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the OS reports it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def use_cpu_cores() -> "int | None":
+    """Give JAX one CPU device per core, so that a batch split over the devices runs one share
+    per core (:func:`neuromotor.studies.sweep.runner.shard_vmap`). On one device XLA:CPU runs
+    a batch's small kernels one after another and splits only the large ones over the cores: a
+    batch of 256 rollouts ran 1.3x as fast split over two devices on a 2-core machine
+    (docs/benchmarks.md, "Issue 17: one device per core"). Single trajectories are unchanged
+    (they run on the first device).
+
+    ``NEUROMOTOR_CPU_DEVICES``: ``auto`` (default: the core count), a count, or ``1``/``off``
+    for one device. Left alone, returning None, once JAX's backends are running (the count is
+    fixed at start-up), or when the device count or XLA:CPU's threads were already chosen:
+    ``JAX_NUM_CPU_DEVICES``, ``jax_num_cpu_devices``, or ``XLA_FLAGS`` forcing the host device
+    count or the intra-op threads (the processes of a distributed sweep run one thread each).
+    Returns the count set otherwise."""
+    from jax._src import xla_bridge
+
+    env = os.environ.get("NEUROMOTOR_CPU_DEVICES", "auto").strip().lower()
+    if env in _OFF or env == "1":
+        return None
+    if env == "auto":
+        count = cpu_cores()
+    elif env.isdigit():
+        count = int(env)
+    else:
+        from neuromotor.errors import UserError
+
+        raise UserError(f"NEUROMOTOR_CPU_DEVICES: expected 'auto', 'off' or a device count, got {env!r}")
+    flags = os.environ.get("XLA_FLAGS", "")
+    chosen = ("JAX_NUM_CPU_DEVICES" in os.environ or jax.config.jax_num_cpu_devices > 0
+              or any(name in flags for name in _LEAVE))
+    if count < 2 or chosen or xla_bridge.backends_are_initialized():
+        return None
+    jax.config.update("jax_num_cpu_devices", count)
+    return count

@@ -68,8 +68,8 @@ def test_compare_gives_finite_positive_figures_on_a_tiny_model(monkeypatch):
     offset, real = [0.0], time.perf_counter
     monkeypatch.setattr(bench_mjx.time, "perf_counter", lambda: real() + offset[0])
 
-    def virtual_call():
-        offset[0] += 1000.0  # the same time per call: 0.5 of it per trajectory in a batch of 2
+    def virtual_call(seconds=1000.0):
+        offset[0] += seconds  # the same time per call: 0.5 of it per trajectory in a batch of 2
 
     mj = mujoco.MjModel.from_xml_string(TINY)
     d0 = mujoco.MjData(mj)
@@ -78,18 +78,22 @@ def test_compare_gives_finite_positive_figures_on_a_tiny_model(monkeypatch):
     work = np.arange(1000.0)
     ours = {name: (lambda: np.sum(work ** 2)) for name in ("rollout", "batch", "jacfwd", "jacfwd_rollout")}
     ours["batch"] = ours["batch_one"] = virtual_call
+    ours["batch_one_device"] = lambda: virtual_call(1250.0)  # the batch unsplit: 1.25x the time
     r = bench_mjx.compare(mj, d0, ours, steps=3, batch=2, batch_steps=2, rounds=2, dtypes=("float32",),
                           compiler_options=FAST)
     f32 = dict(r["float32"])
     diff = f32.pop("max_qpos_diff_vs_c")
     assert not _finite_positive({"c": r["c"], "ours": r["ours"], "float32": f32})
-    assert set(f32["ours_over_mjx"]) == {"step_time", "batch_throughput", "jacfwd_time"}
+    assert set(f32["ours_over_mjx"]) == {"step_time", "batch_throughput", "batch_throughput_one_device", "jacfwd_time"}
     assert set(f32["compile_s"]) == {"rollout", "batch", "jacfwd"}
     assert diff < 1e-4  # the same model as MuJoCo C, to float32's precision
     lines = []
     bench_mjx.log_figures(r, lines.append, {"rollout": 1.0, "batch": 1.0, "jacfwd": 1.0})
     assert abs(r["ours"]["batch_over_one"] - 0.5) < 1e-3  # a batch of 2 in the time of one
-    assert len(lines) == 7 and not any("nan" in line for line in lines)
+    split = r["ours"]["batch_steps_per_s"] / r["ours"]["batch_one_device_steps_per_s"]
+    ratios = f32["ours_over_mjx"]
+    assert abs(split - 1.25) < 1e-3 and abs(ratios["batch_throughput"] / ratios["batch_throughput_one_device"] - 1.25) < 1e-3
+    assert len(lines) == 8 and not any("nan" in line for line in lines)
 
 
 def test_bench_says_in_one_line_why_mjx_is_skipped(monkeypatch):

@@ -66,7 +66,7 @@ def tiny_bvh(path: pathlib.Path, frames: int = 60) -> pathlib.Path:
 
 # Runs in a fresh interpreter so that the forced device count applies before jax is imported.
 SHARDED_SCRIPT = textwrap.dedent("""\
-    import json, sys
+    import dataclasses, json, sys
     import jax
     jax.config.update("jax_enable_x64", True)
     import numpy as np
@@ -100,6 +100,25 @@ SHARDED_SCRIPT = textwrap.dedent("""\
     r = run(one)
     out["single_run"] = {"index": i, "metrics": r.metrics,
                          "curve": np.asarray(mx.deviation(r.perturbed.theta, r.unperturbed.theta)).tolist()}
+    # A batch split over the devices (bench's batches): equal to the plain vmap, one share per device.
+    from neuromotor.physics import dynamics as dy
+    from neuromotor.studies.sweep import runner
+    bsim = dataclasses.replace(s.sim, solver="branch", n_steps=40)
+    mags = np.linspace(0.5, 1.5, 4)[:, None] * np.asarray(s.pulses.magnitude)[None]
+    one = lambda mag, sh: dy.rollout(s.model, sh[0], dataclasses.replace(s.pulses, magnitude=mag), sh[1], bsim).theta
+    mesh = runner.batch_mesh(4, bsim)
+    split = jax.jit(runner.shard_vmap(one, mesh))(mags, (s.gains, s.ref))
+    plain = jax.jit(runner.shard_vmap(one, None))(mags, (s.gains, s.ref))
+    lapack = lambda **kw: dataclasses.replace(s.sim, **kw)
+    out["split"] = {"diff": float(np.max(np.abs(np.asarray(split) - np.asarray(plain)))),
+                    "spread": float(np.max(np.abs(np.asarray(plain)[0] - np.asarray(plain)[3]))),
+                    "shards": len({sh.device for sh in split.addressable_shards}),
+                    "mesh": [None if m is None else int(m.devices.size) for m in (
+                        mesh, runner.batch_mesh(3, bsim), runner.batch_mesh(4, lapack(driven=(2,))),
+                        runner.batch_mesh(4, lapack(free_root=True)), runner.batch_mesh(4, lapack(solver="dense")),
+                        runner.batch_mesh(4, lapack(solver="tree")))],
+                    "sweeper": [int(sw.Sweeper(s.model, s.ref, sim, chunk=4).mesh.devices.size)
+                                for sim in (s.sim, lapack(driven=(2,)))]}
     print("RESULT" + json.dumps(out))
     """)
 
@@ -128,6 +147,16 @@ def test_sharded_sweep_equals_unsharded(sharded):
         assert ra["diverged"] == rb["diverged"]
         for k in sw.METRIC_KEYS:
             np.testing.assert_allclose(ra[k], rb[k], rtol=1e-9, err_msg=k)  # NaN == NaN here
+
+
+def test_a_batch_split_over_devices_equals_one_vmap_and_keeps_lapack_on_one_device(sharded):
+    split = sharded["split"]
+    assert split["shards"] == 2
+    assert split["diff"] < 1e-12 and split["spread"] > 1e-3  # equal, and the runs differ
+    # 2 devices for the null-space and tree steps; none (one vmap) for a batch that does not divide
+    # or for steps that call LAPACK (driven joints, a free root, the dense solver): see uses_lapack.
+    assert split["mesh"] == [2, None, None, None, None, 2]
+    assert split["sweeper"] == [2, 1]
 
 
 def test_vmapped_sweep_uses_the_batched_solver_and_equals_the_looped_one(sharded):

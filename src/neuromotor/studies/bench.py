@@ -4,8 +4,10 @@ Prints, after compilation, for the 19-joint default clip at h = 1/120 s:
 
 * one trajectory: steps per second, real-time factor, compile time, and the split of a step
   between the Jacobians K, D (Eq. 2), the KKT solve, post-stabilization and the rest;
-* a ``vmap`` batch at sizes 1, 8, 64, 256 (short rollouts): total simulated steps per second;
-  and at the largest size, the same split of a step per trajectory (:func:`batch_split`);
+* a ``vmap`` batch at sizes 1, 8, 64, 256 (short rollouts): total simulated steps per second,
+  split over the CPU devices as sweeps run it (one per core from the command line,
+  :func:`neuromotor.compiler.use_cpu_cores`) and, in alternation, on one device; and at the
+  largest size, the same split of a step per trajectory (:func:`batch_split`);
 * ``jax.jacfwd`` over (ks, kd) through a 1 s rollout, relative to the rollout itself;
 * inverse dynamics of whole clips (Eq. 3) after compile and its compile time;
 * MuJoCo (optional) on the exported MJCF (:func:`neuromotor.io.mjcf.model_to_mjcf`): one thread,
@@ -29,6 +31,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec as P
 
 from neuromotor import compiler
 from neuromotor.config import DEFAULT_HIT, SimulationConfig
@@ -222,26 +225,43 @@ def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
 
 
 def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str = "float64") -> list[dict]:
-    """Total steps per second of a vmap over pulse magnitudes. ``programs`` (a dict) receives
-    each compiled batch as a zero-argument callable, keyed ``batch<size>`` (``batch<size>_float32``
-    for ``dtype = "float32"``)."""
+    """Total steps per second of a vmap over pulse magnitudes, split over this process's devices
+    as a sweep runs it (:func:`~neuromotor.studies.sweep.runner.shard_vmap`; one per core from
+    the command line). Where it is split, the same batch on one device is timed too, in
+    alternation (``one_device_*``). ``programs`` (a dict) receives each compiled batch as a
+    zero-argument callable, keyed ``batch<size>`` (``batch<size>_float32`` for ``dtype =
+    "float32"``; ``..._one_device`` for the unsplit twin)."""
+    from neuromotor.studies.sweep.runner import AXIS, batch_mesh, shard_vmap
+
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     out = []
     for size in sizes:
         mags = jnp.linspace(0.5, 1.5, size)[:, None] * p.magnitude[None]
         cfg = dataclasses.replace(setup.sim, solver=solvers.Solver(setup.sim.solver).batched() if size > 1
                                   else setup.sim.solver, dtype=dtype)
-
-        def many(mags, g, ref):
-            one = lambda mag: dy.rollout(m, g, dataclasses.replace(p, magnitude=mag), ref, cfg).theta
-            return jax.vmap(one)(mags)
-
-        comp, compile_s = _compile(many, mags, g, ref)
-        t = _best(lambda: comp(mags, g, ref), repeats)
-        if programs is not None:
-            programs[f"batch{size}" + ("" if dtype == "float64" else f"_{dtype}")] = lambda comp=comp, mags=mags: comp(mags, g, ref)
-        out.append({"batch": size, "dtype": dtype, "steps": cfg.n_steps, "seconds": t, "compile_s": compile_s,
-                    "steps_per_s": size * cfg.n_steps / t, "real_time_factor": size * cfg.n_steps * cfg.h / t})
+        one = lambda mag, shared, cfg=cfg: dy.rollout(m, shared[0], dataclasses.replace(p, magnitude=mag), shared[1],
+                                                       cfg).theta
+        meshes = {"": batch_mesh(size, cfg) if size > 1 else None}
+        if meshes[""] is not None:
+            meshes["_one_device"] = None
+        calls, row = {}, {"batch": size, "dtype": dtype, "steps": cfg.n_steps,
+                          "devices": 1 if meshes[""] is None else meshes[""].devices.size}
+        for suffix, mesh in meshes.items():
+            args = (mags, (g, ref))
+            if mesh is not None:  # placed once: the timed calls move nothing
+                args = (jax.device_put(mags, NamedSharding(mesh, P(AXIS))),
+                        jax.device_put((g, ref), NamedSharding(mesh, P())))
+            comp, compile_s = _compile(shard_vmap(one, mesh), *args)
+            calls[suffix] = lambda comp=comp, args=args: comp(*args)
+            row["compile_s" if not suffix else "one_device_compile_s"] = compile_s
+            if programs is not None:
+                programs[f"batch{size}" + ("" if dtype == "float64" else f"_{dtype}") + suffix] = calls[suffix]
+        best = _interleaved(calls, repeats) if len(calls) > 1 else {"": _best(calls[""], repeats)}
+        for suffix, t in best.items():
+            key = "" if not suffix else "one_device_"
+            row.update({f"{key}seconds": t, f"{key}steps_per_s": size * cfg.n_steps / t})
+        row["real_time_factor"] = size * cfg.n_steps * cfg.h / row["seconds"]
+        out.append(row)
     return out
 
 
@@ -347,6 +367,8 @@ def mjx_beside(setup, batch_setup, programs: dict, res: dict, repeats: int, log=
         ours["batch_float32"] = programs[f"batch{size}_float32"]
     if size > 1 and "batch1" in programs:
         ours["batch_one"] = programs["batch1"]
+    if f"batch{size}_one_device" in programs:
+        ours["batch_one_device"] = programs[f"batch{size}_one_device"]
     mj, data = mujoco_start(setup.character, setup.sim.h, setup.ref.theta[0])
     # MJX gets the XLA options ours is compiled with (on the CPU they cut its jacfwd time ~5x).
     out = bench_mjx.compare(mj, data, ours, steps=setup.sim.n_steps, batch=size,
@@ -366,7 +388,7 @@ def plot_throughput(rows: list[dict], mujoco_sps: float | None, path) -> None:
 
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     sizes = [r["batch"] for r in rows]
-    ax.loglog(sizes, [r["steps_per_s"] for r in rows], "o-", label="neuromotor (vmap, null-space solver)")
+    ax.loglog(sizes, [r["steps_per_s"] for r in rows], "o-", label="neuromotor (vmap over the CPU devices)")
     if mujoco_sps:
         ax.axhline(mujoco_sps, color="k", ls="--", label="MuJoCo, one thread")
     ax.axhline(100 / H, color="0.6", ls=":", label="100x real time")
@@ -429,7 +451,10 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
     res["batch_float32"] = batched(bsetup, [max(sizes)], max(2, repeats // 2), programs, dtype="float32")
     for r in res["batch"] + res["batch_float32"]:
         ratio = "" if res["mujoco"] is None else f" ({r['steps_per_s'] / res['mujoco']['steps_per_s']:.2f}x MuJoCo)"
-        log(f"batch {r['batch']:4d} ({r['dtype']}): {r['steps_per_s']:10.0f} steps/s{ratio}, compile {r['compile_s']:.1f} s")
+        split = "" if r["devices"] == 1 else (f" over {r['devices']} devices (one device: "
+                                              f"{r['one_device_steps_per_s']:.0f} steps/s, interleaved)")
+        log(f"batch {r['batch']:4d} ({r['dtype']}): {r['steps_per_s']:10.0f} steps/s{ratio}{split}, "
+            f"compile {r['compile_s']:.1f} s")
     res["batch_split"] = batch_split(setup, max(sizes), max(2, repeats // 2))
     bs = res["batch_split"]
     mj_us = "" if res["mujoco"] is None else f"; one MuJoCo step {res['mujoco']['step_us']:.1f} us"

@@ -168,6 +168,8 @@ def _figures(t: dict, key: str, steps: int, batch: int, batch_steps: int) -> dic
         out["jacfwd_over_rollout"] = _median(t[f"{key}.jacfwd"] / t[f"{key}.jacfwd_rollout"])
     if f"{key}.batch_float32" in t:
         out["batch_float32_steps_per_s"] = batch * batch_steps / _median(t[f"{key}.batch_float32"])
+    if f"{key}.batch_one_device" in t:
+        out["batch_one_device_steps_per_s"] = batch * batch_steps / _median(t[f"{key}.batch_one_device"])
     if f"{key}.batch_one" in t:  # a trajectory-step in the batch over one in a batch of 1, per round
         out["batch_over_one"] = _median(t[f"{key}.batch"] / batch / t[f"{key}.batch_one"])
     return out
@@ -184,6 +186,8 @@ def _ratios(t: dict, dtype: str, steps: int, batch: int, batch_steps: int) -> di
         ours["step_time"] = _median(t["ours.rollout"] / t[f"{mjx}.rollout"])
     if "ours.batch" in t:
         ours["batch_throughput"] = _median(t[f"{mjx}.batch"] / t["ours.batch"])
+    if "ours.batch_one_device" in t:  # ours unsplit: one device, like MJX's vmap
+        ours["batch_throughput_one_device"] = _median(t[f"{mjx}.batch"] / t["ours.batch_one_device"])
     if f"ours.batch_{dtype}" in t:  # ours in the same precision as this MJX
         ours["batch_throughput_same_dtype"] = _median(t[f"{mjx}.batch"] / t[f"ours.batch_{dtype}"])
     if "ours.jacfwd" in t:
@@ -201,7 +205,8 @@ def compare(mj, d0, ours: dict[str, Callable], steps: int, batch: int, batch_ste
     ``batch`` (``batch`` trajectories of ``batch_steps`` steps), ``jacfwd`` and
     ``jacfwd_rollout`` (jacfwd over two gains of a ``steps``-step trajectory, and that
     trajectory), ``batch_float32`` (the batch in float32), ``batch_one`` (one trajectory of
-    ``batch_steps`` steps in the batch's program shape). Returns the medians per engine, the
+    ``batch_steps`` steps in the batch's program shape), ``batch_one_device`` (the batch on one
+    device where ``batch`` is split over several). Returns the medians per engine, the
     ratios, MJX's compile seconds and its largest ``qpos`` difference from MuJoCo C after
     ``steps`` steps. ``compiler_options``: XLA's
     for MJX's programs (None: XLA's defaults, as an MJX user compiles)."""
@@ -247,6 +252,9 @@ def log_figures(r: dict, log=print, ours_compile: dict | None = None) -> None:
         f"MJX {mjx('batch_steps_per_s', '.0f')}, MuJoCo C one thread {c['steps_per_s']:.0f}; throughput ours/MJX "
         f"{ratio('ours_over_mjx', 'batch_throughput')}; throughput MJX/C {ratio('mjx_over_c', 'batch_throughput')}; "
         f"ours/C {ours.get('batch_steps_per_s', nan) / c['steps_per_s']:.2f}")
+    if "batch_one_device_steps_per_s" in ours:
+        log(f"  ours on one device (the batch unsplit, as MJX's vmap runs): {ours['batch_one_device_steps_per_s']:.0f} "
+            f"steps/s; throughput ours/MJX {ratio('ours_over_mjx', 'batch_throughput_one_device')}")
     if "batch_over_one" in ours:
         log(f"  a trajectory-step in the batch of {r['batch']} costs {ours['batch_over_one']:.2f} of one in a "
             "batch of 1 (interleaved)")

@@ -21,4 +21,15 @@ def get(solver: Solver | str) -> KKTSolver:
     return SOLVERS[Solver(solver)]
 
 
-__all__ = ["KKTSolver", "SOLVERS", "Solver", "get"]
+def uses_lapack(solver: Solver | str, driven: tuple[int, ...] = (), free_root: bool = False) -> bool:
+    """Whether a step calls LAPACK: the dense solver always; the null-space solvers where the
+    root floats or joints are driven (their dense LU and Cholesky fallback); the tree solver never.
+    XLA:CPU can deadlock when batched LAPACK calls run on several CPU devices at once, so batches
+    of such steps stay on one device (:func:`neuromotor.studies.sweep.runner.batch_mesh`)."""
+    solver = Solver(solver)
+    if solver is Solver.DENSE:
+        return True
+    return solver in (Solver.NULLSPACE, Solver.BRANCH) and (bool(free_root) or bool(driven))
+
+
+__all__ = ["KKTSolver", "SOLVERS", "Solver", "get", "uses_lapack"]

@@ -17,6 +17,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from neuromotor import compiler
 from neuromotor.distributed import gather_shares, share
 from neuromotor.model.skeleton import Model
+from neuromotor.physics import solvers
 from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Reference, SimConfig, rollout
 from neuromotor.physics.perturbation import ForcePulses
@@ -32,6 +33,27 @@ def device_mesh(devices=None) -> Mesh:
     runs its own share of a sweep, see :mod:`neuromotor.distributed`)."""
     devices = jax.local_devices() if devices is None else list(devices)
     return Mesh(np.array(devices), (AXIS,))
+
+
+def batch_mesh(size: int, sim: SimConfig, devices=None) -> Mesh | None:
+    """The mesh :func:`shard_vmap` splits a batch of ``size`` rollouts of ``sim`` over: this
+    process's devices when there are several, ``size`` divides among them and the step calls no
+    LAPACK (:func:`~neuromotor.physics.solvers.uses_lapack`: batched LAPACK calls on several
+    XLA:CPU devices can deadlock). None: one ``vmap`` on one device."""
+    devices = jax.local_devices() if devices is None else list(devices)
+    if len(devices) < 2 or size % len(devices) or solvers.uses_lapack(sim.solver, sim.driven, sim.free_root):
+        return None
+    return device_mesh(devices)
+
+
+def shard_vmap(fn, mesh: Mesh | None):
+    """``g(batch, shared) = jax.vmap(lambda x: fn(x, shared))(batch)``, with the batch's leading
+    axis split over ``mesh`` (one ``vmap`` per device, by ``shard_map``; ``shared`` replicated).
+    ``mesh`` None: the plain ``vmap``. Each device then runs its share on its own core."""
+    many = lambda batch, shared: jax.vmap(lambda x: fn(x, shared))(batch)
+    if mesh is None:
+        return many
+    return jax.shard_map(many, mesh=mesh, in_specs=(P(AXIS), P()), out_specs=P(AXIS), check_vma=False)
 
 
 def _put(x, mesh: Mesh, spec: P):
@@ -50,7 +72,10 @@ class Sweeper:
 
     def __init__(self, model: Model, ref: Reference, sim: SimConfig, *, chunk: int = 64,
                  inner_batch: int = 1, mesh: Mesh | None = None):
-        self.mesh = device_mesh() if mesh is None else mesh
+        if mesh is None:  # LAPACK steps stay on one device (see batch_mesh)
+            mesh = device_mesh(jax.local_devices()[:1] if solvers.uses_lapack(sim.solver, sim.driven, sim.free_root)
+                               else None)
+        self.mesh = mesh
         n_dev = self.mesh.devices.size
         self.chunk = max(n_dev, int(math.ceil(chunk / n_dev)) * n_dev)
         self.inner_batch = max(1, min(int(inner_batch), self.chunk // n_dev))
