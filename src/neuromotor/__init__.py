@@ -82,6 +82,7 @@ _API = {
     "load_calibration": "neuromotor.studies.fit",
     "calibrate": "neuromotor.studies.fit",
     "sweep_from_config": "neuromotor.studies.sweep",
+    "use_cpu_cores": "neuromotor.compiler",  # before JAX starts: sweeps split over the cores
     "run_experiment": "neuromotor.studies.experiments",
     # files and pictures
     "run_arrays": "neuromotor.studies.record",

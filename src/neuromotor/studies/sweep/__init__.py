@@ -6,15 +6,18 @@ is the one a grid varies). Runs go through the device(s) in chunks:
 
 * the batch axis of a chunk is sharded over the process's devices (``jax.local_devices()``)
   with a 1-D :class:`jax.sharding.Mesh` and :func:`jax.shard_map`, so the same code spreads
-  over several GPUs;
+  over several GPUs, or over the cores of a CPU (the command line gives JAX one CPU device per
+  core, :func:`neuromotor.compiler.use_cpu_cores`); steps that call LAPACK stay on one device
+  (:func:`neuromotor.physics.solvers.uses_lapack`);
 * with several processes (one per host or GPU, or several on one machine, after
   :func:`neuromotor.distributed.initialize`) each simulates its contiguous share of the runs
   and the shares are gathered with ``multihost_utils.process_allgather``; every process gets
   the rows in grid order and process 0 writes the files (:mod:`neuromotor.distributed`);
 * inside each shard the rollouts run under :func:`jax.lax.map` (``inner_batch`` > 1 vmaps
   groups of that size inside the loop, with the ``nullspace`` solver's batched twin ``branch``:
-  about 3.5x the throughput of single runs at 256 on a 2-core CPU, docs/benchmarks.md). A batched ``jnp.linalg.solve`` under a plain vmap
-  spread over two host CPU devices deadlocks in XLA:CPU; a loop of rollouts per shard does not;
+  about 3.5x the throughput of single runs at 256 on a 2-core CPU, docs/benchmarks.md). Batched LAPACK calls on two host CPU devices at once can
+  deadlock in XLA:CPU (a vmapped ``jnp.linalg.solve`` under GSPMD, or inside ``shard_map``):
+  hence LAPACK steps on one device;
 * only a deviation curve d(t) (S+1 floats) and four diagnostics come back per run, so device
   memory stays bounded by the chunk size whatever the grid size; the exact recovery metrics
   (:func:`neuromotor.studies.metrics.recovery_metrics`) are computed on the host from them.
