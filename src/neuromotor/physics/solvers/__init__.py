@@ -25,7 +25,7 @@ def uses_lapack(solver: Solver | str, driven: tuple[int, ...] = (), free_root: b
     """Whether a step calls LAPACK: the dense solver always; the null-space solvers where the
     root floats or joints are driven (their dense LU and Cholesky fallback); the tree solver never.
     XLA:CPU can deadlock when batched LAPACK calls run on several CPU devices at once, so batches
-    of such steps stay on one device (:func:`neuromotor.studies.sweep.runner.batch_mesh`)."""
+    of such steps stay on one CPU device (:func:`neuromotor.studies.sweep.runner.batch_mesh`)."""
     solver = Solver(solver)
     if solver is Solver.DENSE:
         return True

@@ -35,13 +35,18 @@ def device_mesh(devices=None) -> Mesh:
     return Mesh(np.array(devices), (AXIS,))
 
 
+def _lapack_on_cpu(sim: SimConfig, devices) -> bool:
+    """Batched LAPACK calls on several XLA:CPU devices at once can deadlock: such steps
+    (:func:`~neuromotor.physics.solvers.uses_lapack`) keep to one CPU device (GPUs are not affected)."""
+    return devices[0].platform == "cpu" and solvers.uses_lapack(sim.solver, sim.driven, sim.free_root)
+
+
 def batch_mesh(size: int, sim: SimConfig, devices=None) -> Mesh | None:
     """The mesh :func:`shard_vmap` splits a batch of ``size`` rollouts of ``sim`` over: this
-    process's devices when there are several, ``size`` divides among them and the step calls no
-    LAPACK (:func:`~neuromotor.physics.solvers.uses_lapack`: batched LAPACK calls on several
-    XLA:CPU devices can deadlock). None: one ``vmap`` on one device."""
+    process's devices when there are several, ``size`` divides among them, and the step is not a
+    LAPACK step on CPU devices (:func:`_lapack_on_cpu`). None: one ``vmap`` on one device."""
     devices = jax.local_devices() if devices is None else list(devices)
-    if len(devices) < 2 or size % len(devices) or solvers.uses_lapack(sim.solver, sim.driven, sim.free_root):
+    if len(devices) < 2 or size % len(devices) or _lapack_on_cpu(sim, devices):
         return None
     return device_mesh(devices)
 
@@ -72,9 +77,9 @@ class Sweeper:
 
     def __init__(self, model: Model, ref: Reference, sim: SimConfig, *, chunk: int = 64,
                  inner_batch: int = 1, mesh: Mesh | None = None):
-        if mesh is None:  # LAPACK steps stay on one device (see batch_mesh)
-            mesh = device_mesh(jax.local_devices()[:1] if solvers.uses_lapack(sim.solver, sim.driven, sim.free_root)
-                               else None)
+        if mesh is None:
+            local = jax.local_devices()
+            mesh = device_mesh(local[:1] if _lapack_on_cpu(sim, local) else local)
         self.mesh = mesh
         n_dev = self.mesh.devices.size
         self.chunk = max(n_dev, int(math.ceil(chunk / n_dev)) * n_dev)
