@@ -15,9 +15,9 @@ is the one a grid varies). Runs go through the device(s) in chunks:
   the rows in grid order and process 0 writes the files (:mod:`neuromotor.distributed`);
 * inside each shard the rollouts run under :func:`jax.lax.map` (``inner_batch`` > 1 vmaps
   groups of that size inside the loop, with the ``nullspace`` solver's batched twin ``branch``:
-  about 3.5x the throughput of single runs at 256 on a 2-core CPU, docs/benchmarks.md). Batched LAPACK calls on two host CPU devices at once can
-  deadlock in XLA:CPU (a vmapped ``jnp.linalg.solve`` under GSPMD, or inside ``shard_map``):
-  hence LAPACK steps on one device;
+  about 3.5x the throughput of single runs at 256 on a 2-core CPU, docs/benchmarks.md).
+  Batched LAPACK calls on two host CPU devices at once can deadlock in XLA:CPU (a vmapped
+  ``jnp.linalg.solve`` under GSPMD, or inside ``shard_map``): hence LAPACK steps on one device;
 * only a deviation curve d(t) (S+1 floats) and four diagnostics come back per run, so device
   memory stays bounded by the chunk size whatever the grid size; the exact recovery metrics
   (:func:`neuromotor.studies.metrics.recovery_metrics`) are computed on the host from them.
