@@ -344,3 +344,85 @@ def make_rig(seed: int, **options) -> Rig:
     return Rig(text=text, names=[n.name for n in nodes], segment=[n.segment for n in nodes],
                side=[n.side for n in nodes], mirror=mirror, up=np.round(up, 12), stature=H * o["scale"],
                unit=o["unit"], virtual_root=marker_name if marker else None, options=o)
+
+
+def _bvh_layout(lines: list[str]):
+    """Per CHANNELS line: (line index, channel names, first motion column); and the MOTION line."""
+    out, col, motion = [], 0, None
+    for i, line in enumerate(lines):
+        words = line.split()
+        if words and words[0] == "CHANNELS":
+            names = words[2:]
+            out.append((i, names, col))
+            col += len(names)
+        elif words and words[0] == "MOTION":
+            motion = i
+            break
+    return out, motion
+
+
+def reencode(text: str, orders) -> str:
+    """The same BVH motion with each 3-rotation-channel joint's rotations written in another
+    Euler order: ``orders`` a string (every joint) or a list, one per CHANNELS line (None keeps
+    that joint's). Rotations by scipy (intrinsic, as BVH), angles written with 10 decimals."""
+    lines = text.splitlines()
+    layout, motion = _bvh_layout(lines)
+    data = np.array([[float(x) for x in ln.split()] for ln in lines[motion + 3:] if ln.strip()])
+    if isinstance(orders, str):
+        orders = [orders] * len(layout)
+    for (i, names, col), new in zip(layout, orders):
+        rot = [k for k, n in enumerate(names) if n.lower().endswith("rotation")]
+        if new is None or len(rot) != 3 or rot != list(range(rot[0], rot[0] + 3)):
+            continue
+        old = "".join(names[k][0].upper() for k in rot)
+        cols = [col + k for k in rot]
+        r = Rotation.from_euler(old, data[:, cols], degrees=True)
+        with warnings.catch_warnings():  # at exact lock scipy picks one of the equivalent triples
+            warnings.simplefilter("ignore", UserWarning)
+            data[:, cols] = r.as_euler(new.upper(), degrees=True)
+        for k, axis in zip(rot, new.upper()):
+            names[k] = f"{axis}rotation"
+        indent = lines[i][: len(lines[i]) - len(lines[i].lstrip())]
+        lines[i] = f"{indent}CHANNELS {len(names)} " + " ".join(names)
+    body = [" ".join(f"{x:.10f}" for x in row) for row in data]
+    return "\n".join(lines[: motion + 3] + body) + "\n"
+
+
+def middle_angles(text: str, order: str) -> np.ndarray:
+    """(T, joints) middle Euler angle (deg) of every 3-rotation joint written in ``order``:
+    +-90 is gimbal lock."""
+    lines = text.splitlines()
+    layout, motion = _bvh_layout(lines)
+    data = np.array([[float(x) for x in ln.split()] for ln in lines[motion + 3:] if ln.strip()])
+    out = []
+    for _, names, col in layout:
+        rot = [k for k, n in enumerate(names) if n.lower().endswith("rotation")]
+        if len(rot) != 3:
+            out.append(np.zeros(len(data)))
+            continue
+        old = "".join(names[k][0].upper() for k in rot)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            out.append(Rotation.from_euler(old, data[:, [col + k for k in rot]], degrees=True).as_euler(order)[:, 1])
+    return np.degrees(np.stack(out, -1))
+
+
+def spin_root(text: str, rate: float, up: str = "Y") -> str:
+    """The motion turned about the world up axis at ``rate`` rad/s (root position and rotation
+    both), so the root spins fast while the body moves as before."""
+    lines = text.splitlines()
+    layout, motion = _bvh_layout(lines)
+    ft = float(lines[motion + 2].split(":")[1])
+    data = np.array([[float(x) for x in ln.split()] for ln in lines[motion + 3:] if ln.strip()])
+    _, names, col = layout[0]
+    pos = [col + k for k, n in enumerate(names) if n.lower().endswith("position")]
+    rot = [k for k, n in enumerate(names) if n.lower().endswith("rotation")]
+    order = "".join(names[k][0].upper() for k in rot)
+    rcols = [col + k for k in rot]
+    turn = Rotation.from_rotvec(np.outer(rate * ft * np.arange(len(data)), np.eye(3)["XYZ".index(up.upper())]))
+    data[:, pos] = turn.apply(data[:, pos])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        data[:, rcols] = (turn * Rotation.from_euler(order, data[:, rcols], degrees=True)).as_euler(order, degrees=True)
+    body = [" ".join(f"{x:.10f}" for x in row) for row in data]
+    return "\n".join(lines[: motion + 3] + body) + "\n"

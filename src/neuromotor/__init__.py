@@ -13,11 +13,12 @@ Eq. 2, linearly implicit step               :func:`step` (stages in :mod:`neurom
                                             solvers in :mod:`neuromotor.physics.solvers`)
 post-stabilization (Cline & Pai 2003)       :func:`neuromotor.physics.constraints.post_stabilize`
 Eq. 3, inverse dynamics                     :func:`inverse_dynamics`
+discrete inverse dynamics (default)         :func:`discrete_inverse_dynamics` (the step's exact inverse)
 Eq. 4, H^T tau = sum_i h_i tau_i            :func:`neuromotor.physics.system.dof_axes`,
                                             :func:`neuromotor.physics.control.joint_torque_magnitude`
 Section 5.2, feedforward + feedback         :func:`neuromotor.physics.control.joint_torque`
 gains scaled by distal inertia              :func:`make_gains`
-K = dk/dx, D = dk/dv by ``jax.jacfwd``      :mod:`neuromotor.physics.stiffness`
+K = dk/dx, D = dk/dv (closed form)         :mod:`neuromotor.physics.stiffness` (``jax.jacfwd`` the check)
 Section 4, contact as an LCP                :mod:`neuromotor.physics.contact`
 recovery metrics (Section 6)                :func:`recovery_metrics`
 ==========================================  ==========================================================
@@ -51,6 +52,7 @@ _API = {
     "Trajectory": "neuromotor.model.kinematics",
     # physics: inverse dynamics, controller, step, rollout
     "inverse_dynamics": "neuromotor.physics.inverse",
+    "discrete_inverse_dynamics": "neuromotor.physics.discrete",
     "Gains": "neuromotor.physics.control",
     "make_gains": "neuromotor.physics.control",
     "pd_tracking_gains": "neuromotor.physics.control",
@@ -59,6 +61,8 @@ _API = {
     "Solver": "neuromotor.physics.solvers",
     "Precision": "neuromotor.physics.precision",
     "SimConfig": "neuromotor.physics.dynamics",
+    "Feedforward": "neuromotor.physics.options",
+    "JointLaw": "neuromotor.physics.options",
     "Reference": "neuromotor.physics.dynamics",
     "make_reference": "neuromotor.physics.dynamics",
     "SimModel": "neuromotor.physics.dynamics",

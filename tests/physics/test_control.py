@@ -95,7 +95,7 @@ def test_joint_torque_closed_form():
     err = np.array([-phi, 0.0, 0.0]) * shrink
     rate = np.array([-w, 0.0, 0.0]) * shrink
     want = np.asarray(tau) + mag * np.asarray(g.scale) * (400.0 * err + 20.0 * rate)
-    got = joint_torque("XYZ", g, rot_p, rot_c, w_p, w_c, inp)[0]
+    got = joint_torque(g, rot_p, rot_c, w_p, w_c, inp)[0]
     np.testing.assert_allclose(got, want, rtol=1e-13)
     got_q, _ = joint_torque_q(g, matrix_to_quat(rot_p[0]), matrix_to_quat(rot_c[0]), w_p[0], w_c[0],
                               jax.tree_util.tree_map(lambda x: x[0], inp))
@@ -114,7 +114,7 @@ def test_matrix_and_quaternion_forms_agree_with_damping_block_by_jacfwd(order):
     rot_c = rot_p @ euler_to_matrix(theta_d + 0.1 * jnp.asarray(rng.normal(size=3)), order)
     w_p, w_c = jnp.asarray(rng.normal(size=3)), jnp.asarray(rng.normal(size=3))
     one = jax.tree_util.tree_map(lambda x: x[0], inp)
-    by_matrix = joint_torque(order, g, rot_p[None], rot_c[None], w_p[None], w_c[None], inp)[0]
+    by_matrix = joint_torque(g, rot_p[None], rot_c[None], w_p[None], w_c[None], inp)[0]
     q_p, q_c = matrix_to_quat(rot_p), matrix_to_quat(rot_c)
     by_quat, damping = joint_torque_q(g, q_p, q_c, w_p, w_c, one)
     np.testing.assert_allclose(by_quat, by_matrix, rtol=1e-12, atol=1e-12 * float(jnp.abs(by_matrix).max()))
@@ -138,7 +138,7 @@ def test_joint_torque_rotation_derivative_by_finite_differences():
     def torque(d):
         turned = jnp.asarray(jax.scipy.linalg.expm(jnp.asarray([[0, -d[2], d[1]], [d[2], 0, -d[0]],
                                                                  [-d[1], d[0], 0]]))) @ rot_c
-        return joint_torque("XYZ", g, rot_p[None], turned[None], w[None], w[None], inp)[0]
+        return joint_torque(g, rot_p[None], turned[None], w[None], w[None], inp)[0]
 
     jac = jax.jacfwd(torque)(jnp.zeros(3))
     eps = 1e-6

@@ -20,6 +20,10 @@ Simulation config (every table and key optional)::
                                    # projection, then a closing step) reach round-off; 1 (the
                                    # projection only, as Cline & Pai) leaves up to ~4e-8 m
     dtype = "float64"              # float64 | float32 (sweeps, accelerators; docs/float32.md)
+    feedforward = "discrete"       # discrete: the exact inverse of the step (the unperturbed run
+                                   # replays the capture) | continuous: the paper's Eq. 3
+    joint_law = "rotation"         # rotation: each ball joint's torque and error as one 3-vector
+                                   # (the same for every Euler order) | euler: the paper's per DOF
 
     [gains]
     ks = 400.0                     # 1/s^2 (see neuromotor.physics.control for the scaling)

@@ -20,6 +20,7 @@ from neuromotor.config.specs import (
     default, reflex_grid, REFLEX_AXES, REFLEX_DELAY_LIMIT,
 )
 from neuromotor.errors import ConfigError
+from neuromotor.physics.options import Feedforward, JointLaw
 from neuromotor.physics.precision import Precision
 
 TABLES = ("fit", "sweep", "experiment", "ball", "reflex")  # top-level tables beside [sim], [gains], [[perturbation]]
@@ -124,6 +125,8 @@ def _sim_fields(top: Fields) -> dict:
         sim.fail("stabilization_steps", f"must be an integer from 1 to 5, got {steps!r}")
     out["stabilization_steps"] = steps
     out["dtype"] = Precision(sim.choice("dtype", d("dtype").value, [p.value for p in Precision]))
+    out["feedforward"] = Feedforward(sim.choice("feedforward", d("feedforward").value, [f.value for f in Feedforward]))
+    out["joint_law"] = JointLaw(sim.choice("joint_law", d("joint_law").value, [f.value for f in JointLaw]))
     sim.done()
     gains = top.sub("gains")
     for key in ("ks", "kd", "tau_floor"):

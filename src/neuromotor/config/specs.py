@@ -17,6 +17,7 @@ from typing import ClassVar
 from neuromotor.physics.contact.ball import make_ball
 from neuromotor.physics.contact.detection import ContactSettings
 from neuromotor.physics.control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
+from neuromotor.physics.options import Feedforward, JointLaw
 from neuromotor.physics.precision import Precision
 from neuromotor.physics import reflex as _reflex
 from neuromotor.studies.metrics import RECOVERY_FLOOR_DEG, RECOVERY_FRACTION
@@ -206,6 +207,8 @@ class SimulationConfig:
     driven_joints: list[str] = dataclasses.field(default_factory=list)
     stabilization_steps: int = 2  # Newton steps of post-stabilization (SimConfig.stabilization_steps)
     dtype: Precision = Precision.FLOAT64  # float64, or float32 for sweeps (docs/float32.md)
+    feedforward: Feedforward = Feedforward.DISCRETE  # SimConfig.feedforward: discrete | continuous (Eq. 3)
+    joint_law: JointLaw = JointLaw.ROTATION  # SimConfig.joint_law: rotation | euler (per Euler DOF)
     ks: float = DEFAULT_KS
     kd: float = DEFAULT_KD
     tau_floor: float = DEFAULT_TAU_FLOOR
@@ -216,6 +219,8 @@ class SimulationConfig:
 
     def __post_init__(self):
         object.__setattr__(self, "dtype", Precision(self.dtype))
+        object.__setattr__(self, "feedforward", Feedforward(self.feedforward))
+        object.__setattr__(self, "joint_law", JointLaw(self.joint_law))
         object.__setattr__(self, "perturbations", [PerturbationSpec.of(p) for p in self.perturbations])
         object.__setattr__(self, "ball", BallSpec.of(self.ball))
 

@@ -77,11 +77,12 @@ class Gains(eqx.Module):
         return self.ks * self.scale, self.kd * self.scale
 
 
-def distal_inertia(model: Model, q0: Float[Array, " Q"], theta0: Float[Array, " n"]) -> Float[Array, " n"]:
-    """I_i: inertia of the chain distal to DOF i's joint, about the DOF axis through the joint."""
+def distal_inertia(model: Model, q0: Float[Array, " Q"], local_axes: Float[Array, "C 3 3"]) -> Float[Array, " n"]:
+    """I_i: inertia of the chain distal to DOF i's joint, about the DOF's axis through the joint
+    (``local_axes``: each joint's axes in its parent's frame, columns, as ``Reference.local_axes``)."""
     zeros = jnp.zeros_like(q0)
     pos, rot, *_ = body_kinematics(model, q0, zeros, zeros)
-    axes = dof_axes(model, rot, theta0)
+    axes = per_joint_to_dofs(model, jnp.swapaxes(mm(rot[model.topology.parent], local_axes), -1, -2))
     iw = world_inertia(model, rot)
     # in_sub[b, c] = 1 if body c is in the subtree of body b (static mask: one contraction
     # instead of a Python double loop over bodies).
@@ -109,14 +110,15 @@ def _subtrees(model: Model) -> list[list[int]]:
 def make_gains(
     model: Model,
     q0: Float[Array, " Q"],
-    theta0: Float[Array, " n"],
+    local_axes: Float[Array, "C 3 3"],
     activation: Float[Array, "T n"],
     ks: float = DEFAULT_KS,
     kd: float = DEFAULT_KD,
     tau_floor: float = DEFAULT_TAU_FLOOR,
 ) -> Gains:
-    per_dof = distal_inertia(model, q0, theta0)
-    # One value per joint: the mean over its three DOF axes.
+    per_dof = distal_inertia(model, q0, local_axes)
+    # One value per joint: the mean over its three axes (a third of the trace for the rotation
+    # law's orthonormal axes: the same for every Euler order).
     inertia = per_joint_to_dofs(model, jnp.repeat(jnp.mean(dofs_to_per_joint(model, per_dof), -1, keepdims=True), 3, -1))
     rms = jnp.sqrt(jnp.mean(activation**2, axis=0))
     # A DOF that carries no load at all still gets feedback at a tiny reference torque.
@@ -214,6 +216,16 @@ class ControllerInputs(eqx.Module):
     floor: Float[Array, "C 3"]  # Gains.floor, per joint
     reference_torque: Float[Array, "C 3"]  # Gains.reference_torque, per joint
     active: Float[Array, "C 3"]  # 0 on the DOFs of driven joints (their torque is not applied)
+    # P_L: resolves a parent-frame error along the axes (None: the damped pseudo-inverse of
+    # local_axes, the Euler law; the identity for the rotation law). See joint_affine.
+    local_pinv: Float[Array, "C 3 3"] | None = None
+    # The reference's motion over the step, for the feedback's implicit terms (None: the target
+    # holds still over the step, the paper's step): [h w_parent(k+1), h w_child(k+1),
+    # (w_c - w_p)(k+1) - (w_c - w_p)(k)], world frame. See stiffness.reference_drift.
+    drift: Float[Array, "C 9"] | None = None
+
+    def pinv(self) -> Float[Array, "C 3 3"]:
+        return damped_pinv(self.local_axes) if self.local_pinv is None else self.local_pinv
 
     def gains(self, gains: Gains) -> Gains:
         """``gains`` with this joint's per-DOF leaves (the scalars ks, kd stay shared)."""
@@ -221,13 +233,14 @@ class ControllerInputs(eqx.Module):
 
 
 def controller_inputs(model: Model, gains: Gains, active: Float[Array, " n"], tau, activation, theta_d,
-                      rel_rot: Float[Array, "B 3 3"], rel_omega: Float[Array, "B 3"], local_axes, rel_quat
-                      ) -> ControllerInputs:
+                      rel_rot: Float[Array, "B 3 3"], rel_omega: Float[Array, "B 3"], local_axes, rel_quat,
+                      local_pinv=None, drift=None) -> ControllerInputs:
     """Per-DOF (n) and per-body (B) values of one grid step regrouped per joint."""
     per = lambda x: dofs_to_per_joint(model, x)
     c = model.topology.child
     return ControllerInputs(per(tau), per(activation), per(theta_d), rel_rot[c], rel_omega[c], local_axes,
-                            rel_quat, per(gains.scale), per(gains.floor), per(gains.reference_torque), per(active))
+                            rel_quat, per(gains.scale), per(gains.floor), per(gains.reference_torque), per(active),
+                            local_pinv, drift)
 
 
 def damped_solve(a: Float[Array, "... 3 3"], e: Float[Array, "... 3"], mu: float = DAMPING):
@@ -236,13 +249,20 @@ def damped_solve(a: Float[Array, "... 3 3"], e: Float[Array, "... 3"], mu: float
     return mtv(a, solve3(gram, e))
 
 
-def joint_errors(rot_p, rot_c, w_p, w_c, a, rel_d, rel_w_d):
-    """Angle and rate errors of joints (any leading shape) resolved along their axes ``a``
-    (columns h_i); see :func:`dof_errors`."""
+def damped_pinv(la: Float[Array, "... 3 3"], mu: float = DAMPING) -> Float[Array, "... 3 3"]:
+    """``L^T (L L^T + mu^2 1)^-1``: the damped pseudo-inverse of axes L (columns)."""
+    gram = mmt(la, la) + mu**2 * jnp.eye(3, dtype=la.dtype)
+    return mm(jnp.swapaxes(la, -1, -2), inv3(gram))
+
+
+def joint_errors(rot_p, rot_c, w_p, w_c, pinv, rel_d, rel_w_d):
+    """Angle and rate errors of joints (any leading shape) resolved along their axes by ``pinv``
+    (P_L of :class:`JointAffine`, parent frame); see :func:`dof_errors`. With axes ``a = R_p L``
+    this is the damped solve ``a^T (a a^T + mu^2)^-1 e = P_L R_p^T e``."""
     rel = mm(jnp.swapaxes(rot_p, -1, -2), rot_c)
-    e_world = mv(rot_p, quat_log(matrix_to_quat(mmt(rel_d, rel))))
-    w_err = mv(rot_p, rel_w_d) - (w_c - w_p)
-    return damped_solve(a, e_world), damped_solve(a, w_err)
+    e_local = quat_log(matrix_to_quat(mmt(rel_d, rel)))  # R_p^T of the world error
+    w_err = rel_w_d - mtv(rot_p, w_c - w_p)
+    return mv(pinv, e_local), mv(pinv, w_err)
 
 
 def dof_errors(model: Model, rot, omega, axes, rel_d, rel_w_d):
@@ -257,19 +277,20 @@ def dof_errors(model: Model, rot, omega, axes, rel_d, rel_w_d):
     topo = model.topology
     c, p = topo.child, topo.parent
     a = jnp.swapaxes(dofs_to_per_joint(model, axes), -1, -2)
-    d_theta, d_rate = joint_errors(rot[p], rot[c], omega[p], omega[c], a, rel_d[c], rel_w_d[c])
+    pinv = damped_pinv(mm(jnp.swapaxes(rot[p], -1, -2), a))
+    d_theta, d_rate = joint_errors(rot[p], rot[c], omega[p], omega[c], pinv, rel_d[c], rel_w_d[c])
     return per_joint_to_dofs(model, d_theta), per_joint_to_dofs(model, d_rate)
 
 
-def joint_torque(order: str, gains: Gains, rot_p, rot_c, w_p, w_c, inp: ControllerInputs):
+def joint_torque(gains: Gains, rot_p, rot_c, w_p, w_c, inp: ControllerInputs):
     """World muscle torque ``T_j = sum_i h_i (psi_i + gamma_i)`` of joints on their children
     (Eq. 4 and Section 5.2; each parent gets -T_j), from rotation matrices. The Euler axes h_i
     come from the desired angles placed in the simulated parent's frame: exactly Eq. 4 on the
     mocap, and the feedforward sum h_i tau_i stays well-conditioned near gimbal lock where the
     individual tau_i are large and of opposite signs. A joint's torque depends on its two
     bodies only."""
-    a = jnp.swapaxes(euler_axes(rot_p, inp.theta_d, order), -1, -2)  # columns h_i
-    d_theta, d_rate = joint_errors(rot_p, rot_c, w_p, w_c, a, inp.rel_rot, inp.rel_omega)
+    a = mm(rot_p, inp.local_axes)  # columns h_i (the Euler axes at theta_d, or R_p for the rotation law)
+    d_theta, d_rate = joint_errors(rot_p, rot_c, w_p, w_c, inp.pinv(), inp.rel_rot, inp.rel_omega)
     mult = feedback_multipliers(inp.gains(gains), inp.tau, inp.activation, d_theta, d_rate, inp.active)
     return mv(a, mult)
 
@@ -294,9 +315,7 @@ class JointAffine(eqx.Module):
 def joint_affine(gains: Gains, inp: ControllerInputs) -> JointAffine:
     """:class:`JointAffine` of joints (any leading shape) from their controller inputs."""
     g = inp.gains(gains)
-    la = inp.local_axes
-    gram = mmt(la, la) + DAMPING**2 * jnp.eye(3, dtype=la.dtype)
-    p_local = mm(jnp.swapaxes(la, -1, -2), inv3(gram))
+    la, p_local = inp.local_axes, inp.pinv()
     stiff = _feedback_magnitude(g, inp.activation) * g.per_dof()[0] * inp.active  # d multiplier / d angle error
     weighted = lambda s: mm(la * s[..., None, :], p_local)
     return JointAffine(mv(la, g.feedforward * inp.tau * inp.active), weighted(stiff),
@@ -326,15 +345,9 @@ def joint_torque_q(gains: Gains, q_p, q_c, w_p, w_c, inp: ControllerInputs):
 
 
 def joint_torques(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> Float[Array, "C 3"]:
-    """:func:`joint_torque` of every joint (one batched call per rotation order)."""
-    topo = model.topology
-    c, p = topo.child, topo.parent
-    out = jnp.zeros((model.n_bodies - 1, 3), rot.dtype)
-    for order, _, rows in topo.groups:
-        sub = jax.tree_util.tree_map(lambda x: x[rows], inputs)
-        part = joint_torque(order, gains, rot[p[rows]], rot[c[rows]], omega[p[rows]], omega[c[rows]], sub)
-        out = part if len(rows) == model.n_bodies - 1 else out.at[rows].set(part)
-    return out
+    """:func:`joint_torque` of every joint (one batched call: the axes come with the inputs)."""
+    c, p = model.topology.child, model.topology.parent
+    return joint_torque(gains, rot[p], rot[c], omega[p], omega[c], inputs)
 
 
 def body_torques(model: Model, joint_torque: Float[Array, "C 3"]) -> Float[Array, "B 3"]:

@@ -51,8 +51,10 @@ from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angle
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
 from neuromotor.physics.constraints import PoseTargets, constraint_count, constraint_velocity, post_stabilize
-from neuromotor.physics.control import (ControllerInputs, Gains, body_torques, controller_inputs, joint_errors,
-                                        joint_local_axes, joint_torque_magnitude, reflex_torque)
+from neuromotor.physics.control import (ControllerInputs, Gains, body_torques, controller_inputs, damped_pinv,
+                                        joint_errors, joint_local_axes, joint_torque_magnitude, reflex_torque)
+from neuromotor.physics.discrete import discrete_inverse_dynamics
+from neuromotor.physics.options import Feedforward, JointLaw
 from neuromotor.physics.reflex import History, empty_history, push
 from neuromotor.physics.inverse import inverse_dynamics, sim_columns
 from neuromotor.physics.perturbation import ForcePulses, generalized_forces, no_pulses
@@ -60,8 +62,8 @@ from neuromotor.physics.solvers import Solver
 from neuromotor.physics.precision import Precision, cast
 from neuromotor.physics.stiffness import (DenseStiffness, Jacobians, StiffBlocks, explicit_forces, stiff_blocks,
                                           stiff_jacobians)
-from neuromotor.physics.system import (State, gravity_forces, joint_angles_and_rates, joint_rates, mass_times,
-                                       retract, world_inertia)
+from neuromotor.physics.system import (State, dof_axes, dofs_to_per_joint, gravity_forces, joint_angles_and_rates,
+                                       joint_rates, mass_times, per_joint_to_dofs, retract, world_inertia)
 from neuromotor.rotations import matrix_to_quat, mm
 
 
@@ -90,64 +92,112 @@ class SimConfig(eqx.Module):
     dtype: Precision = eqx.field(static=True, default=Precision.FLOAT64, converter=Precision)
     # How the tree solvers get K and D: closed form (default) or jax.jacfwd (the check); equal to round-off.
     jacobians: Jacobians = eqx.field(static=True, default=Jacobians.CLOSED_FORM, converter=Jacobians)
+    # The feedforward: the discrete inverse of this step (default) or the paper's Eq. 3.
+    feedforward: Feedforward = eqx.field(static=True, default=Feedforward.DISCRETE, converter=Feedforward)
+    # Ball joints' controller: one rotation law (default, frame-invariant) or the paper's per Euler DOF.
+    joint_law: JointLaw = eqx.field(static=True, default=JointLaw.ROTATION, converter=JointLaw)
 
 
 class Reference(eqx.Module):
     """Mocap targets on the simulation grid t_k = t0 + k h, k = 0..S."""
 
     time: Float[Array, " S1"]
-    tau: Float[Array, "S1 n"]  # feedforward multipliers (Eq. 3)
+    tau: Float[Array, "S1 n"]  # feedforward multipliers (discrete inverse dynamics, or Eq. 3)
     activation: Float[Array, "S1 n"]  # |T_j| of each DOF's joint (see control)
     theta: Float[Array, "S1 n"]  # desired Euler angles theta_d
     theta_dot: Float[Array, "S1 n"]
     root_origin: Float[Array, "S1 3"]
     root_rot: Float[Array, "S1 3 3"]
-    root_vel: Float[Array, "S1 3"]
+    root_vel: Float[Array, "S1 3"]  # b of the root rows of the step that ends at t_k
     root_omega: Float[Array, "S1 3"]
     rel_rot: Float[Array, "S1 B 3 3"]  # each body's desired rotation in its parent's frame
     rel_omega: Float[Array, "S1 B 3"]  # desired relative angular velocity, parent frame
     init: State
     # Derived from theta and rel_rot in make_reference, once for the whole grid, so that the
     # step does not rebuild them: they depend on the mocap only, never on the state.
-    local_axes: Float[Array, "S1 C 3 3"]  # Euler axes h_i of each joint at theta_d, parent frame (columns)
+    local_axes: Float[Array, "S1 C 3 3"]  # axes h_i of each joint in its parent's frame (columns)
     rel_quat: Float[Array, "S1 C 4"]  # quaternion of each joint's desired rotation (rel_rot of its child)
+    local_pinv: Float[Array, "S1 C 3 3"]  # P_L resolving a parent-frame error along the axes (control.JointAffine)
+    drive_omega: Float[Array, "S1 B 3"]  # driven joints' rates over the step that ends at t_k (parent frame at its start)
+    kkt_residual: Float[Array, " S1"]  # relative residual of the feedforward's solve per step
+    landing: Float[Array, " S1"]  # rotation (rad) the discrete inverse leaves per step (0: Eq. 3)
+    omega: Float[Array, "S1 B 3"] | None = None  # the reference's body angular velocities (discrete only)
 
     def pose_targets(self, k) -> PoseTargets:
         """What post-stabilization projects onto at grid step k (the driven root and joints)."""
         return PoseTargets(self.root_origin[k], self.root_rot[k], self.rel_rot[k])
 
+    def drift(self, model: Model, k, h: float) -> Float[Array, "C 9"] | None:
+        """The reference's motion over step k per joint (:func:`stiffness.reference_drift`)."""
+        if self.omega is None:
+            return None
+        c, p = model.topology.child, model.topology.parent
+        w0, w1 = self.omega[k], self.omega[k + 1]
+        return jnp.concatenate([h * w1[p], h * w1[c], (w1[c] - w1[p]) - (w0[c] - w0[p])], -1)
 
-def make_reference(model: Model, traj: Trajectory, t0: float, h: float, n_steps: int) -> Reference:
-    """Sample the mocap targets on the simulation grid (inverse dynamics of Eq. 3 included)."""
-    return _make_reference(model, traj, jnp.asarray(t0, jnp.float64), jnp.asarray(h, jnp.float64), n_steps)
+
+def make_reference(model: Model, traj: Trajectory, t0: float, cfg: SimConfig) -> Reference:
+    """Sample the mocap targets on the simulation grid of ``cfg`` (h, steps), with the feedforward
+    of ``cfg.feedforward`` (the discrete inverse of ``cfg``'s step, or Eq. 3) and the joint axes
+    of ``cfg.joint_law``."""
+    return _make_reference(model, traj, jnp.asarray(t0, jnp.float64), cfg)
 
 
 # One compiled program rather than hundreds of eagerly dispatched small ops (each eager op is
 # compiled on its own, which made preparing a run take longer than compiling the rollout).
-@functools.partial(compiler.jit, static_argnames=("n_steps",))
-def _make_reference(model: Model, traj: Trajectory, t0, h, n_steps: int) -> Reference:
-    times = t0 + h * jnp.arange(n_steps + 1)
+@functools.partial(compiler.jit, static_argnames=("cfg",))
+def _make_reference(model: Model, traj: Trajectory, t0, cfg: SimConfig) -> Reference:
+    times = t0 + cfg.h * jnp.arange(cfg.n_steps + 1)
     q = jax.vmap(traj.q)(times)
     qd = jax.vmap(traj.qd)(times)
     qdd = jax.vmap(traj.qdd)(times)
     kin = jax.vmap(lambda a, b, c: body_kinematics(model, a, b, c))(q, qd, qdd)
     pos, rot, vel, omega = kin[0], kin[1], kin[2], kin[3]
+    quat = matrix_to_quat(rot)
+    topo = model.topology
     cols = sim_columns(model)
     theta = jax.vmap(lambda a, t: joint_angles_from_q(model, a, traj.angle_reference(t)))(q, times)[:, cols]
-    sol = inverse_dynamics(model, traj, times)
+    if JointLaw(cfg.joint_law) is JointLaw.EULER:
+        local_axes = jax.vmap(lambda th: joint_local_axes(model, th))(theta)
+        local_pinv = damped_pinv(local_axes)
+    else:  # the rotation law: each joint's torque and error in its parent's frame
+        local_axes = jnp.broadcast_to(jnp.eye(3), (times.shape[0], model.n_bodies - 1, 3, 3))
+        local_pinv = local_axes
+    par = topo.parent0
+    rel = jnp.swapaxes(rot[:, par], -1, -2) @ rot
+    root_origin = pos[:, 0] - jnp.einsum("tij,j->ti", rot[:, 0], model.com[0])
+    if Feedforward(cfg.feedforward) is Feedforward.CONTINUOUS:
+        sol = inverse_dynamics(model, traj, times, local_axes)
+        tau, residual, landing = sol.tau, sol.residual, jnp.zeros_like(times)
+        root_vel, ref_omega, stored_omega = qd[:, 0:3], omega, None
+        rel_w = jnp.einsum("tbji,tbj->tbi", rot[:, par], omega - omega[:, par])
+        drive = rel_w
+    else:
+        active = dofs_to_per_joint(model, active_mask(model, cfg.driven, rot.dtype))
+        targets = PoseTargets(root_origin, rot[:, 0], rel)
+        sol = discrete_inverse_dynamics(model, cfg, pos, quat, jnp.concatenate([vel[0], omega[0]], -1), targets,
+                                        local_axes, active)
+        last = lambda a: jnp.concatenate([a, a[-1:]], 0)
+        tau, residual, landing = last(sol.tau), last(sol.residual), last(sol.landing)
+        u = sol.velocity
+        ref_omega = stored_omega = u[:, :, 3:]
+        rel_w = jnp.einsum("tbji,tbj->tbi", rot[:, par], ref_omega - ref_omega[:, par])
+        # The root's b and the driven joints' rates of step k-1 -> k, with the levers and the
+        # parent frames at that step's start (as the step reads them).
+        lever = jnp.einsum("tij,j->ti", rot[:-1, 0], -model.com[0])
+        root_vel = jnp.concatenate([qd[:1, 0:3], u[1:, 0, :3] - jnp.cross(lever, u[1:, 0, 3:])], 0)
+        drive_next = jnp.einsum("tbji,tbj->tbi", rot[:-1, par], ref_omega[1:] - ref_omega[1:, par])
+        drive = jnp.concatenate([rel_w[:1], drive_next], 0)
     # Euler rates from sum_i h_i thetadot_i = omega_child - omega_parent (exact, and much
     # cheaper to compile than a jvp through the Euler decomposition).
-    theta_dot = jax.vmap(lambda ax, w: joint_rates(model, ax, w))(sol.axes, omega)
-    activation = joint_torque_magnitude(model, sol.axes, sol.tau)
-    par = model.topology.parent0
-    rel = jnp.swapaxes(rot[:, par], -1, -2) @ rot
-    rel_w = jnp.einsum("tbji,tbj->tbi", rot[:, par], omega - omega[:, par])
-    init = State(pos[0], matrix_to_quat(rot[0]), vel[0], omega[0])
-    root_origin = pos[:, 0] - jnp.einsum("tij,j->ti", rot[:, 0], model.com[0])
-    local_axes = jax.vmap(lambda th: joint_local_axes(model, th))(theta)
-    rel_quat = matrix_to_quat(rel[:, model.topology.child])
-    return Reference(times, sol.tau, activation, theta, theta_dot, root_origin,
-                     rot[:, 0], qd[:, 0:3], omega[:, 0], rel, rel_w, init, local_axes, rel_quat)
+    euler_axes_world = jax.vmap(lambda r, th: dof_axes(model, r, th))(rot, theta)
+    theta_dot = jax.vmap(lambda ax, w: joint_rates(model, ax, w))(euler_axes_world, ref_omega)
+    axes_rows = per_joint_to_dofs(model, jnp.moveaxis(jnp.swapaxes(local_axes, -1, -2), 0, 2))  # (n, T, 3)
+    activation = joint_torque_magnitude(model, jnp.moveaxis(axes_rows, 0, 1), tau)
+    init = State(pos[0], quat[0], vel[0], omega[0])
+    rel_quat = matrix_to_quat(rel[:, topo.child])
+    return Reference(times, tau, activation, theta, theta_dot, root_origin, rot[:, 0], root_vel, ref_omega[:, 0],
+                     rel, rel_w, init, local_axes, rel_quat, local_pinv, drive, residual, landing, stored_omega)
 
 
 # ---------------------------------------------------------------- the step's three pytrees
@@ -231,7 +281,8 @@ def reference_inputs(sim: SimModel, gains: Gains, k) -> ControllerInputs:
     ref, model = sim.ref, sim.model
     active = active_mask(model, sim.cfg.driven, ref.tau.dtype)
     return controller_inputs(model, gains, active, ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k],
-                             ref.rel_omega[k], ref.local_axes[k], ref.rel_quat[k])
+                             ref.rel_omega[k], ref.local_axes[k], ref.rel_quat[k], ref.local_pinv[k],
+                             ref.drift(model, k, sim.cfg.h))
 
 
 def stiff_forces(sim: SimModel, gains: Gains, inputs: ControllerInputs, state: State,
@@ -262,7 +313,7 @@ def delayed_reflex(sim: SimModel, gains: Gains, inputs: ControllerInputs, state:
     rot, omega = state.rot, state.omega
     rot_p = rot[topo.parent]
     axes = mm(rot_p, inputs.local_axes)
-    angle, rate = joint_errors(rot_p, rot[topo.child], omega[topo.parent], omega[topo.child], axes, inputs.rel_rot,
+    angle, rate = joint_errors(rot_p, rot[topo.child], omega[topo.parent], omega[topo.child], inputs.pinv(), inputs.rel_rot,
                                inputs.rel_omega)
     history = push(history, angle, rate)
     return *reflex_torque(gains, history, sim.cfg.h, axes, inputs), history
@@ -304,7 +355,7 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
     r = momentum_rhs(model, cfg.h, state, inertia, applied + stiff.forces(),
                      stiff.damping_times(model, state.v.reshape(model.n_bodies, 6)))
     b = constraint_velocity(model, cfg.driven, rot, ref.root_vel[k + 1], ref.root_omega[k + 1],
-                            ref.rel_omega[k + 1], cfg.free_root)
+                            ref.drive_omega[k + 1], cfg.free_root)
     return Eq2(solver.assemble(model, cfg, rot, inertia, stiff, cfg.h), r, b, per_body, points, reflex, history)
 
 

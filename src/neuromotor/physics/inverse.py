@@ -19,10 +19,11 @@ from jaxtyping import Array, Float
 
 from neuromotor import compiler
 from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angles_from_q
-from neuromotor.rotations import matrix_to_quat, skew
+from neuromotor.rotations import matrix_to_quat, mm, skew
 from neuromotor.model.skeleton import Model
 from neuromotor.model.topology import Topology
-from neuromotor.physics.system import dof_axes, external_forces, joint_jacobian_blocks, root_lever, world_inertia
+from neuromotor.physics.system import (dof_axes, external_forces, joint_jacobian_blocks, per_joint_to_dofs, root_lever,
+                                       world_inertia)
 
 
 class InverseDynamics(eqx.Module):
@@ -93,10 +94,15 @@ def eq3_matrix(model: Model, rot: Float[Array, "B 3 3"], axes: Float[Array, "n 3
     return vals[model.topology.derived(_eq3_layout)]
 
 
-def solve_eq3(model: Model, q, qd, qdd, theta_sim):
-    """Solve Eq. 3 at one instant; returns (lam, tau, axes, relative residual)."""
+def solve_eq3(model: Model, q, qd, qdd, theta_sim, local_axes=None):
+    """Solve Eq. 3 at one instant; returns (lam, tau, axes, relative residual). ``local_axes``
+    (C, 3, 3), columns in each parent's frame: the axes h_i of the multipliers (None: the Euler
+    axes at ``theta_sim``, Eq. 4)."""
     _, rot, _, omega, acc, alpha = body_kinematics(model, q, qd, qdd)
-    axes = dof_axes(model, rot, theta_sim)
+    if local_axes is None:
+        axes = dof_axes(model, rot, theta_sim)
+    else:
+        axes = per_joint_to_dofs(model, jnp.swapaxes(mm(rot[model.topology.parent], local_axes), -1, -2))
     # M a with M block diagonal, diag(m I3, R I R^T) per body.
     m_a = jnp.concatenate([model.mass[:, None] * acc, jnp.einsum("bij,bj->bi", world_inertia(model, rot), alpha)], -1)
     rhs = m_a.reshape(-1) - external_forces(model, rot, omega)
@@ -108,14 +114,16 @@ def solve_eq3(model: Model, q, qd, qdd, theta_sim):
 
 
 @compiler.jit
-def inverse_dynamics(model: Model, traj: Trajectory, times: Float[Array, " T"]) -> InverseDynamics:
-    """Eq. 3 at every time in ``times`` (vmapped), from the spline of the mocap."""
+def inverse_dynamics(model: Model, traj: Trajectory, times: Float[Array, " T"],
+                     local_axes: Float[Array, "T C 3 3"] | None = None) -> InverseDynamics:
+    """Eq. 3 at every time in ``times`` (vmapped), from the spline of the mocap (``local_axes``:
+    see :func:`solve_eq3`)."""
 
-    def one(t):
+    def one(t, la):
         theta = joint_angles_from_q(model, traj.q(t), traj.angle_reference(t))
-        return solve_eq3(model, traj.q(t), traj.qd(t), traj.qdd(t), theta[sim_columns(model)])
+        return solve_eq3(model, traj.q(t), traj.qd(t), traj.qdd(t), theta[sim_columns(model)], la)
 
-    lam, tau, axes, res = jax.vmap(one)(times)
+    lam, tau, axes, res = jax.vmap(one)(times, local_axes)
     return InverseDynamics(times, tau, lam, axes, res)
 
 

@@ -32,7 +32,7 @@ from neuromotor.physics.control import (ControllerInputs, Gains, affine_torque, 
                                         joint_torque_q, joint_torques)
 from neuromotor.physics import static
 from neuromotor.physics.system import State, embed_angular, gyroscopic_forces, world_inertia
-from neuromotor.rotations import (cross, mm, mmt, mtv, mv, quat_exp, quat_mul, quat_to_matrix,
+from neuromotor.rotations import (cross, matrix_to_quat, mm, mmt, mtv, mv, quat_exp, quat_mul, quat_to_matrix,
                                   right_jacobian_inv, skew)
 
 
@@ -118,7 +118,11 @@ def stiff_jacobians(model: Model, gains: Gains, inputs: ControllerInputs, rot, o
     embed = lambda m: embed_angular(m.reshape(6 * n, n, 3), (-1,)).reshape(6 * n, 6 * n)
     kmat = jax.jacfwd(f, argnums=0)(zero, omega).reshape(6 * n, 3 * n)
     dmat = jax.jacfwd(f, argnums=1)(zero, omega).reshape(6 * n, 3 * n)
-    return DenseStiffness(f(zero, omega), embed(kmat), embed(dmat))
+    k = f(zero, omega)
+    if inputs.drift is not None:  # an applied torque, as in stiff_blocks
+        drift = body_torques(model, reference_drift(model, gains, inputs, matrix_to_quat(rot), omega))
+        k = k + _as_forces(drift).reshape(-1)
+    return DenseStiffness(k, embed(kmat), embed(dmat))
 
 
 def _joint_jacobians(model: Model, gains: Gains, inputs: ControllerInputs, quat, omega):
@@ -176,6 +180,28 @@ def joint_blocks(model: Model, gains: Gains, inputs: ControllerInputs, quat, ome
     return torque, jnp.concatenate([d_parent, d_child, -kd_w], -1)
 
 
+def reference_drift(model: Model, gains: Gains, inputs: ControllerInputs, quat, omega, jac=None) -> Float[Array, "C 3"]:
+    """Per joint, the torque (on the child) that moves the feedback's linearization with the
+    reference over the step (``inputs.drift``).
+
+    Eq. 2 predicts the stiff force at the step's end as ``k + K h v+ + D (v+ - v)``, as if the
+    controller's target held still. The feedback acts on the error to a target that moves; its
+    part of K and D must act on the deviation from the reference's own motion u:
+    ``K_fb h (v+ - u+) + D_fb ((v+ - v) - (u+ - u))``. This returns ``-(K_fb h u+ + D_fb (u+ - u))``
+    per joint, from the joint's blocks ``jac = [dT/d rot_p, dT/d rot_c, dT/d w_c]``
+    (:func:`joint_blocks`) less the feedforward's share ``dT_ff/d rot_p = -[T_ff]x``. On the
+    reference (the replay of the capture) it cancels the feedback's implicit terms exactly, so
+    the discrete inverse dynamics (:mod:`neuromotor.physics.discrete`) does not depend on the
+    gains."""
+    topo = model.topology
+    if jac is None:
+        jac = joint_blocks(model, gains, inputs, quat, omega)[1]
+    r_p = quat_to_matrix(quat[topo.parent])
+    t_ff = mv(r_p, mv(inputs.local_axes, gains.feedforward * inputs.tau * inputs.active))
+    d = inputs.drift
+    return -(mv(jac[..., 0:3] + skew(t_ff), d[..., 0:3]) + mv(jac[..., 3:6], d[..., 3:6]) + mv(jac[..., 6:9], d[..., 6:9]))
+
+
 def gyro_blocks(model: Model, rot, omega):
     """The gyroscopic torque ``-w x L`` (L = I_w w) of every body and ``[d/d rot, d/d w]``
     (B, 3, 6) in closed form: ``[w]x [L]x - [w]x I_w [w]x`` and ``[L]x - [w]x I_w``."""
@@ -198,6 +224,8 @@ def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: St
     else:
         tq, jac = _joint_jacobians(model, gains, inputs, state.quat, state.omega)
         g, gj = _gyro_jacobians(model, state.quat, state.omega)
+    if inputs.drift is not None:  # an applied torque: K and D keep their blocks
+        tq = tq + reference_drift(model, gains, inputs, state.quat, state.omega, jac)
     jac = jnp.concatenate([jac[..., :6], -jac[..., 6:9], jac[..., 6:9]], -1)
     # Child rows get +dT, parent rows -dT; diagonal blocks gather both ends of every joint.
     ends = (topo.sel_child.T, -topo.sel_parent.T)

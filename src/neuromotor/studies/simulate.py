@@ -22,7 +22,8 @@ from neuromotor.studies import metrics as mx
 from neuromotor.model.bvh import BvhClip
 from neuromotor.config import ConfigError, SimulationConfig
 from neuromotor.physics.control import Gains, make_gains
-from neuromotor.physics.dynamics import Reference, Rollout, SimConfig, check_rollout, make_reference, rollout
+from neuromotor.physics.dynamics import (Feedforward, Reference, Rollout, SimConfig, check_rollout, make_reference,
+                                        rollout)
 from neuromotor.model.kinematics import Trajectory, trajectory_from_clip
 from neuromotor.physics.perturbation import ForcePulses, pulses
 from neuromotor.model.anatomy import prepare_clip
@@ -67,21 +68,24 @@ class Setup:
         return self.character.model
 
 
-# The driven root turning more than this per step (rad) makes the replay drift by degrees: the
-# step integrates every body's rotation in the world frame, with an error that grows with the
-# rotation per step (the Bandai-Namco kick spins at 11 rad/s: 1.97 deg RMS at h = 1/120 s,
-# 0.72 deg at 1/360 s; docs/body-model.md).
+# With the paper's continuous feedforward (Eq. 3), a driven root turning more than this per step
+# (rad) makes the replay drift by degrees (the Bandai-Namco kick spins at 11 rad/s: 1.97 deg RMS at
+# h = 1/120 s, 0.72 deg at 1/360 s; docs/body-model.md). The discrete feedforward replays it exactly.
 MAX_ROOT_TURN_PER_STEP = 0.05
 
 
-def step_warnings(ref: Reference, h: float) -> tuple[str, ...]:
-    """A warning when the driven root turns faster than the time step follows well."""
+def step_warnings(ref: Reference, h: float, feedforward: Feedforward | str = Feedforward.DISCRETE) -> tuple[str, ...]:
+    """A warning when the driven root turns faster than the time step follows well (only with
+    the continuous feedforward: the discrete one is the step's own inverse)."""
+    if Feedforward(feedforward) is Feedforward.DISCRETE:
+        return ()
     omega = float(np.max(np.linalg.norm(np.asarray(ref.root_omega), axis=-1)))
     if omega * h <= MAX_ROOT_TURN_PER_STEP:
         return ()
     h_good = MAX_ROOT_TURN_PER_STEP / omega
     return (f"the root turns at up to {omega:.1f} rad/s, {omega * h:.3f} rad per step of h = {h:.4g} s: the "
-            f"replay may drift by degrees; sim.h <= {h_good:.4g} s keeps it within about a degree",)
+            f"replay may drift by degrees; sim.h <= {h_good:.4g} s keeps it within about a degree "
+            f"(or sim.feedforward = \"discrete\", which replays it exactly)",)
 
 
 def body_lookup(model: Model, source: str = "config", character: Character | None = None):
@@ -135,28 +139,29 @@ def prepare(config: SimulationConfig, character: Character | None = None,
             raise ConfigError(f"{config.source}: sim.driven_joints: the root is always driven")
         driven.append(b)
     driven = tuple(sorted(driven))
-    ref = make_reference(model, traj, config.start, config.h, n_steps)
-    gains = _initial_gains(model, traj, jnp.asarray(config.start), ref.theta, ref.activation,
+    sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit,
+                    stabilization_steps=config.stabilization_steps, dtype=config.dtype,
+                    feedforward=config.feedforward, joint_law=config.joint_law)
+    ref = make_reference(model, traj, config.start, sim)
+    gains = _initial_gains(model, traj, jnp.asarray(config.start), ref.local_axes[0], ref.activation,
                            config.ks, config.kd, config.tau_floor)
     if config.reflex is not None:
         gains = dataclasses.replace(gains, reflex=config.reflex.build(config.h))
-    sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit,
-                    stabilization_steps=config.stabilization_steps, dtype=config.dtype)
     # An impulse is a one-step square pulse: it needs the step to know its force.
     specs = [dict(p, step=config.h) for p in config.perturbations]
     for s in specs:  # no point given: push at the body's centre of mass
         if s.get("point") is None:
             s["point"] = [float(x) for x in np.asarray(model.com[index(s["body"])])]
     ball = ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
-    warnings = tuple(character.warnings) + step_warnings(ref, config.h)
+    warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
     return Setup(character, traj, ref, gains, sim, pulses(specs, index), config, ball, warnings)
 
 
 @compiler.jit
-def _initial_gains(model: Model, traj: Trajectory, t0, theta, activation, ks, kd, tau_floor) -> Gains:
+def _initial_gains(model: Model, traj: Trajectory, t0, local_axes, activation, ks, kd, tau_floor) -> Gains:
     """:func:`make_gains` at the clip's start, the spline evaluation included: one program
     rather than a dozen eagerly compiled scalar ops."""
-    return make_gains(model, traj.q(t0), theta[0], activation, ks, kd, tau_floor)
+    return make_gains(model, traj.q(t0), local_axes, activation, ks, kd, tau_floor)
 
 
 @compiler.jit
