@@ -16,8 +16,9 @@ TUTORIAL = """# Tutorial
 The tutorial is a Jupyter notebook, [`docs/tutorial.ipynb`](tutorial.ipynb): load a clip,
 inspect the body, hit it, look at the result inline with `neuromotor.viz.show`, run a small
 sweep, fit (ks, kd) to a synthetic target and take a gradient through the simulation. Open it
-with `jupyter lab docs/tutorial.ipynb` (the `notebook` extra, `pip install -e '.[notebook]'`,
-installs the kernel); the test suite runs it top to bottom (`tests/test_tutorial.py`).
+in any Jupyter front end (JupyterLab, Notebook, VS Code) with a kernel from the project's
+environment (`pip install -e '.[notebook]'` adds ipykernel; the front end is yours to install);
+the test suite runs it top to bottom (`tests/test_tutorial.py`).
 """
 
 
