@@ -54,6 +54,7 @@ def test_api_reference_documents_the_public_names(site):
     assert 'id="neuromotor.studies.sweep.sweep_from_config"' in sweep
     # A docstring's text made it through (not only the signature).
     assert "lax.scan" in physics and "Generalized velocity layout" in _text(site, "api/model")
+    assert ":class:" not in physics and ":func:" not in physics     # Sphinx roles stripped
 
 
 def test_site_fetches_nothing(site):

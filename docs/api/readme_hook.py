@@ -55,3 +55,12 @@ def on_page_markdown(markdown, page, config, files):
     for link, rel in _outside_links(src, *_dirs(config)):
         markdown = markdown.replace(f"]({link})", f"]({posixpath.relpath(f'repo/{rel}', here or '.')})")
     return markdown
+
+
+# Docstrings use Sphinx roles (":func:`step`"); Markdown renders the name as code and leaves the
+# role in front of it.
+ROLE = re.compile(r":(?:class|func|meth|mod|attr|data|obj|exc):(?=<code)")
+
+
+def on_page_content(html, page, config, files):
+    return ROLE.sub("", html)
