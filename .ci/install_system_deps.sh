@@ -1,15 +1,16 @@
 #!/usr/bin/env bash
 # Install the Debian system packages neuromotor needs on a machine with no display and no GPU:
 # the libraries of off-screen rendering (pyvista/VTK through EGL + Mesa), headless Chromium (the
-# HTML viewer's browser test) and Node.js with npm (three.js and the Khronos glTF validator,
-# installed by .ci/install from package.json). Idempotent: packages already present are left
+# HTML viewer's browser test), Node.js with npm (three.js and the Khronos glTF validator,
+# installed by .ci/install from package.json) and Blender with Debian's NumPy (its glTF
+# importer needs NumPy; tests/io/test_blender.py imports our exports in it). Idempotent: packages already present are left
 # alone and apt is not touched at all when nothing is missing. Runs as root, or through sudo.
 #
 #   .ci/install_system_deps.sh            # install what is missing
 #   .ci/install_system_deps.sh --check    # only report; exit 1 if something is missing
 set -euo pipefail
 
-PACKAGES=(libegl1 libegl-mesa0 libgl1-mesa-dri chromium)
+PACKAGES=(libegl1 libegl-mesa0 libgl1-mesa-dri chromium blender python3-numpy)
 # Node.js from any source will do (a machine may carry a newer one than Debian's).
 if ! command -v npm >/dev/null 2>&1; then
     PACKAGES+=(nodejs npm)

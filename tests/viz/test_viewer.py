@@ -6,6 +6,7 @@ the hit show the character and differ."""
 from __future__ import annotations
 
 import html
+import json
 import os
 import pathlib
 import re
@@ -125,6 +126,17 @@ def test_page_is_self_contained(run_file):
     assert html.unescape(srcdoc) == viewer.html
 
 
+def test_metrics_that_are_not_numbers_become_null():
+    """A window that ends before the recovery has recovery_time_s NaN: the page's JSON holds null
+    (the browser's JSON.parse rejects NaN, and the page would not start)."""
+    d = synthetic_run()
+    d["metrics_json"] = np.asarray(json.dumps({"peak_deviation_deg": 1.5, "recovery_time_s": float("nan")}))
+    page = viewer_html(d)
+    data = re.search(r'<script type="application/json" id="nm-data">(.*?)</script>', page, re.DOTALL).group(1)
+    strict = json.loads(data, parse_constant=lambda c: pytest.fail(f"{c} in the page's JSON"))
+    assert strict["meta"]["metrics"] == {"peak_deviation_deg": 1.5, "recovery_time_s": None}
+
+
 def test_vendored_three_is_the_npm_package():
     """vendor/ holds unmodified copies of the pinned npm package's files (package.json)."""
     three = pathlib.Path(__file__).resolve().parents[2] / "node_modules" / "three"
@@ -132,7 +144,6 @@ def test_vendored_three_is_the_npm_package():
         if os.environ.get("CI"):
             pytest.fail(f"{three} missing: run npm ci (.ci/install)")
         pytest.skip(f"{three} missing (npm ci installs it)")
-    import json
 
     from neuromotor.viz.html import THREE_VERSION, VENDOR
 
@@ -195,11 +206,14 @@ def _need_chromium():
 
 
 def _open(page: pathlib.Path, query: str, png: pathlib.Path | None, profile: pathlib.Path,
-          budget_ms: int = 4000, window=WINDOW) -> dict:
+          budget_ms: int = 4000, window=WINDOW, webgl: bool = True) -> dict:
     """Load ``page?query`` in headless Chromium and let it run for ``budget_ms`` of virtual time:
-    the DOM then (status, the page's own error box) and the console lines Chromium logged."""
-    cmd = [CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
-           "--enable-unsafe-swiftshader", "--hide-scrollbars", "--no-first-run", f"--user-data-dir={profile}",
+    the DOM then (status, the page's own error box) and the console lines Chromium logged.
+    ``webgl=False``: no GPU and no software GL (``--disable-software-rasterizer``; with
+    ``--disable-gpu`` alone Chromium 13x still falls back to SwiftShader), so no WebGL."""
+    gl = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader"] if webgl else ["--disable-software-rasterizer"]
+    cmd = [CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", *gl,
+           "--hide-scrollbars", "--no-first-run", f"--user-data-dir={profile}",
            "--enable-logging=stderr", "--v=0", f"--window-size={window[0]},{window[1]}",
            f"--virtual-time-budget={budget_ms}", "--dump-dom"]
     if png is not None:
@@ -212,7 +226,8 @@ def _open(page: pathlib.Path, query: str, png: pathlib.Path | None, profile: pat
     # SwiftShader's "GPU stall due to ReadPixels" (the screenshot itself) is not the page's.
     console = [line for line in out.stderr.splitlines() if ":CONSOLE" in line and "GL Driver Message" not in line]
     return {"status": status.group(2) if status else None, "attrs": attrs, "console": console,
-            "errors": html.unescape(errors.group(1)) if errors else "(no #nm-errors in the DOM)"}
+            "errors": html.unescape(errors.group(1)) if errors else "(no #nm-errors in the DOM)",
+            "dom": out.stdout}
 
 
 @pytest.fixture(scope="module")
@@ -280,3 +295,27 @@ def test_run_without_shapes_draws_capsules_and_plays_in_chromium(tmp_path):
     assert dom["console"] == [] and dom["status"] == "ready"
     played = float(dom["attrs"]["data-time"]) - float(d["time"][0])
     assert 0.75 * 0.375 <= played <= 0.375 + 0.01
+
+
+def test_page_without_webgl_says_so_and_still_draws_the_curve(run_file, tmp_path):
+    """Chromium with no GPU and no software GL: one line where the picture would be, no script
+    error, the time of ?t= in the timeline, and the deviation curve (orange) with its red cursor."""
+    _need_chromium()
+    page = write_viewer(run_file, tmp_path / "run.html")
+    png = tmp_path / "nogl.png"
+    dom = _open(page, f"t={T_AFTER}", png, tmp_path, webgl=False)
+    assert dom["errors"] == "", dom["errors"]
+    assert dom["console"] == [] and dom["status"] == "ready" and dom["attrs"]["data-webgl"] == "0"
+    note = re.search(r'<div id="nm-no-webgl"([^>]*)>([^<]*)<', dom["dom"])
+    assert note and "hidden" not in note.group(1) and "no WebGL" in note.group(2)
+    time = read_run(run_file)["time"]
+    k = int(np.argmin(np.abs(time - T_AFTER)))
+    assert int(dom["attrs"]["data-index"]) == k
+    assert f"t = {time[k]:.3f} s" in dom["dom"]
+    img = iio.imread(png)[..., :3].astype(float)
+    chart = img[WINDOW[1] - CHART_PX:]
+    r, g, b = chart[..., 0], chart[..., 1], chart[..., 2]
+    curve = (np.abs(r - 230) < 40) & (np.abs(g - 115) < 40) & (np.abs(b - 51) < 40)
+    cursor = (r > 150) & (g < 60) & (b < 60)
+    assert curve.sum() > 200 and cursor.sum() > 50
+    assert _character(_view((dom, img))).sum() == 0   # no figure drawn

@@ -171,9 +171,21 @@ def _meta(d, scene: Scene) -> dict:
     t = scene.time
     return {"title": f"neuromotor run{': ' + clip if clip else ''}", "clip": clip, "up_axis": scene.up_axis,
             "hits": [[float(t[a]), float(t[b])] for a, b in zip(starts, ends)],
-            "metrics": json_field(d, "metrics_json"),
+            "metrics": _strict_json(json_field(d, "metrics_json")),
             "colors": {"perturbed": COLOR_PERTURBED, "ghost": COLOR_GHOST, "force": COLOR_FORCE,
                        "ball": COLOR_BALL}}
+
+
+def _strict_json(value):
+    """NaN and infinities (a run that never recovers has recovery_time_s NaN) as null: the
+    browser's JSON.parse rejects them and the page would not start."""
+    if isinstance(value, dict):
+        return {k: _strict_json(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_strict_json(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
 
 
 def viewer_data(d: Mapping[str, np.ndarray]) -> dict:
@@ -240,7 +252,7 @@ def viewer_html(run) -> str:
     _, d = _run_arrays(run)
     data = viewer_data(d)
     # '<' escaped so that no string in the JSON can end the <script> element holding it.
-    parts = {"DATA": json.dumps(data, separators=(",", ":")).replace("<", "\\u003c"),
+    parts = {"DATA": json.dumps(data, separators=(",", ":"), allow_nan=False).replace("<", "\\u003c"),
              "TITLE": html.escape(data["meta"]["title"]), "THREE_VERSION": THREE_VERSION,
              **{block.upper().replace("-", "_"): text for block, text in _modules().items()}}
     template = TEMPLATE.read_text(encoding="utf-8")

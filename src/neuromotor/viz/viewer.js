@@ -40,8 +40,24 @@ function nearestIndex(t) {
 // ---------------------------------------------------------------------------------------------
 
 const canvas = $('nm-canvas');
-const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
-renderer.setPixelRatio(window.devicePixelRatio || 1);
+// three.js needs WebGL 2. Without it (no GPU and no software GL, or WebGL turned off) the page
+// says so where the picture would be and still draws the curve and the timeline.
+function hasWebGL2() {
+  try { return !!document.createElement('canvas').getContext('webgl2'); } catch (e) { return false; }
+}
+let renderer = null;
+if (hasWebGL2()) {
+  try {
+    renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
+    renderer.setPixelRatio(window.devicePixelRatio || 1);
+  } catch (e) {
+    renderer = null;
+  }
+}
+if (!renderer) {
+  canvas.style.display = 'none';
+  $('nm-no-webgl').hidden = false;
+}
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0xf4f5f7);
 const camera = new THREE.PerspectiveCamera(D.view.fov, 1, 0.02, 200);
@@ -275,6 +291,7 @@ function showIndex(k) {
 }
 
 function renderNow() {
+  if (!renderer) return;
   const view = $('nm-view');
   const w = view.clientWidth, h = view.clientHeight;
   const size = renderer.getSize(new THREE.Vector2());
@@ -392,7 +409,7 @@ function reportReady() {
   if (fetched.length) window.neuromotorReport('fetched from the network: ' + fetched.join(' '));
   const status = $('nm-status');
   status.textContent = 'ready';
-  status.setAttribute('data-webgl', renderer.getContext() ? '1' : '0');
+  status.setAttribute('data-webgl', renderer && renderer.getContext() ? '1' : '0');
   document.documentElement.setAttribute('data-nm-ready', '1');
 }
 
