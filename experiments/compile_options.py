@@ -29,11 +29,11 @@ def main() -> None:
     jax.config.update("jax_enable_compilation_cache", False)
     setup = bench._setup(args.clip, 1.0, "nullspace")
     m, traj, g, p, ref, cfg = setup.model, setup.traj, setup.gains, setup.pulses, setup.ref, setup.sim
-    t0, h = jnp.asarray(float(ref.time[0])), jnp.asarray(cfg.h)
+    t0 = jnp.asarray(float(ref.time[0]))
     times = ref.time
     programs = {
-        "reference grid (Eq. 3 included)": (lambda m, tr, t0, h: dy._make_reference.__wrapped__(m, tr, t0, h, cfg.n_steps),
-                                            (m, traj, t0, h)),
+        "reference grid (discrete inverse included)": (lambda m, tr, t0: dy._make_reference.__wrapped__(m, tr, t0, cfg),
+                                                       (m, traj, t0)),
         "inverse dynamics of the grid": (inverse_dynamics.__wrapped__, (m, traj, times)),
         "rollout (1 s)": (lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg), (m, g, p, ref)),
     }
