@@ -121,7 +121,9 @@ class Reference(eqx.Module):
     drive_omega: Float[Array, "S1 B 3"]  # driven joints' rates over the step that ends at t_k (parent frame at its start)
     kkt_residual: Float[Array, " S1"]  # relative residual of the feedforward's solve per step
     landing: Float[Array, " S1"]  # rotation (rad) the discrete inverse leaves per step (0: Eq. 3)
-    omega: Float[Array, "S1 B 3"] | None = None  # the reference's body angular velocities (discrete only)
+    # The discrete inverse's body velocities u_k ([linear, angular], world; None with Eq. 3):
+    # the state of the replay at t_k, and the reference's motion for the feedback's drift.
+    velocity: Float[Array, "S1 B 6"] | None = None
 
     def pose_targets(self, k) -> PoseTargets:
         """What post-stabilization projects onto at grid step k (the driven root and joints)."""
@@ -129,10 +131,10 @@ class Reference(eqx.Module):
 
     def drift(self, model: Model, k, h: float) -> Float[Array, "C 9"] | None:
         """The reference's motion over step k per joint (:func:`stiffness.reference_drift`)."""
-        if self.omega is None:
+        if self.velocity is None:
             return None
         c, p = model.topology.child, model.topology.parent
-        w0, w1 = self.omega[k], self.omega[k + 1]
+        w0, w1 = self.velocity[k, :, 3:], self.velocity[k + 1, :, 3:]
         return jnp.concatenate([h * w1[p], h * w1[c], (w1[c] - w1[p]) - (w0[c] - w0[p])], -1)
 
 
@@ -169,7 +171,7 @@ def _make_reference(model: Model, traj: Trajectory, t0, cfg: SimConfig) -> Refer
     if Feedforward(cfg.feedforward) is Feedforward.CONTINUOUS:
         sol = inverse_dynamics(model, traj, times, local_axes)
         tau, residual, landing = sol.tau, sol.residual, jnp.zeros_like(times)
-        root_vel, ref_omega, stored_omega = qd[:, 0:3], omega, None
+        root_vel, ref_omega, stored = qd[:, 0:3], omega, None
         rel_w = jnp.einsum("tbji,tbj->tbi", rot[:, par], omega - omega[:, par])
         drive = rel_w
     else:
@@ -179,8 +181,8 @@ def _make_reference(model: Model, traj: Trajectory, t0, cfg: SimConfig) -> Refer
                                         local_axes, active)
         last = lambda a: jnp.concatenate([a, a[-1:]], 0)
         tau, residual, landing = last(sol.tau), last(sol.residual), last(sol.landing)
-        u = sol.velocity
-        ref_omega = stored_omega = u[:, :, 3:]
+        u = stored = sol.velocity
+        ref_omega = u[:, :, 3:]
         rel_w = jnp.einsum("tbji,tbj->tbi", rot[:, par], ref_omega - ref_omega[:, par])
         # The root's b and the driven joints' rates of step k-1 -> k, with the levers and the
         # parent frames at that step's start (as the step reads them).
@@ -197,7 +199,7 @@ def _make_reference(model: Model, traj: Trajectory, t0, cfg: SimConfig) -> Refer
     init = State(pos[0], quat[0], vel[0], omega[0])
     rel_quat = matrix_to_quat(rel[:, topo.child])
     return Reference(times, tau, activation, theta, theta_dot, root_origin, rot[:, 0], root_vel, ref_omega[:, 0],
-                     rel, rel_w, init, local_axes, rel_quat, local_pinv, drive, residual, landing, stored_omega)
+                     rel, rel_w, init, local_axes, rel_quat, local_pinv, drive, residual, landing, stored)
 
 
 # ---------------------------------------------------------------- the step's three pytrees
