@@ -20,6 +20,9 @@ Simulation config (every table and key optional)::
                                    # projection, then a closing step) reach round-off; 1 (the
                                    # projection only, as Cline & Pai) leaves up to ~4e-8 m
     dtype = "float64"              # float64 | float32 (sweeps, accelerators; docs/float32.md)
+    metric = "geodesic"            # the deviation d(t) and every figure from it: geodesic (RMS
+                                   # over joints of each joint's rotation angle) | euler (RMS
+                                   # over the Euler DOFs; about 1/sqrt(3) of it, gimbal artefacts)
 
     [gains]
     ks = 400.0                     # 1/s^2 (see neuromotor.physics.control for the scaling)

@@ -13,6 +13,7 @@ import pathlib
 import numpy as np
 
 from neuromotor.config.fields import Fields, read_toml, resolve
+from neuromotor.studies.metrics import METRICS
 from neuromotor.config.specs import (
     CONTROLLERS, EXPERIMENT_KINDS, FEATURE_NAMES, JACOBIANS, PERTURBATION_KINDS, PULSE_SHAPES,
     SEXES, SOLVERS, TARGET_KINDS, BallSpec, ExperimentSpec, FeatureTarget, FitSpec, FitTargetSpec, GainSetting,
@@ -124,6 +125,7 @@ def _sim_fields(top: Fields) -> dict:
         sim.fail("stabilization_steps", f"must be an integer from 1 to 5, got {steps!r}")
     out["stabilization_steps"] = steps
     out["dtype"] = Precision(sim.choice("dtype", d("dtype").value, [p.value for p in Precision]))
+    out["metric"] = sim.choice("metric", d("metric"), METRICS)
     sim.done()
     gains = top.sub("gains")
     for key in ("ks", "kd", "tau_floor"):

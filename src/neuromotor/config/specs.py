@@ -17,9 +17,10 @@ from typing import ClassVar
 from neuromotor.physics.contact.ball import make_ball
 from neuromotor.physics.contact.detection import ContactSettings
 from neuromotor.physics.control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
+from neuromotor.errors import ConfigError
 from neuromotor.physics.precision import Precision
 from neuromotor.physics import reflex as _reflex
-from neuromotor.studies.metrics import RECOVERY_FLOOR_DEG, RECOVERY_FRACTION
+from neuromotor.studies.metrics import METRICS, RECOVERY_FLOOR_DEG, RECOVERY_FRACTION
 
 PERTURBATION_KINDS = ("force", "impulse")
 PULSE_SHAPES = ("square", "half_sine", "triangle")
@@ -206,6 +207,7 @@ class SimulationConfig:
     driven_joints: list[str] = dataclasses.field(default_factory=list)
     stabilization_steps: int = 2  # Newton steps of post-stabilization (SimConfig.stabilization_steps)
     dtype: Precision = Precision.FLOAT64  # float64, or float32 for sweeps (docs/float32.md)
+    metric: str = "geodesic"  # the deviation d(t): geodesic joint angles, or "euler" (per-DOF; studies.metrics)
     ks: float = DEFAULT_KS
     kd: float = DEFAULT_KD
     tau_floor: float = DEFAULT_TAU_FLOOR
@@ -216,6 +218,8 @@ class SimulationConfig:
 
     def __post_init__(self):
         object.__setattr__(self, "dtype", Precision(self.dtype))
+        if self.metric not in METRICS:
+            raise ConfigError(f"{self.source}: field 'sim.metric' must be one of {list(METRICS)}, got {self.metric!r}")
         object.__setattr__(self, "perturbations", [PerturbationSpec.of(p) for p in self.perturbations])
         object.__setattr__(self, "ball", BallSpec.of(self.ball))
 
