@@ -98,11 +98,37 @@ def joint_quats(model_or_topology, quat: Float[Array, "... B 4"]) -> Float[Array
 
 
 def joint_rates(model_or_topology, quat: Float[Array, "... B 4"], omega: Float[Array, "... B 3"]) -> Float[Array, "... C 3"]:
-    """Each joint's relative angular velocity R_parent^T (w_child - w_parent) (rad/s, parent
-    frame) from body quaternions and world angular velocities."""
+    """Each joint's relative angular velocity R_child^T (w_child - w_parent) (rad/s, in the
+    child's frame, like :func:`rotation_vector`) from body quaternions and world angular velocities."""
     topo = _topology(model_or_topology)
-    q_p = quat[..., topo.parent, :]
-    return quat_rotate(quat_conj(q_p), omega[..., topo.child, :] - omega[..., topo.parent, :])
+    q_c = quat[..., topo.child, :]
+    return quat_rotate(quat_conj(q_c), omega[..., topo.child, :] - omega[..., topo.parent, :])
+
+
+def dof_selection(model, dofs) -> tuple[np.ndarray, np.ndarray]:
+    """Joint rows (of :func:`joint_quats`) of the simulated DOFs ``dofs`` and an (R, 3) mask of
+    their axes: the coordinate axis of each DOF's name (``Chest.Xrotation``: x) in its joint's
+    child frame. A whole joint (all three DOFs) selects its whole rotation."""
+    topo = _topology(model)
+    bodies = sorted({int(topo.dof_body[int(i)]) for i in dofs})
+    mask = np.zeros((len(bodies), 3))
+    for i in dofs:
+        axis = str(model.dof_names[int(i)]).rsplit(".", 1)[-1][:1].upper()
+        mask[bodies.index(int(topo.dof_body[int(i)])), "XYZ".index(axis)] = 1.0
+    return joint_rows(topo, bodies), mask
+
+
+def selected_deviation_deg(local_a, local_b, rows, mask) -> Float[Array, "..."]:
+    """d(t) (deg) over a selection of joints and axes (:func:`dof_selection`):
+    ``sqrt(sum_j sum_axes mask (phi_j . e)^2 / R)``, phi_j the rotation vector between the two
+    runs' local rotations of joint j. Whole joints give the geodesic RMS exactly; one axis per
+    joint gives the RMS over joints of the signed turn about that body axis (a flexion, say),
+    which, unlike an Euler angle, does not depend on the Euler order."""
+    a, b = local_a[..., jnp.asarray(rows), :], local_b[..., jnp.asarray(rows), :]
+    if np.all(mask):
+        return rms_joint_angle_deg(a, b)
+    phi = rotation_vector(a, b)
+    return jnp.rad2deg(safe_sqrt(jnp.sum(jnp.asarray(mask) * phi**2, axis=(-1, -2)) / len(rows)))
 
 
 def joint_rows(model_or_topology, joints=None) -> np.ndarray:
