@@ -48,6 +48,24 @@ def test_known_angle_about_random_axis(angle):
     assert float(mx.rms_joint_angle_deg(q_a, q_b)) == pytest.approx(np.rad2deg(angle), rel=1e-9)
 
 
+def test_selected_axes_give_the_signed_turn_about_a_body_axis():
+    """Feature fits over some DOFs of a joint: a turn of alpha about the child's x axis and beta
+    about another joint's y axis, selected by axis."""
+    rng = np.random.default_rng(7)
+    q_a = jnp.asarray(_random_quats(rng, (5, 2)))
+    alpha, beta = 0.2, -0.05
+    turn = jnp.asarray(np.broadcast_to([[alpha, 0.0, 0.0], [0.0, beta, 0.0]], (5, 2, 3)))
+    q_b = quat_mul(q_a, quat_exp(turn))
+    rows = np.array([0, 1])
+    x_only = np.array([[1.0, 0, 0], [1.0, 0, 0]])
+    np.testing.assert_allclose(np.asarray(mx.selected_deviation_deg(q_a, q_b, rows, x_only)),
+                               np.rad2deg(abs(alpha) / np.sqrt(2)), rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(mx.selected_deviation_deg(q_a, q_b, rows, np.ones((2, 3)))),
+                               np.rad2deg(np.sqrt((alpha**2 + beta**2) / 2)), rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(mx.selected_deviation_deg(q_a, q_b, rows, np.ones((2, 3)))),
+                               np.asarray(mx.rms_joint_angle_deg(q_a, q_b)), rtol=1e-12)
+
+
 # ---------------------------------------------------------------- Euler re-encodings of a real clip
 
 
@@ -202,6 +220,12 @@ def test_default_run_peak_is_bounded_by_the_largest_joint_turn(default_run):
     assert m["peak_deviation_deg"] <= change.max() * (1 + 1e-12)
     # The push moves the body: the bound is not trivially met by a zero curve.
     assert m["peak_deviation_deg"] > 1.0
+    # RUN.npz carries the same curve, for plots and the viewer
+    from neuromotor.studies.record import _motion_arrays
+
+    arrays = _motion_arrays(setup, res)
+    np.testing.assert_allclose(arrays["deviation"], dev, rtol=1e-12, atol=1e-14)
+    assert str(arrays["deviation_metric"]) == "geodesic"
 
 
 def test_euler_option_reproduces_the_euler_only_numbers(default_run):
