@@ -118,6 +118,57 @@ def test_geodesic_deviation_is_the_same_in_every_euler_order():
     assert euler["ZXY"].max() > 5.0 and largest.max() <= 2.0 + 1e-9
 
 
+def test_a_bvh_rewritten_in_another_euler_order_gives_the_same_deviation(tmp_path):
+    """The MocapBank clip written twice as BVH: in its own ZXY order with the left elbow held
+    near ZXY's gimbal lock, and with every joint re-encoded in XYZ. Loaded through the whole
+    pipeline (anatomy, body model, splines, forward kinematics), the geodesic deviation between
+    each file's poses and the same poses 0.1 s later is equal to 1e-9 deg; the Euler form of the
+    two files' channels is not."""
+    import dataclasses as dc
+
+    from neuromotor.model.bvh import write_bvh
+    from neuromotor.model.kinematics import body_poses
+    from neuromotor.studies.simulate import load_character
+
+    clip = read_bvh(CLIPS["mocapbank"])
+    motion = np.array(clip.motion)
+    T = clip.n_frames
+    elbow = next(j for j in clip.joints if j.name == "LeftElbow")
+    t = np.arange(T) * clip.frame_time
+    motion[:, list(elbow.rotation_columns)] = np.stack(
+        [40 * np.sin(2 * t), 89.95 + 0.03 * np.cos(3 * t), 30 * np.sin(t)], -1)  # Z, X (~90), Y
+    write_bvh(tmp_path / "zxy.bvh", clip, motion, precision=15)
+    joints, xyz = [], motion.copy()
+    for j in clip.joints:
+        if j.parent >= 0 and j.rotation_order == "ZXY":
+            cols = list(j.rotation_columns)
+            rot = euler_to_matrix(jnp.asarray(np.deg2rad(motion[:, cols])), "ZXY")
+            xyz[:, cols] = np.rad2deg(np.asarray(matrix_to_euler(rot, "XYZ")))
+            names = dict(zip("ZXY", [j.channels[c - j.channel_start] for c in cols]))
+            chans = list(j.channels)
+            for k, axis in zip(cols, "XYZ"):  # the same columns now hold X, Y, Z
+                chans[k - j.channel_start] = names[axis]
+            j = dc.replace(j, channels=tuple(chans))
+        joints.append(j)
+    write_bvh(tmp_path / "xyz.bvh", dc.replace(clip, joints=tuple(joints)), xyz, precision=15)
+    shift = 3  # frames: 0.1 s
+    dev, euler = {}, {}
+    for name in ("zxy", "xyz"):
+        character, traj = load_character(tmp_path / f"{name}.bvh")
+        model = character.model
+        q = jax.vmap(traj.q)(jnp.asarray(t[:120]))
+        quat = matrix_to_quat(jax.vmap(lambda x: body_poses(model, x)[1])(q))
+        dev[name] = np.asarray(mx.joint_deviation(model, quat[:-shift], quat[shift:]))
+        file = read_bvh(tmp_path / f"{name}.bvh")
+        cols = [c for j in file.joints[1:] for c in j.rotation_columns]
+        ang = np.deg2rad(file.motion[:120, cols])
+        euler[name] = np.asarray(mx.deviation(ang[:-shift], ang[shift:]))
+    assert read_bvh(tmp_path / "xyz.bvh").joints[5].rotation_order == "XYZ"
+    assert dev["zxy"].max() > 1.0
+    np.testing.assert_allclose(dev["xyz"], dev["zxy"], rtol=0, atol=1e-9)
+    assert np.max(np.abs(euler["xyz"] - euler["zxy"])) > 1.0
+
+
 def test_joint_deviation_from_body_quaternions_is_local():
     """Body quaternions composed down the clip's tree: joint_deviation equals the RMS over the
     local rotations, and a common turn of the whole body (the root) changes nothing."""
