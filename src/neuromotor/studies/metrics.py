@@ -136,7 +136,10 @@ def joint_rows(model_or_topology, joints=None) -> np.ndarray:
     topo = _topology(model_or_topology)
     if joints is None:
         return np.arange(len(topo.child))
-    rows = np.searchsorted(topo.child, np.asarray(joints, dtype=np.int64))
+    joints = np.asarray(joints, dtype=np.int64)
+    rows = np.minimum(np.searchsorted(topo.child, joints), len(topo.child) - 1)
+    if not np.array_equal(np.asarray(topo.child)[rows], joints):  # the root (0) has no joint
+        raise ValueError(f"joints must be non-root body indices, got {joints.tolist()}")
     return np.asarray(rows, dtype=np.int64)
 
 
