@@ -44,12 +44,14 @@ def test_fast_spinning_root_is_warned_about(result):
         assert "rad per step" in at_default[0] and "sim.h <=" in at_default[0]
 
 
+# Joint errors are geodesic (issue 34): a joint's rotation angle against the capture's, about
+# sqrt(3) times the former per-DOF Euler RMS, so the bounds (1 and 3 deg per DOF) scale by sqrt(3).
 def test_unperturbed_replay_follows_the_capture(result):
     name, setup, res = result
-    theta = np.asarray(res.unperturbed.theta)
-    err = np.degrees(np.angle(np.exp(1j * (theta - np.asarray(setup.ref.theta)[: len(theta)]))))
+    local = mx.joint_quats(setup.model, res.unperturbed.states.quat)
+    err = np.degrees(np.asarray(mx.geodesic_angle(local, setup.ref.rel_quat[: local.shape[0]])))
     rms, worst = float(np.sqrt(np.mean(err**2))), float(np.sqrt(np.mean(err**2, axis=0)).max())
-    assert rms < 1.0 and worst < 3.0, (name, rms, worst)
+    assert rms < 1.0 * np.sqrt(3) and worst < 3.0 * np.sqrt(3), (name, rms, worst)
     np.testing.assert_allclose(res.metrics["unperturbed_rms_error_deg"], rms, rtol=1e-6)
     assert res.metrics["max_kkt_residual"] < 1e-9 and res.metrics["max_constraint_violation"] < 1e-8
 
@@ -61,9 +63,9 @@ def test_chest_push_deflects_and_recovers(result):
     assert m["peak_deviation_deg"] > 0.5  # the push is felt...
     assert 1.0 < m["time_of_peak_s"] < 2.0
     if name in KICK:  # ...and dies down before the next kick
-        dev = np.asarray(mx.deviation(res.perturbed.theta, res.unperturbed.theta))
+        dev = np.asarray(mx.joint_deviation(setup.model, res.perturbed.states.quat, res.unperturbed.states.quat))
         t = np.asarray(res.perturbed.time)
         assert dev[(t > m["time_of_peak_s"]) & (t < 2.7)].min() < 0.2 * m["peak_deviation_deg"]
         assert m["final_error_deg"] < 0.35 * m["peak_deviation_deg"]
     else:  # ...and is recovered from within the window
-        assert np.isfinite(m["recovery_time_s"]) and m["final_error_deg"] < 0.5
+        assert np.isfinite(m["recovery_time_s"]) and m["final_error_deg"] < 0.5 * np.sqrt(3)
