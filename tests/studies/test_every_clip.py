@@ -10,7 +10,6 @@ import pytest
 from conftest import ALL_CLIPS, CLIPS
 from neuromotor.studies import metrics as mx
 from neuromotor.config import SimulationConfig
-from neuromotor.rotations import quat_conj, quat_log, quat_mul
 from neuromotor.studies.simulate import prepare, run, step_warnings
 
 PUSH = dict(kind="force", body="chest", point=None, direction=[1.0, 0.0, 0.0], magnitude=300.0,
@@ -47,13 +46,14 @@ def test_fast_spinning_root_is_warned_about_only_with_the_continuous_feedforward
 
 def test_unperturbed_replay_is_the_capture(result):
     """Every joint at every sample within 0.01 deg of the capture (geodesic angle of its local
-    rotation), at the default step; the Euler-angle RMS the metrics report agrees."""
+    rotation), at the default step; the replay error the metrics report agrees, and so do the
+    Euler angles."""
     name, setup, res = result
-    topo = setup.model.topology
-    q = np.asarray(res.unperturbed.states.quat)
-    rel = quat_mul(quat_conj(q[:, topo.parent]), q[:, topo.child])
-    err = np.degrees(np.linalg.norm(np.asarray(quat_log(quat_mul(quat_conj(setup.ref.rel_quat[: len(q)]), rel))), axis=-1))
+    local = mx.joint_quats(setup.model, res.unperturbed.states.quat)
+    err = np.degrees(np.asarray(mx.geodesic_angle(local, setup.ref.rel_quat[: local.shape[0]])))
     assert err.max() < 0.01, (name, err.max())
+    np.testing.assert_allclose(res.metrics["unperturbed_rms_error_deg"], np.sqrt(np.mean(err**2)), rtol=1e-6,
+                               atol=1e-12)
     theta = np.asarray(res.unperturbed.theta)
     euler = np.degrees(np.angle(np.exp(1j * (theta - np.asarray(setup.ref.theta)[: len(theta)]))))
     assert np.abs(euler).max() < 0.01
@@ -66,10 +66,12 @@ def test_chest_push_deflects_and_recovers(result):
     assert not m["diverged"]
     assert m["peak_deviation_deg"] > 0.5  # the push is felt...
     assert 1.0 < m["time_of_peak_s"] < 2.0
+    dev = np.asarray(mx.joint_deviation(setup.model, res.perturbed.states.quat, res.unperturbed.states.quat))
+    t = np.asarray(res.perturbed.time)
+    # 1.8 s after the push the deviation is below a quarter of its peak (issue 34's criterion).
+    assert dev[np.argmin(np.abs(t - (PUSH["start"] + 1.8)))] < 0.25 * dev.max()
     if name in KICK:  # ...and dies down before the next kick
-        dev = np.asarray(mx.deviation(res.perturbed.theta, res.unperturbed.theta))
-        t = np.asarray(res.perturbed.time)
         assert dev[(t > m["time_of_peak_s"]) & (t < 2.7)].min() < 0.2 * m["peak_deviation_deg"]
         assert m["final_error_deg"] < 0.35 * m["peak_deviation_deg"]
     else:  # ...and is recovered from within the window
-        assert np.isfinite(m["recovery_time_s"]) and m["final_error_deg"] < 0.5
+        assert np.isfinite(m["recovery_time_s"]) and m["final_error_deg"] < 0.5 * np.sqrt(3)

@@ -88,7 +88,7 @@ SHARDED_SCRIPT = textwrap.dedent("""\
                            keep_curves=True, progress=False)
         chunk_out = sweeper.simulate_chunk(sweeper.pad(sw.build_batch(s.gains, s.pulses, runs, index), 0, 6))
         out[name] = {"curves": res.curves.tolist(), "rows": res.rows,
-                     "shards": len({sh.device for sh in chunk_out.theta.addressable_shards})}
+                     "shards": len({sh.device for sh in chunk_out.pose.addressable_shards})}
     # Rollouts vmapped three at a time: the sweep switches to the batched solver (branch).
     sweeper = sw.Sweeper(s.model, s.ref, s.sim, chunk=6, inner_batch=3, mesh=sw.device_mesh(jax.devices()[:1]))
     res = sw.run_sweep(sweeper, s.gains, s.pulses, runs, index, s.model.body_names, keep_curves=True, progress=False)
@@ -99,7 +99,8 @@ SHARDED_SCRIPT = textwrap.dedent("""\
                   character, traj)
     r = run(one)
     out["single_run"] = {"index": i, "metrics": r.metrics,
-                         "curve": np.asarray(mx.deviation(r.perturbed.theta, r.unperturbed.theta)).tolist()}
+                         "curve": np.asarray(mx.joint_deviation(one.model, r.perturbed.states.quat,
+                                                                   r.unperturbed.states.quat)).tolist()}
     # A batch split over the devices (bench's batches): equal to the plain vmap, one share per device.
     from neuromotor.physics import dynamics as dy
     from neuromotor.studies.sweep import runner

@@ -49,7 +49,7 @@ def test_grid_rows_equal_single_runs_with_their_reflex(grid, clip):
     assert [(r["reflex_gain"], r["reflex_delay"]) for r in result.rows] == [(g, d) for g in GAINS for d in DELAYS]
     for i, row in enumerate(result.rows):
         one = run(prepare(_config(ReflexSpec(gain=row["reflex_gain"], delay=row["reflex_delay"])), *clip))
-        curve = np.asarray(mx.deviation(one.perturbed.theta, one.unperturbed.theta))
+        curve = np.asarray(mx.joint_deviation(clip[0].model, one.perturbed.states.quat, one.unperturbed.states.quat))
         np.testing.assert_allclose(result.curves[i], curve, rtol=0, atol=1e-10)
         for k in ("peak_deviation_deg", "time_of_peak_s", "overshoot_deg", "final_error_deg"):
             np.testing.assert_allclose(row[k], one.metrics[k], rtol=1e-9, atol=1e-12, err_msg=k)

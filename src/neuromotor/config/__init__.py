@@ -24,6 +24,9 @@ Simulation config (every table and key optional)::
                                    # replays the capture) | continuous: the paper's Eq. 3
     joint_law = "rotation"         # rotation: each ball joint's torque and error as one 3-vector
                                    # (the same for every Euler order) | euler: the paper's per DOF
+    metric = "geodesic"            # the deviation d(t) and every figure from it: geodesic (RMS
+                                   # over joints of each joint's rotation angle) | euler (RMS
+                                   # over the Euler DOFs; about 1/sqrt(3) of it, gimbal artefacts)
 
     [gains]
     ks = 400.0                     # 1/s^2 (see neuromotor.physics.control for the scaling)

@@ -13,6 +13,7 @@ import pathlib
 import numpy as np
 
 from neuromotor.config.fields import Fields, read_toml, resolve
+from neuromotor.studies.metrics import METRICS
 from neuromotor.config.specs import (
     CONTROLLERS, EXPERIMENT_KINDS, FEATURE_NAMES, JACOBIANS, PERTURBATION_KINDS, PULSE_SHAPES,
     SEXES, SOLVERS, TARGET_KINDS, BallSpec, ExperimentSpec, FeatureTarget, FitSpec, FitTargetSpec, GainSetting,
@@ -127,6 +128,7 @@ def _sim_fields(top: Fields) -> dict:
     out["dtype"] = Precision(sim.choice("dtype", d("dtype").value, [p.value for p in Precision]))
     out["feedforward"] = Feedforward(sim.choice("feedforward", d("feedforward").value, [f.value for f in Feedforward]))
     out["joint_law"] = JointLaw(sim.choice("joint_law", d("joint_law").value, [f.value for f in JointLaw]))
+    out["metric"] = sim.choice("metric", d("metric"), METRICS)
     sim.done()
     gains = top.sub("gains")
     for key in ("ks", "kd", "tau_floor"):

@@ -18,9 +18,10 @@ from neuromotor.physics.contact.ball import make_ball
 from neuromotor.physics.contact.detection import ContactSettings
 from neuromotor.physics.control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
 from neuromotor.physics.options import Feedforward, JointLaw
+from neuromotor.errors import ConfigError
 from neuromotor.physics.precision import Precision
 from neuromotor.physics import reflex as _reflex
-from neuromotor.studies.metrics import RECOVERY_FLOOR_DEG, RECOVERY_FRACTION
+from neuromotor.studies.metrics import METRICS, RECOVERY_FLOOR_DEG, RECOVERY_FRACTION
 
 PERTURBATION_KINDS = ("force", "impulse")
 PULSE_SHAPES = ("square", "half_sine", "triangle")
@@ -209,6 +210,7 @@ class SimulationConfig:
     dtype: Precision = Precision.FLOAT64  # float64, or float32 for sweeps (docs/float32.md)
     feedforward: Feedforward = Feedforward.DISCRETE  # SimConfig.feedforward: discrete | continuous (Eq. 3)
     joint_law: JointLaw = JointLaw.ROTATION  # SimConfig.joint_law: rotation | euler (per Euler DOF)
+    metric: str = "geodesic"  # the deviation d(t): geodesic joint angles, or "euler" (per-DOF; studies.metrics)
     ks: float = DEFAULT_KS
     kd: float = DEFAULT_KD
     tau_floor: float = DEFAULT_TAU_FLOOR
@@ -221,6 +223,8 @@ class SimulationConfig:
         object.__setattr__(self, "dtype", Precision(self.dtype))
         object.__setattr__(self, "feedforward", Feedforward(self.feedforward))
         object.__setattr__(self, "joint_law", JointLaw(self.joint_law))
+        if self.metric not in METRICS:
+            raise ConfigError(f"{self.source}: field 'sim.metric' must be one of {list(METRICS)}, got {self.metric!r}")
         object.__setattr__(self, "perturbations", [PerturbationSpec.of(p) for p in self.perturbations])
         object.__setattr__(self, "ball", BallSpec.of(self.ball))
 

@@ -15,7 +15,9 @@ The file is a plain NumPy ``.npz`` (no pickles). Its fields, by group:
   horizontal facing direction, ``skeleton_edge_body`` (E,) the body carrying each bone (-1 for
   none), ``metrics_json`` and ``provenance_json`` (JSON strings), the ball's ``ball_pos`` (T, 3)
   and ``ball_radius`` (scalar > 0), which come together, ``contact_force`` (T, C, 3) and
-  ``body_names`` (B,);
+  ``body_names`` (B,), ``deviation`` (T,) the deviation d(t) in degrees that the metrics were
+  computed from and ``deviation_metric`` its definition (a string: ``geodesic`` or ``euler``,
+  see :mod:`neuromotor.studies.metrics`; files without them are drawn with the Euler form);
 * body shapes (``SHAPE_FIELDS``, all or none): ``shape_vertices`` (V, 3) in the body frame less
   the body's COM, ``shape_faces`` (F, 3) and ``shape_body`` (V,) integer, with the poses
   ``body_pos`` (T, B, 3), ``body_quat`` (T, B, 4, w x y z) and their ``_unperturbed`` twins.
@@ -41,7 +43,7 @@ DRAW_FIELDS = ("time", "skeleton_points", "skeleton_points_unperturbed", "skelet
 PLOT_FIELDS = ("time", "dof_names", "theta", "theta_unperturbed", "theta_desired", "force_vector")
 EXPORT_FIELDS = ("time", "theta", "dof_names", "source_clip", "source_units", "up_axis")
 OPTIONAL_FIELDS = ("up_axis", "ball_pos", "ball_radius", "metrics_json", "facing", "skeleton_edge_body",
-                   "contact_force", "provenance_json", "body_names")
+                   "contact_force", "provenance_json", "body_names", "deviation", "deviation_metric")
 SHAPE_FIELDS = ("shape_vertices", "shape_faces", "shape_body", "body_pos", "body_quat",
                 "body_pos_unperturbed", "body_quat_unperturbed")
 POSE_FIELDS = ("body_pos", "body_quat", "body_pos_unperturbed", "body_quat_unperturbed")
@@ -272,6 +274,9 @@ class _Checker:
                 fail("up_axis", f"must be a scalar 0, 1 or 2, got {d['up_axis']!r}")
         if "ball_pos" in d or "ball_radius" in d:
             self.ball(T)
+        if "deviation" in d:
+            self.shape("deviation", (T,))
+            self.finite("deviation")
 
     def ball(self, T):
         d, fail = self.d, self.fail

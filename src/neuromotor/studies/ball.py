@@ -190,16 +190,20 @@ def sweep_ball_speed(setup, speeds) -> dict[str, np.ndarray]:
 
     The batch holds one run per speed plus the unperturbed run (the ball never launched), so a
     single compiled function serves them all. The ball keeps its direction (no re-aiming).
-    Returns per speed the peak joint-angle deviation from the unperturbed run (RMS over DOFs,
-    degrees), its time, and the peak contact impulse."""
+    Returns per speed the peak deviation from the unperturbed run (by ``[sim] metric``: RMS
+    over joints of the geodesic angle, or over Euler DOFs; degrees), its time, and the peak contact impulse."""
     bs = setup.ball
     speeds = jnp.asarray(speeds, jnp.float64)
     balls = jax.vmap(lambda s: eqx.tree_at(lambda b: b.speed, bs.ball, s))(speeds)
     balls = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), balls, never_launched(bs.ball))
     batch = batched_contact_rollout(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim, balls,
                                     bs.capsules, bs.settings)
-    theta = batch.run.theta
-    dev = jax.vmap(lambda th: mx.deviation(th, theta[-1]))(theta[:-1])
+    if setup.config.metric == "euler":
+        theta = batch.run.theta
+        dev = jax.vmap(lambda th: mx.deviation(th, theta[-1]))(theta[:-1])
+    else:
+        quat = batch.run.states.quat
+        dev = jax.vmap(lambda q: mx.joint_deviation(setup.model, q, quat[-1]))(quat[:-1])
     return {
         "speed": np.asarray(speeds),
         "peak_deviation_deg": np.asarray(jnp.max(dev, -1)),

@@ -107,15 +107,23 @@ def arm(cfg: SimulationConfig, exp: ExperimentSpec) -> dict:
         raise ConfigError(f"{cfg.source}: field 'experiment.arm': no simulated joint named {missing[0]!r}")
     arm_dofs = sorted(i for dofs in groups.values() for i in dofs)
     rest = [i for i in range(model.n_dofs) if i not in arm_dofs]
+    from neuromotor.studies.simulate import deviation_curve
+
     pert, base = np.asarray(result.perturbed.theta), np.asarray(result.unperturbed.theta)
     t = np.asarray(result.perturbed.time)
-    dev_arm = np.asarray(mx.deviation(pert, base, arm_dofs))
+    dev_arm = deviation_curve(setup, result.perturbed, result.unperturbed, mx.dof_joints(model, arm_dofs))
     start, end = _hit_span(cfg)
+    if cfg.metric == "euler":  # the largest change of one Euler angle
+        peak_of = lambda dofs: float(np.rad2deg(np.abs(pert[:, dofs] - base[:, dofs]).max()))
+    else:  # the largest rotation change of one of the joints turned by these DOFs
+        change = np.asarray(mx.joint_angle_changes_deg(model, result.perturbed.states.quat,
+                                                       result.unperturbed.states.quat))
+        peak_of = lambda dofs: float(change[:, mx.joint_rows(model, mx.dof_joints(model, dofs))].max())
     numbers = {
         "arm": mx.recovery_metrics(t, dev_arm, start),
         "all_dofs": result.metrics,
-        "rest_of_body_max_deviation_deg": float(np.rad2deg(np.abs(pert[:, rest] - base[:, rest]).max())) if rest else 0.0,
-        "per_joint_peak_deg": {n: float(np.rad2deg(np.abs(pert[:, d] - base[:, d]).max())) for n, d in groups.items()},
+        "rest_of_body_max_deviation_deg": peak_of(rest) if rest else 0.0,
+        "per_joint_peak_deg": {n: peak_of(d) for n, d in groups.items()},
         "driven_joints": list(cfg.driven_joints),
     }
     plt = pyplot()
@@ -148,8 +156,10 @@ def full_body(cfg: SimulationConfig, exp: ExperimentSpec) -> dict:
     """The full-body experiment (Figure 2)."""
     out = exp.output
     setup, result, npz = _simulate(cfg, out)
+    from neuromotor.studies.simulate import deviation_curve
+
     t = np.asarray(result.perturbed.time)
-    dev = np.asarray(mx.deviation(result.perturbed.theta, result.unperturbed.theta))
+    dev = deviation_curve(setup, result.perturbed, result.unperturbed)
     start, end = _hit_span(cfg)
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 2.6), dpi=90)
@@ -170,7 +180,7 @@ def full_body(cfg: SimulationConfig, exp: ExperimentSpec) -> dict:
 
 def contrast(cfg: SimulationConfig, exp: ExperimentSpec, progress: bool = True) -> dict:
     """The same hit under each controller of ``exp.controllers``."""
-    from neuromotor.studies.simulate import prepare
+    from neuromotor.studies.simulate import deviation_curve, prepare, tracking_curve
 
     out = exp.output
     base_setup = prepare(cfg)
@@ -180,10 +190,8 @@ def contrast(cfg: SimulationConfig, exp: ExperimentSpec, progress: bool = True) 
     for i, setting in enumerate(exp.controllers):
         setup, result, npz = _simulate(cfg, out, f"run_{i}.npz", setting, setup=base_setup)
         t = np.asarray(result.perturbed.time)
-        pert, base = np.asarray(result.perturbed.theta), np.asarray(result.unperturbed.theta)
-        desired = np.asarray(setup.ref.theta[: len(t)])
-        dev = np.asarray(mx.deviation(pert, base))
-        track = np.asarray(mx.deviation(base, desired))
+        dev = deviation_curve(setup, result.perturbed, result.unperturbed)
+        track = tracking_curve(setup, result.unperturbed)
         curves.append((setting, t, dev, track))
         numbers["controllers"].append({"label": setting.name, "controller": setting.controller, "ks": setting.ks,
                                        "kd": setting.kd, **result.metrics, "run": str(npz)})
@@ -207,7 +215,8 @@ def contrast(cfg: SimulationConfig, exp: ExperimentSpec, progress: bool = True) 
         from neuromotor.studies.sweep import SweepSpec, Sweeper, plot_sweep, run_sweep, write_csv
 
         spec = SweepSpec(list(exp.magnitudes), list(exp.controllers))
-        sweeper = Sweeper(base_setup.model, base_setup.ref, base_setup.sim, chunk=len(spec.magnitudes) * len(spec.gains))
+        sweeper = Sweeper(base_setup.model, base_setup.ref, base_setup.sim, chunk=len(spec.magnitudes) * len(spec.gains),
+                          metric=cfg.metric)
         res = run_sweep(sweeper, base_setup.gains, base_setup.pulses, spec.runs(cfg.perturbations[0]),
                         body_lookup(base_setup.model), base_setup.model.body_names, progress=progress)
         numbers["files"]["sweep_csv"] = str(write_csv(res.rows, out / "sweep.csv"))

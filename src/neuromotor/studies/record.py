@@ -10,6 +10,7 @@ the facing direction, and the JSON of metrics and provenance.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import pathlib
@@ -83,8 +84,14 @@ def rollout_points(setup: Setup, run_: Rollout) -> np.ndarray:
 # RUN.npz arrays
 # ----------------------------------------------------------------------------------------------
 
+@functools.partial(compiler.jit, static_argnames=("metric",))
+def _deviation(metric: str, model: Model, pert, base):
+    return mx.run_deviation(metric, model, pert, base)
+
+
 def _motion_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
-    """Time, joint angles, body poses, the applied force and the solver's diagnostics."""
+    """Time, joint angles, body poses, the deviation d(t) of the run's metrics, the applied
+    force and the solver's diagnostics."""
     model = setup.model
     pert, base = result.perturbed, result.unperturbed
     force = np.asarray(pert.force)
@@ -101,6 +108,9 @@ def _motion_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
         "theta": mx.continuous_angles(np.asarray(pert.theta), theta_base),
         "theta_unperturbed": theta_base,
         "theta_desired": theta_desired,
+        # d(t) as the metrics measured it ([sim] metric), so plots and the viewer draw that curve
+        "deviation": np.asarray(_deviation(setup.config.metric, model, pert, base)),
+        "deviation_metric": np.asarray(setup.config.metric),
         "body_names": np.array(model.body_names),
         "body_pos": np.asarray(pert.states.pos),
         "body_quat": np.asarray(pert.states.quat),

@@ -20,8 +20,7 @@ from neuromotor.config.parse import load_simulation_config, load_sweep_config
 from neuromotor.config.specs import GainSetting, ReflexSpec, SimulationConfig, SweepSpec, reflex_grid
 from neuromotor.errors import ConfigError
 from neuromotor.io import tables
-from neuromotor.studies import metrics as mx
-from neuromotor.studies.simulate import prepare, run
+from neuromotor.studies.simulate import deviation_curve, prepare, run
 from neuromotor.studies.sweep import COLUMNS, simulate_grid
 from neuromotor.studies.sweep.stability import (DECAY_FRACTION, PAPER_FEEDBACK, STABLE_PEAK_DEG, classified,  # noqa: F401
                                                 classify, map_options)
@@ -65,7 +64,7 @@ def compare_paths(cfg: SimulationConfig, character=None, traj=None) -> PathCompa
         character, traj = setup.character, setup.traj  # load the clip once
         r = run(setup, check=False)
         time = np.asarray(r.perturbed.time)
-        curves[name] = np.asarray(mx.deviation(r.perturbed.theta, r.unperturbed.theta))
+        curves[name] = deviation_curve(setup, r.perturbed, r.unperturbed)
         m = r.metrics
         reflex = 0.0 if r.perturbed.reflex is None else float(np.max(np.abs(np.asarray(r.perturbed.reflex))))
         table[name] = {**{k: m[k] for k in ("peak_deviation_deg", "time_of_peak_s", "recovery_time_s",

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib.resources
 import pathlib
 
@@ -195,25 +196,61 @@ def run(setup: Setup, check: bool = True) -> RunResult:
 
 
 def run_metrics(setup: Setup, pert: Rollout, base: Rollout) -> dict:
+    """Recovery metrics of d(t) by ``setup.config.metric`` (geodesic joint angles by default;
+    :mod:`neuromotor.studies.metrics`) and the unperturbed run's error against the mocap."""
     starts = [p["start"] for p in setup.config.perturbations]
     if setup.ball is not None:
         starts.append(float(setup.ball.ball.launch))
     start = min(starts, default=float(np.asarray(setup.ref.time)[0]))
-    dev, residual, violation = _metric_arrays(pert.theta, base.theta, pert.residual, base.residual,
-                                              pert.violation, base.violation)
+    metric = setup.config.metric
+    dev, tracking, residual, violation = _metric_arrays(metric, setup.model, pert, base, setup.ref)
     out = mx.recovery_metrics(pert.time, dev, start)
-    out["unperturbed_rms_error_deg"] = mx.rms_error_deg(base.theta, setup.ref.theta)
+    out["unperturbed_rms_error_deg"] = float(tracking)
     out["max_kkt_residual"] = float(residual)
     out["max_constraint_violation"] = float(violation)
     out["diverged"] = bool(int(pert.diverged_step) >= 0 or int(base.diverged_step) >= 0)
     return out
 
 
-@compiler.jit
-def _metric_arrays(theta, theta_base, residual, residual_base, violation, violation_base):
-    """The array reductions of :func:`run_metrics` as one program (not a dozen eager ops)."""
-    return (mx.deviation(theta, theta_base), jnp.maximum(jnp.max(residual), jnp.max(residual_base)),
-            jnp.maximum(jnp.max(violation), jnp.max(violation_base)))
+@functools.partial(compiler.jit, static_argnames=("metric",))
+def _metric_arrays(metric: str, model: Model, pert: Rollout, base: Rollout, ref: Reference):
+    """The array reductions of :func:`run_metrics` as one program (not a dozen eager ops): d(t),
+    the unperturbed run's RMS error against the mocap (over samples and joints, or DOFs for
+    ``euler``), the largest KKT residual and constraint violation."""
+    dev = mx.run_deviation(metric, model, pert, base)
+    if metric == "euler":
+        track = mx.wrap_angle(base.theta - ref.theta[: base.theta.shape[0]])
+    else:  # the simulated joints' local rotations against the mocap's on the grid
+        local = mx.joint_quats(model, base.states.quat)
+        track = mx.geodesic_angle(local, ref.rel_quat[: local.shape[0]])
+    return (dev, jnp.rad2deg(jnp.sqrt(jnp.mean(track**2))),
+            jnp.maximum(jnp.max(pert.residual), jnp.max(base.residual)),
+            jnp.maximum(jnp.max(pert.violation), jnp.max(base.violation)))
+
+
+def deviation_curve(setup: Setup, pert: Rollout, base: Rollout, joints=None) -> np.ndarray:
+    """d(t) (deg) of ``pert`` against ``base`` by ``setup.config.metric``, over ``joints`` (body
+    indices; None: every simulated joint)."""
+    return np.asarray(_deviation(setup.config.metric, setup.model, pert, base, joints))
+
+
+def tracking_curve(setup: Setup, run_: Rollout) -> np.ndarray:
+    """Per sample, the RMS error (deg) of a run against the mocap by ``setup.config.metric``:
+    geodesic on the joints' local rotations against ``ref.rel_quat``, or over the Euler DOFs."""
+    return np.asarray(_tracking(setup.config.metric, setup.model, run_, setup.ref))
+
+
+@functools.partial(compiler.jit, static_argnames=("metric", "joints"))
+def _deviation(metric, model, pert, base, joints):
+    return mx.run_deviation(metric, model, pert, base, joints)
+
+
+@functools.partial(compiler.jit, static_argnames=("metric",))
+def _tracking(metric, model, run_, ref):
+    if metric == "euler":
+        return mx.deviation(run_.theta, ref.theta[: run_.theta.shape[0]])
+    local = mx.joint_quats(model, run_.states.quat)
+    return mx.rms_joint_angle_deg(local, ref.rel_quat[: local.shape[0]])
 
 
 def clip_of(setup: Setup) -> BvhClip:

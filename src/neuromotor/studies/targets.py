@@ -36,11 +36,17 @@ the file's degrees and unwrapped in time; frame 0 sits at clip time ``time_offse
 Feature targets
 ---------------
 Numbers such as the peak deviation after a push, given per perturbation case with a standard
-deviation; see :data:`FEATURES`. Features are computed from the deviation signal
-``d(t) = rms_i (theta_i - theta_unperturbed_i)`` in degrees over a set of DOFs (see
-:mod:`neuromotor.studies.metrics`), and the peak acceleration from ``a(t)``, the RMS over the same
-DOFs of the second time derivative of that difference in deg/s^2 (a central difference of the
-simulated joint rates), with smooth surrogates so the fit can differentiate them.
+deviation; see :data:`FEATURES`. Features are computed from the deviation signal d(t) in
+degrees over the joints of a set of DOFs: by default the RMS over those joints of the geodesic
+angle between the perturbed and unperturbed local rotations (the turn about the named axes
+when only some of a joint's DOFs are listed; ``[sim] metric = "euler"``: the former per-DOF
+``rms_i wrap(theta_i - theta_unperturbed_i)``; see :mod:`neuromotor.studies.metrics`), and the
+peak acceleration from ``a(t)``, the RMS over the same joints of the time derivative of the
+relative angular velocity difference in deg/s^2 (a central difference of the simulated joint
+rates), with smooth surrogates so the fit can differentiate them.
+
+Trajectory targets (the files above, recorded BVH trials, corridors) stay per Euler DOF: they
+give Euler angles, and the residuals are simulated minus target angles in radians.
 """
 
 from __future__ import annotations
@@ -59,7 +65,8 @@ FEATURES = {
     "time_to_peak_s": "time of the peak after the perturbation's start (s)",
     "recovery_time_s": "time after the start until d(t) stays below the threshold (s)",
     "overshoot_deg": "largest deviation after d(t) first returns below the threshold (deg)",
-    "peak_acceleration_deg_s2": "largest a(t) = rms_i d^2/dt^2 (theta_i - theta_unperturbed_i) (deg/s^2)",
+    "peak_acceleration_deg_s2": "largest a(t), the RMS over the joints of d/dt of the relative angular velocity "
+                                "difference (deg/s^2)",
 }
 AXES = ("x", "y", "z")
 SD_SUFFIX = ".sd"  # corridor columns: NAME (mean over subjects) and NAME.sd (their standard deviation)

@@ -20,8 +20,10 @@ quaternions' vector parts alike):
   outside the body, ``|F| / FORCE_SCALE_N_PER_M`` long, shown while ``|F|`` exceeds 1% of its
   peak), the ball when the run has one, a ground grid at the lowest point of the run;
 * a time slider, play/pause at speed 1, 0.5, 0.25 or 0.1, orbit/zoom, a checkbox per layer, and
-  under it the deviation ``d(t) = sqrt(mean_i wrap(theta_i - theta_unperturbed_i)^2)`` in
-  degrees (the signal of :mod:`neuromotor.studies.metrics`) with a cursor at the current time.
+  under it the deviation d(t) in degrees that the run's metrics came from (the file's
+  ``deviation``: by default the RMS over joints of each joint's geodesic rotation angle, see
+  :mod:`neuromotor.studies.metrics`; files without it: the Euler-DOF form
+  ``sqrt(mean_i wrap(theta_i - theta_unperturbed_i)^2)``) with a cursor at the current time.
 
 ``?t=SECONDS`` in the page's URL (or ``window.neuromotorSetTime(t)``) shows that instant,
 paused; without it the page plays from the start (``?speed=0.25``: slowed). Script errors are
@@ -197,7 +199,9 @@ def viewer_data(d: Mapping[str, np.ndarray]) -> dict:
            "shapes": _shape_part(d, order) if scene.has_shapes else None,
            "capsules": _capsule_part(scene, order), "force": _force_part(scene, order),
            "deviation": None, "ball": None}
-    if "theta" in d and "theta_unperturbed" in d:
+    if "deviation" in d:  # the curve the run's metrics came from ([sim] metric)
+        out["deviation"] = _packed(d["deviation"])
+    elif "theta" in d and "theta_unperturbed" in d:  # older files: the Euler-DOF form
         out["deviation"] = _packed(deviation_deg(d["theta"], d["theta_unperturbed"]))
     if "ball_pos" in d:
         out["ball"] = {"pos": _packed(np.asarray(d["ball_pos"])[:, order]), "radius": float(d["ball_radius"])}

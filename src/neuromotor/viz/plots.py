@@ -48,7 +48,8 @@ def _plot_deviation(ax, d, t, rms):
     fmag = np.linalg.norm(d["force_vector"], axis=1)
     ax.plot(t, rms, color="tab:orange", lw=2, label="RMS deviation (perturbed - unperturbed)")
     ax.set_xlabel("time (s)")
-    ax.set_ylabel("RMS joint-angle deviation (deg)")
+    metric = str(d["deviation_metric"]) if "deviation_metric" in d else "euler"
+    ax.set_ylabel("RMS joint rotation deviation (deg)" if metric == "geodesic" else "RMS joint-angle deviation (deg)")
     ax.grid(alpha=0.3)
     ax2 = ax.twinx()
     ax2.fill_between(t, fmag, color="tab:red", alpha=0.18, lw=0)
@@ -90,7 +91,8 @@ def plot_run(run_path, out_png, n_joints: int = 4) -> pathlib.Path:
 
     t = d["time"]
     dev = np.degrees(_wrap(d["theta"] - d["theta_unperturbed"]))
-    rms = np.sqrt(np.mean(dev ** 2, axis=1))
+    # The curve the metrics came from (geodesic by default); older files: the Euler-DOF RMS.
+    rms = np.asarray(d["deviation"]) if "deviation" in d else np.sqrt(np.mean(dev ** 2, axis=1))
     names = [str(n) for n in d["dof_names"]]
     n_show = min(n_joints, len(names))
     order = np.argsort(-np.abs(dev).max(axis=0))[:n_show]

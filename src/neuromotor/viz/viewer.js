@@ -266,7 +266,7 @@ function drawAxes(c, w, h, X, Y, t0, t1, ymax) {
     c.fillText(+t.toFixed(6) + '', X(t), h - PAD.bottom + 15);
   }
   c.textAlign = 'left';
-  c.fillText('RMS joint-angle deviation, perturbed - unperturbed (deg) vs time (s)', PAD.left, PAD.top - 6);
+  c.fillText('RMS joint deviation, perturbed - unperturbed (deg) vs time (s)', PAD.left, PAD.top - 6);
 }
 
 // ---------------------------------------------------------------------------------------------

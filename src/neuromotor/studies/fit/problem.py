@@ -20,7 +20,9 @@ from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Reference, Rollout, SimConfig, rollout
 from neuromotor.physics.perturbation import ForcePulses
 from neuromotor.studies.fit import parameters as fp
-from neuromotor.studies.fit.surrogate import acceleration_deg, deviation_deg, response_features
+from neuromotor.studies import metrics as mx
+from neuromotor.studies.fit.surrogate import (acceleration_deg, deviation_deg, joint_acceleration_deg,
+                                              response_features)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,6 +35,8 @@ class ResponseSpec:
     (1/deg) sharpens the soft peak, ``width`` is the sigmoid width as a fraction of the
     threshold, and the recovery threshold is ``max(fraction * peak, floor_deg)``.
     ``accel_beta`` (s^2/deg) sharpens the softmax-weighted peak of the angular acceleration.
+    ``metric``: features from the geodesic joint deviation (the joints of ``columns``' DOFs) or
+    from the Euler-DOF one. Joint-angle targets stay per Euler DOF (the target files give angles).
     """
 
     kind: str
@@ -45,6 +49,7 @@ class ResponseSpec:
     fraction: float = Surrogate.fraction
     floor_deg: float = Surrogate.floor_deg
     accel_beta: float = Surrogate.accel_beta
+    metric: str = "geodesic"  # the deviation of feature targets ([sim] metric; studies.metrics)
 
 
 class FitProblem(eqx.Module):
@@ -96,14 +101,24 @@ class FitProblem(eqx.Module):
             cur = runs.states.pos[:, s.i0:s.i1][:, :, jnp.asarray(s.columns)]
             return cur.reshape(-1), cur.reshape(cur.shape[0], cur.shape[1], -1), runs.diverged_step
         time = runs.time[0, s.i0:s.i1]
-        base = runs.theta[-1, s.i0:s.i1]
-        dofs = jnp.asarray(s.columns) if s.columns else None
-        base_rate = runs.theta_dot[-1, s.i0:s.i1]
         h = self.sim.h
+        if s.metric == "geodesic":
+            rows, mask = mx.dof_selection(self.model, s.columns) if s.columns else (mx.joint_rows(self.model), None)
+            quat, omega = runs.states.quat[:, s.i0:s.i1], runs.states.omega[:, s.i0:s.i1]
+            local = lambda c: mx.joint_quats(self.model, quat[c])
+            curve = lambda c: (mx.selected_deviation_deg(local(c), local(-1), rows, np.ones((len(rows), 3))
+                                                         if mask is None else mask),
+                               joint_acceleration_deg(self.model, quat[c], omega[c], quat[-1], omega[-1], h, rows,
+                                                      mask))
+        else:
+            base = runs.theta[-1, s.i0:s.i1]
+            dofs = jnp.asarray(s.columns) if s.columns else None
+            base_rate = runs.theta_dot[-1, s.i0:s.i1]
+            curve = lambda c: (deviation_deg(runs.theta[c, s.i0:s.i1], base, dofs),
+                               acceleration_deg(runs.theta_dot[c, s.i0:s.i1], base_rate, h, dofs))
         feats, devs = [], []
         for c in range(self.n_cases):
-            dev = deviation_deg(runs.theta[c, s.i0:s.i1], base, dofs)
-            acc = acceleration_deg(runs.theta_dot[c, s.i0:s.i1], base_rate, h, dofs)
+            dev, acc = curve(c)
             f = response_features(time, dev, self.start[c], s, acc)
             feats.append(jnp.stack([f[name] for name in s.features]))
             devs.append(jnp.stack([dev, acc], axis=-1))
@@ -152,6 +167,7 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
     if window is None:
         window = (float(sim_time[0]), float(sim_time[-1]))
     i0, i1 = window_indices(sim_time, window, cfg.source, "fit.window")
+    surrogate.setdefault("metric", cfg.metric)
     spec = ResponseSpec(kind, tuple(int(c) for c in columns), i0, i1,
                         tuple(features) if kind == "features" else (), **surrogate)
     start = jnp.asarray([float(s["start"]) for s in specs])

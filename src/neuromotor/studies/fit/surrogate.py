@@ -47,6 +47,22 @@ def acceleration_deg(theta_dot, theta_dot_ref, h: float, dofs=None) -> Float[Arr
     return jnp.pad(inner, (1, 1))
 
 
+def joint_acceleration_deg(model, quat, omega, quat_ref, omega_ref, h: float, rows=None,
+                           mask=None) -> Float[Array, " T"]:
+    """The geodesic counterpart of :func:`acceleration_deg`: per sample, the RMS over joints
+    (``rows``; None: all) of |d/dt (w_j - w_ref_j)| in deg/s^2 (``mask``: only these child-frame
+    axes, as :func:`neuromotor.studies.metrics.selected_deviation_deg`), w_j the joint's relative
+    angular velocity in its child's frame (from body quaternions and angular velocities, so it
+    does not depend on how the angles are written); central differences, 0 at both ends."""
+    w = mx.joint_rates(model, quat, omega) - mx.joint_rates(model, quat_ref, omega_ref)
+    acc = (w[2:] - w[:-2]) / (2.0 * h)
+    if rows is not None:
+        acc = acc[:, jnp.asarray(rows)]
+    if mask is not None:
+        acc = acc * jnp.asarray(mask)
+    return jnp.pad(jnp.rad2deg(mx.safe_sqrt(jnp.mean(jnp.sum(acc**2, axis=-1), axis=-1))), (1, 1))
+
+
 def soft_max_weighted(signal, beta: float):
     """Smooth peak of a signal: the softmax(beta * signal)-weighted mean of the signal.
 

@@ -110,7 +110,8 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
 
     model = setup.model
     mesh = None if devices is None else device_mesh(devices)
-    sizes = dict(chunk=chunk or spec.chunk, inner_batch=inner_batch or spec.inner_batch, mesh=mesh)
+    sizes = dict(chunk=chunk or spec.chunk, inner_batch=inner_batch or spec.inner_batch, mesh=mesh,
+                 metric=cfg.metric)
     if spec.kind == "ball":
         try:  # aim every speed first: a speed that cannot reach the target is a config error
             balls = balls_at_speeds(setup, spec.magnitudes)

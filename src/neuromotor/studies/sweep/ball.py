@@ -33,7 +33,7 @@ class BallBatch(eqx.Module):
 class BallRunOut(eqx.Module):
     """What a contact rollout leaves behind in a sweep (per run)."""
 
-    theta: Float[Array, "S1 n"]
+    pose: Float[Array, "S1 ..."]  # as RunOut.pose
     diverged_step: Int[Array, ""]
     diverged_body: Int[Array, ""]  # n_bodies: the ball
     max_residual: Float[Array, ""]
@@ -62,7 +62,7 @@ class BallSweeper(Sweeper):
         peak = jnp.max(imp)
         cand = jnp.argmax(jnp.max(imp, axis=0))
         touched = jnp.any((r.contact.normal_impulse > 0) & on_char, axis=-1)
-        return BallRunOut(r.run.theta, r.run.diverged_step, r.run.diverged_body, jnp.max(r.run.residual),
+        return BallRunOut(self.pose(model, r.run), r.run.diverged_step, r.run.diverged_body, jnp.max(r.run.residual),
                           jnp.max(r.run.violation), peak, jnp.where(peak > 0, bodies[cand], -1),
                           jnp.where(jnp.any(touched), jnp.argmax(touched), -1))
 

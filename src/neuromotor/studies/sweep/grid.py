@@ -51,9 +51,11 @@ class RunBatch(eqx.Module):
 
 
 class RunOut(eqx.Module):
-    """What a rollout leaves behind in a sweep (per run)."""
+    """What a rollout leaves behind in a sweep (per run). ``pose``: what the deviation is
+    measured on, the joints' local quaternions (S1, C, 4) (geodesic metric) or the Euler angles
+    theta (S1, n) (``metric = "euler"``)."""
 
-    theta: Float[Array, "S1 n"]
+    pose: Float[Array, "S1 ..."]
     diverged_step: Int[Array, ""]
     diverged_body: Int[Array, ""]
     max_residual: Float[Array, ""]

@@ -76,7 +76,10 @@ class Sweeper:
     """
 
     def __init__(self, model: Model, ref: Reference, sim: SimConfig, *, chunk: int = 64,
-                 inner_batch: int = 1, mesh: Mesh | None = None):
+                 inner_batch: int = 1, mesh: Mesh | None = None, metric: str = "geodesic"):
+        if metric not in mx.METRICS:
+            raise ValueError(f"metric must be one of {mx.METRICS}, got {metric!r}")
+        self.metric = metric
         if mesh is None:
             local = jax.local_devices()
             mesh = device_mesh(local[:1] if _lapack_on_cpu(sim, local) else local)
@@ -97,7 +100,11 @@ class Sweeper:
     def _one(self, shared, run: RunBatch) -> RunOut:
         model = eqx.combine(shared[0], self.model_static)
         r = rollout(model, run.gains, run.pulses, shared[1], self.sim)
-        return RunOut(r.theta, r.diverged_step, r.diverged_body, jnp.max(r.residual), jnp.max(r.violation))
+        return RunOut(self.pose(model, r), r.diverged_step, r.diverged_body, jnp.max(r.residual), jnp.max(r.violation))
+
+    def pose(self, model: Model, r):
+        """What d(t) is measured on (:class:`RunOut`): local joint quaternions, or theta (euler)."""
+        return r.theta if self.metric == "euler" else mx.joint_quats(model, r.states.quat)
 
     def _local(self, shared, batch: RunBatch) -> RunOut:
         size = None if self.inner_batch == 1 else self.inner_batch
@@ -115,8 +122,11 @@ class Sweeper:
 
 
 @compiler.jit
-def _chunk_deviation(theta, base_theta, slot):
-    return jax.vmap(mx.deviation)(theta, base_theta[slot])
+def _chunk_deviation(pose, base_pose, slot):
+    """d(t) of each run of a chunk against its twin: geodesic on local joint quaternions
+    (S1, C, 4) per run, the Euler-DOF form on angles (S1, n)."""
+    dev = mx.rms_joint_angle_deg if pose.ndim == 4 else mx.deviation
+    return jax.vmap(dev)(pose, base_pose[slot])
 
 
 @dataclasses.dataclass
@@ -127,12 +137,12 @@ class SweepResult:
 
 
 def _simulate_baselines(sweeper, base_batch, n_base: int, bar):
-    """Unperturbed twin runs (one per gain setting), in chunks: their theta and diverged step."""
+    """Unperturbed twin runs (one per gain setting), in chunks: their pose and diverged step."""
     theta, bad = [], []
     for lo in range(0, n_base, sweeper.chunk):
         hi = min(lo + sweeper.chunk, n_base)
         out = sweeper.simulate_chunk(sweeper.pad(base_batch, lo, hi))
-        theta.append(np.asarray(out.theta)[: hi - lo])
+        theta.append(np.asarray(out.pose)[: hi - lo])
         bad.append(np.asarray(out.diverged_step)[: hi - lo])
         bar.update(hi - lo)
     return jnp.asarray(np.concatenate(theta)), np.concatenate(bad)
@@ -182,7 +192,7 @@ def flag_divergence(row: dict, step: int, base_step: int, time, body) -> dict:
 
 def _simulate_share(sweeper: Sweeper, batch, base_batch, slot, lo: int, hi: int, bar) -> dict[str, np.ndarray]:
     """Runs lo:hi of ``batch`` and the twins they need: per run, the deviation curve ``dev``,
-    the outputs but theta, and ``base_step`` (the twin's diverged step)."""
+    the outputs but the pose, and ``base_step`` (the twin's diverged step)."""
     c = sweeper.chunk
     need, local_slot = np.unique(slot[lo:hi], return_inverse=True)
     base = jax.tree_util.tree_map(lambda x: np.asarray(x)[need], base_batch)
@@ -193,8 +203,8 @@ def _simulate_share(sweeper: Sweeper, batch, base_batch, slot, lo: int, hi: int,
         b = min(a + c, hi)
         out = sweeper.simulate_chunk(sweeper.pad(batch, a, b))
         slot_c = local_slot.reshape(-1)[np.minimum(np.arange(a, a + c), b - 1) - lo]
-        part = {f.name: np.asarray(getattr(out, f.name))[: b - a] for f in dataclasses.fields(out) if f.name != "theta"}
-        part["dev"] = np.asarray(_chunk_deviation(out.theta, base_theta, jnp.asarray(slot_c)))[: b - a]
+        part = {f.name: np.asarray(getattr(out, f.name))[: b - a] for f in dataclasses.fields(out) if f.name != "pose"}
+        part["dev"] = np.asarray(_chunk_deviation(out.pose, base_theta, jnp.asarray(slot_c)))[: b - a]
         part["base_step"] = base_step[slot_c[: b - a]]
         parts.append(part)
         bar.update(b - a)
