@@ -7,6 +7,8 @@ Cost: one simulate program and one sweep program on the embedded clip (0.8 s win
 
 from __future__ import annotations
 
+import json
+import math
 import re
 
 import numpy as np
@@ -15,7 +17,7 @@ import pytest
 from neuromotor import cli
 from neuromotor.config import ConfigError, SimulationConfig
 from neuromotor.config.specs import GainSetting, SweepSpec
-from neuromotor.studies import sweep as sw
+from neuromotor.studies import record, sweep as sw
 from neuromotor.studies.fit.problem import make_problem
 from neuromotor.studies.simulate import load_character, prepare, run
 
@@ -109,3 +111,26 @@ def test_a_window_past_the_clips_end_by_less_than_a_step_is_rounded_down(charact
     setup = prepare(SimulationConfig(start=end - 2.6 * h, h=h), *character)
     assert setup.sim.n_steps == 2
     assert setup.config.start + setup.sim.n_steps * h <= end + 1e-12
+
+
+def test_provenance_shows_the_impulse_as_configured(character):
+    setup = prepare(config(magnitude=20.0), *character)
+    p = record.provenance(setup)["perturbations"][0]
+    assert (p["kind"], p["magnitude"], p["unit"], p["start"], p["duration"], p["shape"]) == \
+        ("impulse", 20.0, "N s", 0.3, 0.0, None)
+    assert np.asarray(setup.pulses.magnitude)[0] == pytest.approx(20.0 / setup.sim.h)  # the step's own form
+
+
+def test_plot_title_of_a_run_that_never_recovers():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from neuromotor.viz.plots import _deviation_title
+
+    metrics = {"peak_deviation_deg": 4.5, "time_of_peak_s": 0.4, "recovery_time_s": math.nan}
+    fig, ax = plt.subplots()
+    title = _deviation_title(ax, {"metrics_json": np.array(json.dumps(metrics))})
+    plt.close(fig)
+    assert "not recovered in the window" in title and "nan" not in title
