@@ -134,3 +134,11 @@ def test_plot_title_of_a_run_that_never_recovers():
     title = _deviation_title(ax, {"metrics_json": np.array(json.dumps(metrics))})
     plt.close(fig)
     assert "not recovered in the window" in title and "nan" not in title
+
+
+def test_figure_titles_name_an_impulse_in_newton_seconds():
+    from neuromotor.studies.sweep import _gains_map_title
+
+    spec = SweepSpec([40.0], [GainSetting(400.0, 20.0), GainSetting(100.0, 5.0)])
+    assert _gains_map_title(config(), spec, "map") == "map: 40 N s impulse on chest at 0.3 s"
+    assert config(kind="force").perturbations[0].label(300.0) == "300 N half_sine pulse"

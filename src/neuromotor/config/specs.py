@@ -103,6 +103,11 @@ class PerturbationSpec(_KeyView):
     def of(cls, value) -> "PerturbationSpec":
         return value if isinstance(value, cls) else cls(**dict(value))
 
+    def label(self, magnitude: float | None = None) -> str:
+        """How figures name it, in the user's units: "40 N s impulse", "400 N half_sine pulse"."""
+        m = self.magnitude if magnitude is None else magnitude
+        return f"{m:g} N s impulse" if self.kind == "impulse" else f"{m:g} N {self.shape} pulse"
+
     @property
     def span(self) -> float:
         """Seconds it acts (an impulse: none; callers use one step)."""

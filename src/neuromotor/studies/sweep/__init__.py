@@ -139,8 +139,7 @@ def _gains_map_title(cfg, spec: SweepSpec, name: str) -> str:
         return name + f": {spec.magnitudes[0]:g} m/s ball {aim}, launched at {cfg.ball.launch:g} s"
     if len(spec.magnitudes) == 1:
         hit = cfg.perturbations[0]
-        what = "N s impulse" if hit.kind == "impulse" else f"N {hit.shape} pulse"
-        return name + f": {spec.magnitudes[0]:g} {what} on {hit.body} at {hit.start:g} s"
+        return name + f": {hit.label(spec.magnitudes[0])} on {hit.body} at {hit.start:g} s"
     return name
 
 
