@@ -345,7 +345,9 @@ class SweepSpec:
 
     def runs(self, base) -> list[dict]:
         """Flat list of run descriptions (dicts), gain setting outermost, then the reflex
-        setting (key ``reflex``, when the grid varies it), magnitude innermost."""
+        setting (key ``reflex``, when the grid varies it), magnitude innermost. Key
+        ``perturbation``: ``base`` (perturbation[0]) with the run's axis values, for the one
+        pulse builder (:func:`neuromotor.physics.perturbation.build_pulses`)."""
         out, base = [], PerturbationSpec.of(base)
         for g in self.gains:
             for rx in self.reflexes or [None]:
