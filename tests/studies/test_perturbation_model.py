@@ -142,3 +142,14 @@ def test_figure_titles_name_an_impulse_in_newton_seconds():
     spec = SweepSpec([40.0], [GainSetting(400.0, 20.0), GainSetting(100.0, 5.0)])
     assert _gains_map_title(config(), spec, "map") == "map: 40 N s impulse on chest at 0.3 s"
     assert config(kind="force").perturbations[0].label(300.0) == "300 N half_sine pulse"
+
+
+def test_sweep_plot_axis_of_an_impulse_sweep_is_in_newton_seconds(impulse_sweep, tmp_path, monkeypatch):
+    from neuromotor.viz import sweep_plots
+
+    labels = []
+    real = sweep_plots.save_figure
+    monkeypatch.setattr(sweep_plots, "save_figure", lambda fig, *a, **k: (labels.append(fig.axes[0].get_xlabel()),
+                                                                        real(fig, *a, **k))[1])
+    sweep_plots.plot_sweep(impulse_sweep[0], tmp_path / "sweep.png")
+    assert labels == ["impulse (N s)"]
