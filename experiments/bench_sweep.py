@@ -51,7 +51,7 @@ def main(argv=None) -> int:
     def batch_of(n):
         mags = list(np.linspace(50.0, 400.0, n))
         runs = SweepSpec(mags, [GainSetting(400.0, 20.0)]).runs(hit)
-        return build_batch(setup.gains, setup.pulses, runs, index)
+        return build_batch(setup.gains, setup.pulses, runs, index, setup.sim.h, setup.model)
 
     print(f"{'mode':<6} {'batch':>6} {'compile s':>10} {'wall s':>9} {'sim s / wall s':>15} {'ms per run':>11}")
     results = {}

@@ -86,7 +86,7 @@ SHARDED_SCRIPT = textwrap.dedent("""\
         sweeper = sw.Sweeper(s.model, s.ref, s.sim, chunk=6, mesh=sw.device_mesh(devs))
         res = sw.run_sweep(sweeper, s.gains, s.pulses, runs, index, s.model.body_names,
                            keep_curves=True, progress=False)
-        chunk_out = sweeper.simulate_chunk(sweeper.pad(sw.build_batch(s.gains, s.pulses, runs, index), 0, 6))
+        chunk_out = sweeper.simulate_chunk(sweeper.pad(sw.build_batch(s.gains, s.pulses, runs, index, s.sim.h, s.model), 0, 6))
         out[name] = {"curves": res.curves.tolist(), "rows": res.rows,
                      "shards": len({sh.device for sh in chunk_out.pose.addressable_shards})}
     # Rollouts vmapped three at a time: the sweep switches to the batched solver (branch).

@@ -33,6 +33,10 @@ def test_force_label_is_the_configured_magnitude(tmp_path):
         {"kind": "force", "magnitude": 412.0, "start": HIT_START, "duration": HIT_DURATION}]}))
     scene = _scene(arrays, tmp_path, "prov.npz")
     assert scene.force_label(k) == "412 N"               # the configured value, exactly
+    h = float(scene.time[1] - scene.time[0])
+    arrays["provenance_json"] = np.asarray(json.dumps({"perturbations": [  # centred on start: k precedes it
+        {"kind": "impulse", "magnitude": 20.0, "start": float(scene.time[k]) + 0.4 * h, "duration": 0.0}]}))
+    assert _scene(arrays, tmp_path, "impulse.npz").force_label(k) == "20 N s"  # as configured, not magnitude / h
 
 
 def test_strip_shows_hit_peak_and_recovery(tmp_path):

@@ -20,11 +20,10 @@ from neuromotor.physics.control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
 from neuromotor.physics.options import Feedforward, JointLaw
 from neuromotor.errors import ConfigError
 from neuromotor.physics.precision import Precision
-from neuromotor.physics import reflex as _reflex
+from neuromotor.physics import perturbation as _perturbation, reflex as _reflex
 from neuromotor.studies.metrics import METRICS, RECOVERY_FLOOR_DEG, RECOVERY_FRACTION
 
-PERTURBATION_KINDS = ("force", "impulse")
-PULSE_SHAPES = ("square", "half_sine", "triangle")
+PERTURBATION_KINDS, PULSE_SHAPES = _perturbation.KINDS, _perturbation.SHAPES
 SEXES = ("average", "male", "female")
 CONTROLLERS = ("neuromotor", "pd")  # the paper's model, or the high-gain PD tracker
 SOLVERS = ("optimistix_lm", "optimistix_gn", "optimistix_bfgs", "jaxopt_lm", "jaxopt_lbfgs")
@@ -104,6 +103,11 @@ class PerturbationSpec(_KeyView):
     @classmethod
     def of(cls, value) -> "PerturbationSpec":
         return value if isinstance(value, cls) else cls(**dict(value))
+
+    def label(self, magnitude: float | None = None) -> str:
+        """How figures name it, in the user's units: "40 N s impulse", "400 N half_sine pulse"."""
+        m = self.magnitude if magnitude is None else magnitude
+        return f"{m:g} N s impulse" if self.kind == "impulse" else f"{m:g} N {self.shape} pulse"
 
     @property
     def span(self) -> float:
@@ -345,16 +349,22 @@ class SweepSpec:
 
     def runs(self, base) -> list[dict]:
         """Flat list of run descriptions (dicts), gain setting outermost, then the reflex
-        setting (key ``reflex``, when the grid varies it), magnitude innermost."""
-        out = []
+        setting (key ``reflex``, when the grid varies it), magnitude innermost. Key
+        ``perturbation``: ``base`` (perturbation[0]) with the run's axis values, for the one
+        pulse builder (:func:`neuromotor.physics.perturbation.build_pulses`)."""
+        out, base = [], PerturbationSpec.of(base)
         for g in self.gains:
             for rx in self.reflexes or [None]:
                 for body in self.bodies or [base["body"]]:
                     for d in self.directions or [base["direction"]]:
                         for start in self.starts or [base["start"]]:
                             for m in self.magnitudes:
+                                # An axis replaces a field; the point stays the user's (None: each
+                                # body's own COM), resolved by the one builder.
+                                p = dataclasses.replace(base, body=body, direction=list(d), start=float(start),
+                                                        magnitude=float(m))
                                 run = dict(gain=g, body=body, direction=list(d), start=float(start),
-                                           magnitude=float(m), duration=base["duration"])
+                                           magnitude=float(m), duration=p.span, kind=p.kind, perturbation=p)
                                 out.append(run if rx is None else dict(run, reflex=rx))
         return out
 

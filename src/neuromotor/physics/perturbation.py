@@ -13,13 +13,17 @@ of magnitudes, directions, bodies or start times is a ``vmap`` over this contain
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from neuromotor.rotations import mv
 
 SHAPES = ("square", "half_sine", "triangle")
+KINDS = ("force", "impulse")  # N (a pulse of a shape and duration) or N s (one step)
 
 
 class ForcePulses(eqx.Module):
@@ -41,44 +45,52 @@ def no_pulses() -> ForcePulses:
     return ForcePulses(jnp.zeros((0,), jnp.int32), jnp.zeros((0, 3)), jnp.zeros((0, 3)), z, z, z, ())
 
 
-def pulses(specs: list[dict], body_index) -> ForcePulses:
-    """Build from dicts with keys body (name), point, direction, magnitude, start, duration,
-    shape; ``body_index`` maps a body name to its index. ``kind='impulse'`` needs ``step``."""
+def build_pulses(specs, model, h: float, body_index) -> ForcePulses:
+    """The one way from the user's perturbations to the arrays the step consumes.
+
+    ``specs``: mappings with every field of :class:`neuromotor.config.specs.PerturbationSpec`
+    (kind, body, point, direction, magnitude, start, duration, shape; the defaults live there,
+    not here). ``point`` None is the body's COM (``model.com``); an impulse (N s) becomes a
+    square pulse of one step ``h`` and magnitude / h newtons. ``body_index`` maps a name to an index.
+    """
     if not specs:
         return no_pulses()
-    cols: dict[str, list] = {k: [] for k in ("body", "point", "direction", "magnitude", "start", "duration")}
-    shapes = []
-    for s in specs:
-        direction = jnp.asarray(s.get("direction", (1.0, 0.0, 0.0)), jnp.float64)
-        norm = jnp.linalg.norm(direction)
-        if not norm > 0:
-            raise ValueError(f"perturbation direction must be non-zero, got {s.get('direction')}")
-        magnitude, duration, shape = s["magnitude"], s.get("duration", 0.1), s.get("shape", "half_sine")
-        start = float(s.get("start", 0.5))
-        if s.get("kind", "force") == "impulse":
-            step = s["step"]
-            magnitude, duration, shape = magnitude / step, step, "square"
-            # Centre the one-step window on ``start`` so that exactly one sample of the time
-            # grid falls inside it, whatever the round-off of t_k = t_0 + k h.
-            start -= 0.5 * step
-        if shape not in SHAPES:
-            raise ValueError(f"perturbation shape must be one of {SHAPES}, got {shape!r}")
-        cols["body"].append(body_index(s["body"]))
-        cols["point"].append(jnp.asarray(s.get("point", (0.0, 0.0, 0.0)), jnp.float64))
-        cols["direction"].append(direction / norm)
-        cols["magnitude"].append(float(magnitude))
-        cols["start"].append(start)
-        cols["duration"].append(float(duration))
-        shapes.append(shape)
-    return ForcePulses(
-        jnp.asarray(cols["body"], jnp.int32),
-        jnp.stack(cols["point"]),
-        jnp.stack(cols["direction"]),
-        jnp.asarray(cols["magnitude"]),
-        jnp.asarray(cols["start"]),
-        jnp.asarray(cols["duration"]),
-        tuple(shapes),
-    )
+    rows = [_pulse(s, model, h, body_index) for s in specs]
+    body, point, direction, magnitude, start, duration, shape = zip(*rows)
+    return ForcePulses(jnp.asarray(body, jnp.int32), jnp.asarray(np.stack(point)), jnp.asarray(np.stack(direction)),
+                       jnp.asarray(magnitude), jnp.asarray(start), jnp.asarray(duration), tuple(shape))
+
+
+def _pulse(s, model, h: float, body_index) -> tuple:
+    """One pulse's fields from one spec (see :func:`build_pulses`)."""
+    if s["kind"] not in KINDS:
+        raise ValueError(f"perturbation kind must be one of {KINDS}, got {s['kind']!r}")
+    direction = np.asarray(s["direction"], np.float64)  # host arrays: a sweep builds one per run
+    norm = np.linalg.norm(direction)
+    if not norm > 0:
+        raise ValueError(f"perturbation direction must be non-zero, got {s['direction']}")
+    b = body_index(s["body"])
+    point = np.asarray(model.com[b] if s["point"] is None else s["point"], np.float64)
+    magnitude, start, duration, shape = float(s["magnitude"]), float(s["start"]), float(s["duration"]), s["shape"]
+    if s["kind"] == "impulse":
+        # Centre the one-step window on ``start`` so that exactly one sample of the time grid
+        # falls inside it, whatever the round-off of t_k = t_0 + k h.
+        magnitude, start, duration, shape = magnitude / h, start - 0.5 * h, h, "square"
+    if shape not in SHAPES:
+        raise ValueError(f"perturbation shape must be one of {SHAPES}, got {shape!r}")
+    return (b, point, direction / norm, magnitude, start, float(duration), shape)
+
+
+def replace_first(p: ForcePulses, first: ForcePulses) -> ForcePulses:
+    """``p`` with pulse 0 replaced by the one pulse ``first`` (the pulse a sweep varies)."""
+    arrays = {f.name: np.concatenate([np.asarray(getattr(first, f.name)), np.asarray(getattr(p, f.name))[1:]])
+              for f in dataclasses.fields(p) if f.name != "shape"}
+    return ForcePulses(**arrays, shape=first.shape + p.shape[1:])
+
+
+def unperturbed(p: ForcePulses) -> ForcePulses:
+    """The unperturbed twin: the same pulses at zero magnitude (same shapes, one program)."""
+    return dataclasses.replace(p, magnitude=p.magnitude * 0)
 
 
 def pulse_profile(shape: str, s):

@@ -169,7 +169,7 @@ def full_body(cfg: SimulationConfig, exp: ExperimentSpec) -> dict:
     ax.set(xlabel="clip time (s)", ylabel="RMS deviation (deg)")
     ax.legend(fontsize=7)
     hit = cfg.perturbations[0]
-    ax.set_title(f"Full body, {hit.magnitude:g} N {hit.shape} pulse on {hit.body}", fontsize=10)
+    ax.set_title(f"Full body, {hit.label()} on {hit.body}", fontsize=10)
     fig.tight_layout()
     numbers = {"metrics": result.metrics, "hit": dict(hit),
                "files": {"run": str(npz), "deviation": str(save_figure(fig, out / "deviation.png"))}}

@@ -237,23 +237,26 @@ def _floats(a):
 
 
 def _perturbation_records(setup: Setup) -> list[dict]:
-    """Each configured perturbation with its resolved body, point and pulse parameters."""
+    """Each perturbation as configured (an impulse in N s, not the one-step pulse the step
+    applies), with its resolved body and point."""
     p, names = setup.pulses, setup.model.body_names
     perts = []
     for i, spec in enumerate(setup.config.perturbations):
         b = int(np.asarray(p.body)[i])
+        impulse = spec.kind == "impulse"
         perts.append({
-            "kind": spec.get("kind", "force"),
-            "body_requested": spec.get("body"),
+            "kind": spec.kind,
+            "body_requested": spec.body,
             "body": names[b],
             "body_index": b,
             "point": _floats(np.asarray(p.point)[i]),
-            "point_given": spec.get("point") is not None,
+            "point_given": spec.point is not None,
             "direction": _floats(np.asarray(p.direction)[i]),
-            "magnitude": float(np.asarray(p.magnitude)[i]),
-            "start": float(np.asarray(p.start)[i]),
-            "duration": float(np.asarray(p.duration)[i]),
-            "shape": p.shape[i],
+            "magnitude": float(spec.magnitude),
+            "unit": "N s" if impulse else "N",
+            "start": float(spec.start),
+            "duration": float(spec.span),  # an impulse: 0 (it acts within one step)
+            "shape": None if impulse else spec.shape,
         })
     return perts
 

@@ -100,7 +100,7 @@ def paths_from_config(path, output, figure=None) -> tuple[PathComparison, dict[s
     curves = {label: comp.curves[n] for label, n in labels.items()}
     metrics = {label: comp.metrics[n] for label, n in labels.items()}
     hit = cfg.perturbations[0]
-    title = f"{hit.magnitude:g} N {hit.shape} push on {hit.body} at {hit.start:g} s"
+    title = f"{hit.label()} on {hit.body} at {hit.start:g} s"
     for key, target in (("plot", out / "paths.png"), ("figure", figure)):
         if target is not None:
             files[key] = plot_deviation_paths(comp.time, curves, target, comp.hit_start, title, metrics)
@@ -178,7 +178,7 @@ def stability_from_config(path, output, figure=None, *, bound_deg: float = STABL
                  {"bound_deg": bound_deg, "muscle_ks": cfg.ks, "muscle_kd": cfg.kd, "boundary": boundary,
                   "implicit_unstable_gains": [r["reflex_gain"] for r in implicit if r["stability"] != "stable"]}))}
     hit = cfg.perturbations[0]
-    title = (f"{hit.magnitude:g} N push on {hit.body} at {hit.start:g} s; muscle feedback ks={cfg.ks:g}, "
+    title = (f"{hit.label()} on {hit.body} at {hit.start:g} s; muscle feedback ks={cfg.ks:g}, "
              f"kd={cfg.kd:g} beside the delayed path (rate weight {cfg.reflex.rate_weight:g} s)")
     for key, target in (("plot", out / "stability.png"), ("figure", figure)):
         if target is not None:

@@ -11,6 +11,7 @@ import dataclasses
 import functools
 import importlib.resources
 import pathlib
+from typing import Callable
 
 import jax.numpy as jnp
 import numpy as np
@@ -26,7 +27,7 @@ from neuromotor.physics.control import Gains, make_gains
 from neuromotor.physics.dynamics import (Feedforward, Reference, Rollout, SimConfig, check_rollout, make_reference,
                                         rollout)
 from neuromotor.model.kinematics import Trajectory, trajectory_from_clip
-from neuromotor.physics.perturbation import ForcePulses, pulses
+from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
 from neuromotor.model.anatomy import prepare_clip
 from neuromotor.model.skeleton import BODY_KEYWORDS, Character, MassModelOptions, Model, build_character, keyword_body
 from neuromotor.io.runfile import read_run_info, save_npz_atomic  # noqa: F401  (re-exported)
@@ -63,6 +64,7 @@ class Setup:
     config: SimulationConfig
     ball: BallSetup | None = None  # a [ball] config: the flying ball and its contacts
     warnings: tuple[str, ...] = ()  # the clip's (see Character.warnings) and the run's, one line each
+    window: "ActingWindow | None" = None  # where a perturbation can act (sweep axes are checked against it)
 
     @property
     def model(self) -> Model:
@@ -103,6 +105,39 @@ def body_lookup(model: Model, source: str = "config", character: Character | Non
     return index
 
 
+@dataclasses.dataclass(frozen=True)
+class ActingWindow:
+    """The one refusal rule: a perturbation must act in the simulated window [t0, t1) of the
+    clip and not on a driven body (the root, ``[sim] driven_joints``), where it would do
+    nothing. Every command checks with it before any computation."""
+
+    source: str
+    t0: float
+    t1: float
+    h: float
+    clip_end: float
+    driven: tuple[int, ...]
+    index: Callable[[str], int]
+
+    @property
+    def text(self) -> str:
+        return f"the simulated window {self.t0:.3f} to {self.t1:.3f} s (the clip ends at {self.clip_end:.3f} s)"
+
+    def check(self, p, body_field: str, start_field: str) -> None:
+        """ConfigError (naming the field) when perturbation ``p`` cannot act."""
+        if self.index(p["body"]) in self.driven:
+            raise ConfigError(f"{self.source}: field '{body_field}' = {p['body']!r} is a driven body (the root "
+                              f"always is; [sim] driven_joints adds more): a push on it does nothing")
+        start = float(p["start"])
+        end = start + (0.5 * self.h if p["kind"] == "impulse" else float(p["duration"]))  # impulse: centred
+        if start >= self.t1 - 1e-9:
+            raise ConfigError(f"{self.source}: field '{start_field}' = {start:g} s is at or after the end of "
+                              f"{self.text}")
+        if end <= self.t0:
+            raise ConfigError(f"{self.source}: field '{start_field}' = {start:g} s: the perturbation is over "
+                              f"before {self.text} begins")
+
+
 def prepare(config: SimulationConfig, character: Character | None = None,
             traj: Trajectory | None = None) -> Setup:
     if character is None:
@@ -113,25 +148,10 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     if config.start + duration > clip.duration + 1e-9:
         raise ConfigError(f"{config.source}: sim.start + sim.duration = {config.start + duration:.3f} s "
                           f"runs past the clip's end ({clip.duration:.3f} s)")
-    n_steps = int(round(duration / config.h))
+    # Rounded down when rounding up would run past the clip's end (by less than a step).
+    n_steps = min(int(round(duration / config.h)), int(np.floor((clip.duration - config.start) / config.h + 1e-9)))
     if n_steps < 1:
         raise ConfigError(f"{config.source}: sim.duration is shorter than one step")
-    # A perturbation (or ball launch) that never acts inside the simulated window [t0, t1) would
-    # give a run of zeros ('peak 0.00 deg') that looks like a result: refuse it, naming the field.
-    t0, t1 = config.start, config.start + n_steps * config.h
-    window = f"the simulated window {t0:.3f} to {t1:.3f} s (the clip ends at {clip.duration:.3f} s)"
-    for i, p in enumerate(config.perturbations):
-        p_start, impulse = float(p.get("start", 0.5)), p.get("kind") == "impulse"
-        p_end = p_start + (0.5 * config.h if impulse else float(p.get("duration", 0.1)))  # impulse: centred
-        if p_start >= t1 - 1e-9:
-            raise ConfigError(f"{config.source}: field 'perturbation[{i}].start' = {p_start:g} s is at or "
-                              f"after the end of {window}")
-        if p_end <= t0:
-            raise ConfigError(f"{config.source}: field 'perturbation[{i}].start' = {p_start:g} s: the "
-                              f"perturbation is over before {window} begins")
-    if config.ball is not None and float(config.ball.get("launch", 0.0)) >= t1 - 1e-9:
-        raise ConfigError(f"{config.source}: field 'ball.launch' = {float(config.ball['launch']):g} s is at "
-                          f"or after the end of {window}")
     index = body_lookup(model, config.source, character)
     driven = []
     for name in config.driven_joints:
@@ -140,6 +160,13 @@ def prepare(config: SimulationConfig, character: Character | None = None,
             raise ConfigError(f"{config.source}: sim.driven_joints: the root is always driven")
         driven.append(b)
     driven = tuple(sorted(driven))
+    window = ActingWindow(config.source, config.start, config.start + n_steps * config.h, config.h, clip.duration,
+                          (0, *driven), index)
+    for i, p in enumerate(config.perturbations):
+        window.check(p, f"perturbation[{i}].body", f"perturbation[{i}].start")
+    if config.ball is not None and float(config.ball.get("launch", 0.0)) >= window.t1 - 1e-9:
+        raise ConfigError(f"{config.source}: field 'ball.launch' = {float(config.ball['launch']):g} s is at "
+                          f"or after the end of {window.text}")
     sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit,
                     stabilization_steps=config.stabilization_steps, dtype=config.dtype,
                     feedforward=config.feedforward, joint_law=config.joint_law)
@@ -148,14 +175,10 @@ def prepare(config: SimulationConfig, character: Character | None = None,
                            config.ks, config.kd, config.tau_floor)
     if config.reflex is not None:
         gains = dataclasses.replace(gains, reflex=config.reflex.build(config.h))
-    # An impulse is a one-step square pulse: it needs the step to know its force.
-    specs = [dict(p, step=config.h) for p in config.perturbations]
-    for s in specs:  # no point given: push at the body's centre of mass
-        if s.get("point") is None:
-            s["point"] = [float(x) for x in np.asarray(model.com[index(s["body"])])]
     ball = ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
-    return Setup(character, traj, ref, gains, sim, pulses(specs, index), config, ball, warnings)
+    return Setup(character, traj, ref, gains, sim, build_pulses(config.perturbations, model, config.h, index), config,
+                 ball, warnings, window)
 
 
 @compiler.jit
@@ -165,9 +188,7 @@ def _initial_gains(model: Model, traj: Trajectory, t0, local_axes, activation, k
     return make_gains(model, traj.q(t0), local_axes, activation, ks, kd, tau_floor)
 
 
-@compiler.jit
-def _zero(p: ForcePulses) -> ForcePulses:
-    return dataclasses.replace(p, magnitude=jnp.zeros_like(p.magnitude))
+_zero = compiler.jit(unperturbed)
 
 
 simulate_jit = compiler.jit(rollout, static_argnames=("cfg",))

@@ -34,7 +34,8 @@ def _deviation_title(ax, d) -> str:
                     + (f" at {_number(m, 'time_of_peak_s'):.2f} s"
                        if _number(m, "time_of_peak_s") is not None else ""))
     if _number(m, "recovery_time_s") is not None:
-        bits.append(f"recovered after {_number(m, 'recovery_time_s'):.2f} s")
+        recovery = _number(m, "recovery_time_s")
+        bits.append(f"recovered after {recovery:.2f} s" if np.isfinite(recovery) else "not recovered in the window")
     threshold = _number(m, "recovery_threshold_deg")
     if threshold is not None:
         ax.axhline(threshold, color="0.5", ls=":", lw=1, label=f"recovery threshold ({threshold:g} deg)")

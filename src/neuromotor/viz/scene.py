@@ -122,9 +122,11 @@ class Scene:
                 start, dur, mag = float(p["start"]), float(p["duration"]), float(p["magnitude"])
             except (KeyError, TypeError, ValueError):
                 continue
-            if start - 1e-9 <= t <= start + max(dur, float(self.time[1] - self.time[0]) if len(self.time) > 1 else dur):
-                unit = "N s" if p.get("kind") == "impulse" else "N"
-                return f"{mag:.0f} {unit}"
+            h = float(self.time[1] - self.time[0]) if len(self.time) > 1 else dur
+            impulse = p.get("kind") == "impulse"
+            # An impulse acts in the one step centred on its start: the sample may precede it.
+            if start - (h if impulse else 0.0) - 1e-9 <= t <= start + max(dur, h):
+                return f"{mag:.0f} {'N s' if impulse else 'N'}"
         on = np.flatnonzero(self.force_on)
         peak = float(self.fmag[on].max()) if len(on) else float(self.fmag[k])
         return f"{peak:.0f} N"

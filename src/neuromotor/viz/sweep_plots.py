@@ -28,6 +28,10 @@ def _series_key(r: dict) -> tuple:
     return (_series_name(r), r["body"], r["direction_x"], r["direction_y"], r["direction_z"], r["start"])
 
 
+# The x axis of a sweep, in the units of the swept magnitude (sweep.csv's kind column).
+MAGNITUDE_LABELS = {"force": "pulse magnitude (N)", "impulse": "impulse (N s)", "ball": "ball speed (m/s)"}
+
+
 def plot_sweep(rows: list[dict], path, title: str = "", xlabel: str | None = None) -> pathlib.Path:
     """Peak deviation and recovery time against magnitude, one line per gain setting (and per
     body / direction / start when those vary too). Diverged runs: red crosses on the axis.
@@ -62,7 +66,7 @@ def plot_sweep(rows: list[dict], path, title: str = "", xlabel: str | None = Non
                 ax.plot(m[bad], np.zeros(bad.sum()), "x", color="red", ms=7, clip_on=False,
                         transform=ax.get_xaxis_transform(), label="diverged" if ax is axes[0] else None)
     if xlabel is None:
-        xlabel = "ball speed (m/s)" if rows and rows[0].get("kind") == "ball" else "pulse magnitude (N)"
+        xlabel = MAGNITUDE_LABELS.get(rows[0].get("kind") if rows else None, MAGNITUDE_LABELS["force"])
     axes[0].set(xlabel=xlabel, ylabel="peak deviation (deg)")
     axes[1].set(xlabel=xlabel, ylabel="recovery time (s)")
     axes[1].set_title("open triangle: not recovered by the window's end; red x: diverged", fontsize=7)

@@ -18,7 +18,7 @@ from neuromotor.errors import ConfigError
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Reference, Rollout, SimConfig, rollout
-from neuromotor.physics.perturbation import ForcePulses
+from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
 from neuromotor.studies.fit import parameters as fp
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.fit.surrogate import (acceleration_deg, deviation_deg, joint_acceleration_deg,
@@ -143,7 +143,6 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
     shape (a static field: one shape per vmapped batch). ``window`` = (t0, t1) in clip
     seconds (default: the whole simulation).
     """
-    from neuromotor.physics.perturbation import pulses as make_pulses
     from neuromotor.studies.simulate import body_lookup
     from neuromotor.studies.targets import window_indices
 
@@ -154,14 +153,13 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
     if not specs:
         raise ConfigError(f"{cfg.source}: a fit needs at least one [[perturbation]] (one per case)")
     index = body_lookup(setup.model, cfg.source, setup.character)
-    per_case = [make_pulses([s], index) for s in specs]
+    per_case = [build_pulses([s], setup.model, setup.sim.h, index) for s in specs]
     shapes = {p.shape for p in per_case}
     if len(shapes) > 1:
         raise ConfigError(f"{cfg.source}: field 'perturbation[*].shape': the cases of one fit must share a "
                           f"pulse shape (and kind), got {sorted(s[0] for s in shapes)}")
     if kind == "features":
-        base = dataclasses.replace(per_case[0], magnitude=jnp.zeros_like(per_case[0].magnitude))
-        per_case = per_case + [base]
+        per_case = per_case + [unperturbed(per_case[0])]
     batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *per_case)
     sim_time = np.asarray(setup.ref.time[: setup.sim.n_steps + 1])
     if window is None:

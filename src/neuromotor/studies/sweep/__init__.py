@@ -76,6 +76,7 @@ figures drawn by :mod:`neuromotor.viz.sweep_plots` (and :mod:`neuromotor.viz.ref
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 from typing import Sequence
 
@@ -122,10 +123,14 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
         sweeper = BallSweeper(model, setup.ref, setup.sim, setup.ball, setup.pulses, **sizes)
         return run_ball_sweep(sweeper, setup, spec.magnitudes, spec.gains, balls=balls, progress=progress)
     index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'", setup.character)  # names or segment keywords
-    for b in spec.bodies or []:
+    hit = cfg.perturbations[0]
+    for i, b in enumerate(spec.bodies or []):  # every row of the grid can act (the rule of prepare)
         index(b)
+        setup.window.check(dataclasses.replace(hit, body=b), f"sweep.bodies[{i}]", "perturbation[0].start")
+    for i, t in enumerate(spec.starts or []):
+        setup.window.check(dataclasses.replace(hit, start=float(t)), "perturbation[0].body", f"sweep.starts[{i}]")
     sweeper = Sweeper(model, setup.ref, setup.sim, **sizes)
-    return run_sweep(sweeper, setup.gains, setup.pulses, spec.runs(cfg.perturbations[0]), index, model.body_names,
+    return run_sweep(sweeper, setup.gains, setup.pulses, spec.runs(hit), index, model.body_names,
                      progress=progress)
 
 
@@ -135,7 +140,7 @@ def _gains_map_title(cfg, spec: SweepSpec, name: str) -> str:
         return name + f": {spec.magnitudes[0]:g} m/s ball {aim}, launched at {cfg.ball.launch:g} s"
     if len(spec.magnitudes) == 1:
         hit = cfg.perturbations[0]
-        return name + f": {spec.magnitudes[0]:g} N {hit.shape} pulse on {hit.body} at {hit.start:g} s"
+        return name + f": {hit.label(spec.magnitudes[0])} on {hit.body} at {hit.start:g} s"
     return name
 
 
@@ -170,8 +175,6 @@ def sweep_from_config(path, output=None, *, devices=None, chunk=None, inner_batc
     """Run the sweep of a config file; write ``sweep.csv``, ``sweep.png`` and, when ks and kd
     both vary, ``gains_map.png`` into ``output`` (default: the config's ``sweep.output``).
     A config with a ``[ball]`` table sweeps the ball speed (see the module docstring)."""
-    import dataclasses
-
     from neuromotor.studies.simulate import prepare
 
     cfg, spec = load_sweep_config(path)

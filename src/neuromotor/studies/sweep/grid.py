@@ -13,7 +13,7 @@ from jaxtyping import Array, Float, Int
 
 from neuromotor.errors import ConfigError
 from neuromotor.physics.control import Gains
-from neuromotor.physics.perturbation import ForcePulses
+from neuromotor.physics.perturbation import ForcePulses, build_pulses, replace_first
 from neuromotor.physics.reflex import Reflex
 from neuromotor.studies.gains import apply_gains
 
@@ -22,7 +22,7 @@ METRIC_KEYS = ("peak_deviation_deg", "time_of_peak_s", "recovery_time_s", "final
                "overshoot_deg", "recovery_threshold_deg")
 
 
-COLUMNS = ("run", "label", "controller", "ks", "kd", "body", "magnitude", "direction_x", "direction_y",
+COLUMNS = ("run", "kind", "label", "controller", "ks", "kd", "body", "magnitude", "direction_x", "direction_y",
            "direction_z", "start", "duration", *METRIC_KEYS, "max_kkt_residual",
            "max_constraint_violation", "diverged", "diverged_step", "diverged_time_s", "diverged_body")
 
@@ -89,10 +89,12 @@ def reflex_columns(run: dict, template: Reflex | None) -> dict:
     return dict(zip(REFLEX_COLUMNS, (float(x) for x in paths)))
 
 
-def build_batch(template_gains: Gains, template_pulses: ForcePulses, runs: list[dict], body_index,
-                h: float | None = None) -> RunBatch:
-    """Batched gains and pulses for ``runs``; the grid overrides pulse 0 of the template (and
-    the reflex, built at step ``h``, for runs that carry one)."""
+def build_batch(template_gains: Gains, template_pulses: ForcePulses, runs: list[dict], body_index, h: float,
+                model) -> RunBatch:
+    """Batched gains and pulses for ``runs``: pulse 0 of the template is each run's
+    ``perturbation`` (its spec with the grid's axes applied) through the one builder,
+    :func:`~neuromotor.physics.perturbation.build_pulses` at step ``h`` on ``model``; the
+    reflex, for runs that carry one, is built at step ``h``."""
     if template_pulses.count == 0:
         raise ConfigError("a sweep needs at least one [[perturbation]] to vary")
     settings = {}
@@ -101,18 +103,8 @@ def build_batch(template_gains: Gains, template_pulses: ForcePulses, runs: list[
         if key not in settings:
             settings[key] = run_controller(template_gains, r, h)
     gains = _stack([settings[(r["gain"], r.get("reflex"))] for r in runs])
-    p = jax.tree_util.tree_map(np.asarray, template_pulses)
-    n = len(runs)
-    tile = lambda a: np.repeat(a[None], n, axis=0).copy()
-    body, direction, mag, start = tile(p.body), tile(p.direction), tile(p.magnitude), tile(p.start)
-    for i, r in enumerate(runs):
-        d = np.asarray(r["direction"], np.float64)
-        body[i, 0] = body_index(r["body"])
-        direction[i, 0] = d / np.linalg.norm(d)
-        mag[i, 0] = r["magnitude"]
-        start[i, 0] = r["start"]
-    pulses = ForcePulses(body, tile(p.point), direction, mag, start, tile(p.duration), p.shape)
-    return RunBatch(gains, pulses)
+    rows = [replace_first(template_pulses, build_pulses([r["perturbation"]], model, h, body_index)) for r in runs]
+    return RunBatch(gains, _stack(rows))
 
 
 def gain_keys(batch: RunBatch) -> tuple[np.ndarray, np.ndarray]:

@@ -20,7 +20,7 @@ from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
 from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Reference, SimConfig, rollout
-from neuromotor.physics.perturbation import ForcePulses
+from neuromotor.physics.perturbation import ForcePulses, unperturbed
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.sweep.grid import METRIC_KEYS, RunBatch, RunOut, build_batch, gain_keys, reflex_columns
 
@@ -90,6 +90,7 @@ class Sweeper:
         if self.inner_batch > 1:  # rollouts vmapped together: the solver that vectorizes in a batch
             sim = dataclasses.replace(sim, solver=sim.solver.batched())
         self.sim, self.n_steps = sim, sim.n_steps
+        self.model = model  # host copy: the one pulse builder reads each body's COM
         self.model_static = eqx.partition(model, eqx.is_array)[1]
         rep = P()
         shared = (eqx.partition(model, eqx.is_array)[0], ref)
@@ -153,19 +154,18 @@ def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[di
     """Simulate every run of ``runs`` (from :meth:`SweepSpec.runs`) and measure its recovery."""
     from tqdm.auto import tqdm
 
-    batch = build_batch(gains, pulses, runs, body_index, sweeper.sim.h)
+    batch = build_batch(gains, pulses, runs, body_index, sweeper.sim.h, sweeper.model)
     first, slot = gain_keys(batch)
     # Baselines: the distinct gain settings without any pulse, simulated with the same program.
     base = jax.tree_util.tree_map(lambda x: np.asarray(x)[first], batch)
-    silent = dataclasses.replace(base.pulses, magnitude=np.zeros_like(base.pulses.magnitude))
-    base = dataclasses.replace(base, pulses=silent)
+    base = dataclasses.replace(base, pulses=unperturbed(base.pulses))
     starts = np.asarray(batch.pulses.start)
 
     def row(i: int, out: dict, dev, time) -> dict:
         r, g = runs[i], runs[i]["gain"]
         d = np.asarray(r["direction"], float)
         d = d / np.linalg.norm(d)
-        return {"run": i, "label": g.name, "controller": g.controller, "ks": g.ks, "kd": g.kd,
+        return {"run": i, "kind": r["kind"], "label": g.name, "controller": g.controller, "ks": g.ks, "kd": g.kd,
                 **reflex_columns(r, gains.reflex), "body": r["body"], "magnitude": r["magnitude"],
                 "direction_x": float(d[0]), "direction_y": float(d[1]), "direction_z": float(d[2]),
                 "start": r["start"], "duration": r["duration"],
