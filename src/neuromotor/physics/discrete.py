@@ -30,11 +30,15 @@ on the capture's state at t_k+1.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from neuromotor import compiler
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
 from neuromotor.physics.constraints import PoseTargets, post_stabilize
@@ -120,18 +124,46 @@ def step_feedforward(model: Model, cfg, local_axes: Float[Array, "C 3 3"], activ
     return x[nc:], x[:nc], residual
 
 
-def discrete_inverse_dynamics(model: Model, cfg, pos: Float[Array, "S1 B 3"], quat: Float[Array, "S1 B 4"],
-                              u_start: Float[Array, "B 6"], targets: PoseTargets, local_axes: Float[Array, "S1 C 3 3"],
-                              active: Float[Array, "C 3"]) -> DiscreteInverse:
-    """:class:`DiscreteInverse` of the capture's poses on the grid (``targets``: the pose targets
-    of every grid time, as post-stabilization reads them; ``u_start``: the velocity at t_0)."""
-    if cfg.free_root:
-        raise ValueError("discrete inverse dynamics needs the driven root (the paper's model)")
-    nxt = lambda x: jax.tree_util.tree_map(lambda a: a[1:], x)
+LANDING_BLOCK = 64  # steps per compiled call: one program per skeleton and step options, any window
+
+
+@functools.partial(compiler.jit, static_argnames=("cfg",))
+def _landing_block(model: Model, cfg, p0, q0, p1, q1, targets: PoseTargets):
     # lax.map, not vmap: a loop of one step's program traces and compiles in about half the
     # time of its batched twin, and the iteration count of each step is its own.
-    u, landing, rounds = jax.lax.map(lambda x: landing_velocity(model, cfg, *x),
-                                     (pos[:-1], quat[:-1], pos[1:], quat[1:], nxt(targets)))
+    return jax.lax.map(lambda x: landing_velocity(model, cfg, *x), (p0, q0, p1, q1, targets))
+
+
+def landing_velocities(model: Model, cfg, pos: Float[Array, "S1 B 3"], quat: Float[Array, "S1 B 4"],
+                       targets: PoseTargets):
+    """:func:`landing_velocity` of every step of the grid: ``(u (S, B, 6), rotation left (S,),
+    rounds (S,))``. Run in blocks of :data:`LANDING_BLOCK` steps by one program compiled for the
+    skeleton and the step's options but not the window's length (the last block padded with
+    its own last step), so windows of any length share it (and the persistent compile cache)."""
+    n = pos.shape[0] - 1
+    key = dataclasses.replace(cfg, n_steps=0)  # the block's program does not depend on the window
+    pad = (-n) % LANDING_BLOCK
+    grow = lambda a, lo, hi: jnp.concatenate([a[lo:hi], jnp.repeat(a[hi - 1:hi], pad, 0)], 0)
+    args = (grow(pos, 0, n), grow(quat, 0, n), grow(pos, 1, n + 1), grow(quat, 1, n + 1),
+            jax.tree_util.tree_map(lambda a: grow(a, 1, n + 1), targets))
+    parts = [_landing_block(model, key, *jax.tree_util.tree_map(lambda a: a[i:i + LANDING_BLOCK], args))
+             for i in range(0, n + pad, LANDING_BLOCK)]
+    return tuple(jnp.concatenate(x, 0)[:n] for x in zip(*parts))
+
+
+def discrete_inverse_dynamics(model: Model, cfg, pos: Float[Array, "S1 B 3"], quat: Float[Array, "S1 B 4"],
+                              u_start: Float[Array, "B 6"], targets: PoseTargets, local_axes: Float[Array, "S1 C 3 3"],
+                              active: Float[Array, "C 3"], landed=None) -> DiscreteInverse:
+    """:class:`DiscreteInverse` of the capture's poses on the grid (``targets``: the pose targets
+    of every grid time, as post-stabilization reads them; ``u_start``: the velocity at t_0;
+    ``landed``: :func:`landing_velocities`' output if already computed, else computed here)."""
+    if cfg.free_root:
+        raise ValueError("discrete inverse dynamics needs the driven root (the paper's model)")
+    if landed is None:
+        nxt = lambda x: jax.tree_util.tree_map(lambda a: a[1:], x)
+        landed = jax.lax.map(lambda x: landing_velocity(model, cfg, *x),
+                             (pos[:-1], quat[:-1], pos[1:], quat[1:], nxt(targets)))
+    u, landing, rounds = landed
     velocity = jnp.concatenate([u_start[None], u], 0)
     tau, lam, residual = jax.vmap(lambda la, p, q, a, b: step_feedforward(model, cfg, la, active, p, q, a, b))(
         local_axes[:-1], pos[:-1], quat[:-1], velocity[:-1], velocity[1:])

@@ -53,7 +53,7 @@ from neuromotor.physics import solvers
 from neuromotor.physics.constraints import PoseTargets, constraint_count, constraint_velocity, post_stabilize
 from neuromotor.physics.control import (ControllerInputs, Gains, body_torques, controller_inputs, damped_pinv,
                                         joint_errors, joint_local_axes, joint_torque_magnitude, reflex_torque)
-from neuromotor.physics.discrete import discrete_inverse_dynamics
+from neuromotor.physics.discrete import discrete_inverse_dynamics, landing_velocities
 from neuromotor.physics.options import Feedforward, JointLaw
 from neuromotor.physics.reflex import History, empty_history, push
 from neuromotor.physics.inverse import inverse_dynamics, sim_columns
@@ -142,13 +142,28 @@ def make_reference(model: Model, traj: Trajectory, t0: float, cfg: SimConfig) ->
     """Sample the mocap targets on the simulation grid of ``cfg`` (h, steps), with the feedforward
     of ``cfg.feedforward`` (the discrete inverse of ``cfg``'s step, or Eq. 3) and the joint axes
     of ``cfg.joint_law``."""
-    return _make_reference(model, traj, jnp.asarray(t0, jnp.float64), cfg)
+    t0 = jnp.asarray(t0, jnp.float64)
+    landed = None
+    if Feedforward(cfg.feedforward) is Feedforward.DISCRETE:
+        landed = landing_velocities(model, cfg, *_capture_grid(model, traj, t0, cfg))
+    return _make_reference(model, traj, t0, cfg, landed)
+
+
+@functools.partial(compiler.jit, static_argnames=("cfg",))
+def _capture_grid(model: Model, traj: Trajectory, t0, cfg: SimConfig):
+    """The capture's poses on the grid and the pose targets post-stabilization reads."""
+    times = t0 + cfg.h * jnp.arange(cfg.n_steps + 1)
+    q = jax.vmap(traj.q)(times)
+    pos, rot, *_ = jax.vmap(lambda a: body_kinematics(model, a, a * 0, a * 0))(q)
+    rel = jnp.swapaxes(rot[:, model.topology.parent0], -1, -2) @ rot
+    origin = pos[:, 0] - jnp.einsum("tij,j->ti", rot[:, 0], model.com[0])
+    return pos, matrix_to_quat(rot), PoseTargets(origin, rot[:, 0], rel)
 
 
 # One compiled program rather than hundreds of eagerly dispatched small ops (each eager op is
 # compiled on its own, which made preparing a run take longer than compiling the rollout).
 @functools.partial(compiler.jit, static_argnames=("cfg",))
-def _make_reference(model: Model, traj: Trajectory, t0, cfg: SimConfig) -> Reference:
+def _make_reference(model: Model, traj: Trajectory, t0, cfg: SimConfig, landed=None) -> Reference:
     times = t0 + cfg.h * jnp.arange(cfg.n_steps + 1)
     q = jax.vmap(traj.q)(times)
     qd = jax.vmap(traj.qd)(times)
@@ -178,7 +193,7 @@ def _make_reference(model: Model, traj: Trajectory, t0, cfg: SimConfig) -> Refer
         active = dofs_to_per_joint(model, active_mask(model, cfg.driven, rot.dtype))
         targets = PoseTargets(root_origin, rot[:, 0], rel)
         sol = discrete_inverse_dynamics(model, cfg, pos, quat, jnp.concatenate([vel[0], omega[0]], -1), targets,
-                                        local_axes, active)
+                                        local_axes, active, landed)
         last = lambda a: jnp.concatenate([a, a[-1:]], 0)
         tau, residual, landing = last(sol.tau), last(sol.residual), last(sol.landing)
         u = stored = sol.velocity
