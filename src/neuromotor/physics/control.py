@@ -43,7 +43,6 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -52,8 +51,8 @@ from neuromotor import compiler
 from neuromotor.model.kinematics import body_kinematics
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.reflex import Reflex, reflex_multipliers
-from neuromotor.physics.system import dof_axes, dofs_to_per_joint, per_joint_to_dofs, solve3, world_inertia
-from neuromotor.rotations import (AXIS, axis_rotation, euler_axes, inv3, matrix_to_quat, mm, mmt, mtv, mv, quat_conj, quat_log,
+from neuromotor.physics.system import dofs_to_per_joint, per_joint_to_dofs, world_inertia
+from neuromotor.rotations import (AXIS, axis_rotation, inv3, matrix_to_quat, mm, mmt, mtv, mv, quat_conj, quat_log,
                                   quat_mul, quat_to_matrix)
 
 DEFAULT_KS = 400.0  # 1/s^2: natural frequency 20 rad/s (3.2 Hz) at typical load
@@ -241,12 +240,6 @@ def controller_inputs(model: Model, gains: Gains, active: Float[Array, " n"], ta
     return ControllerInputs(per(tau), per(activation), per(theta_d), rel_rot[c], rel_omega[c], local_axes,
                             rel_quat, per(gains.scale), per(gains.floor), per(gains.reference_torque), per(active),
                             local_pinv, drift)
-
-
-def damped_solve(a: Float[Array, "... 3 3"], e: Float[Array, "... 3"], mu: float = DAMPING):
-    """x = A^T (A A^T + mu^2 I)^-1 e: A^-1 e away from singularity, bounded at gimbal lock."""
-    gram = mmt(a, a) + mu**2 * jnp.eye(3, dtype=a.dtype)
-    return mtv(a, solve3(gram, e))
 
 
 def damped_pinv(la: Float[Array, "... 3 3"], mu: float = DAMPING) -> Float[Array, "... 3 3"]:

@@ -159,11 +159,7 @@ def discrete_inverse_dynamics(model: Model, cfg, pos: Float[Array, "S1 B 3"], qu
     ``landed``: :func:`landing_velocities`' output if already computed, else computed here)."""
     if cfg.free_root:
         raise ValueError("discrete inverse dynamics needs the driven root (the paper's model)")
-    if landed is None:
-        nxt = lambda x: jax.tree_util.tree_map(lambda a: a[1:], x)
-        landed = jax.lax.map(lambda x: landing_velocity(model, cfg, *x),
-                             (pos[:-1], quat[:-1], pos[1:], quat[1:], nxt(targets)))
-    u, landing, rounds = landed
+    u, landing, rounds = landing_velocities(model, cfg, pos, quat, targets) if landed is None else landed
     velocity = jnp.concatenate([u_start[None], u], 0)
     tau, lam, residual = jax.vmap(lambda la, p, q, a, b: step_feedforward(model, cfg, la, active, p, q, a, b))(
         local_axes[:-1], pos[:-1], quat[:-1], velocity[:-1], velocity[1:])
