@@ -115,6 +115,20 @@ class PerturbationSpec(_KeyView):
         return self.duration if self.kind == "force" else 0.0
 
 
+def onset(perturbations, ball=None, default: float | None = None) -> float:
+    """Clip time (s) the response is measured from (recovery time, the features of a fit): the
+    earliest configured start of ``perturbations`` (an impulse's own ``start``, not the one-step
+    pulse it becomes) and of the ball's launch; ``default`` when there are none."""
+    starts = [float(p["start"]) for p in perturbations]
+    if ball is not None:
+        starts.append(float(ball["launch"]))
+    if not starts:
+        if default is None:
+            raise ValueError("no perturbation to measure a response from")
+        return float(default)
+    return min(starts)
+
+
 DEFAULT_HIT = PerturbationSpec(
     kind="force",
     body="chest",  # a segment keyword: Chest2 on the embedded clip, the same place on any rig
@@ -347,11 +361,12 @@ class SweepSpec:
     # long_latency_delay over the config's [reflex]); all share the grid's longest max_delay.
     reflexes: tuple[ReflexSpec, ...] | None = None
 
-    def runs(self, base) -> list[dict]:
+    def runs(self, base, others=()) -> list[dict]:
         """Flat list of run descriptions (dicts), gain setting outermost, then the reflex
         setting (key ``reflex``, when the grid varies it), magnitude innermost. Key
         ``perturbation``: ``base`` (perturbation[0]) with the run's axis values, for the one
-        pulse builder (:func:`neuromotor.physics.perturbation.build_pulses`)."""
+        pulse builder (:func:`neuromotor.physics.perturbation.build_pulses`); ``onset``: the
+        run's :func:`onset` with ``others`` (the config's other perturbations, which every run keeps)."""
         out, base = [], PerturbationSpec.of(base)
         for g in self.gains:
             for rx in self.reflexes or [None]:
@@ -364,7 +379,8 @@ class SweepSpec:
                                 p = dataclasses.replace(base, body=body, direction=list(d), start=float(start),
                                                         magnitude=float(m))
                                 run = dict(gain=g, body=body, direction=list(d), start=float(start),
-                                           magnitude=float(m), duration=p.span, kind=p.kind, perturbation=p)
+                                           magnitude=float(m), duration=p.span, kind=p.kind, perturbation=p,
+                                           onset=onset([p, *others]))
                                 out.append(run if rx is None else dict(run, reflex=rx))
         return out
 

@@ -7,8 +7,9 @@ point, i.e. force F on the body and torque ``(x_p - c_b) x F`` about its COM. Sh
 ``magnitude`` N s is a square pulse of one time step and magnitude / h newtons, applied in the
 step that starts at the grid time nearest ``start``.
 
-Every numeric field is an array leaf with a leading axis P (several pulses per run), so a batch
-of magnitudes, directions, bodies or start times is a ``vmap`` over this container.
+Every field is an array leaf with a leading axis P (several pulses per run; the shape too, as an
+index into :data:`SHAPES`), so a batch of magnitudes, directions, bodies, start times or shapes is
+a ``vmap`` over this container, and runs that differ only in their pulses share one program.
 """
 
 from __future__ import annotations
@@ -33,16 +34,17 @@ class ForcePulses(eqx.Module):
     magnitude: Float[Array, " P"]  # N (peak)
     start: Float[Array, " P"]  # s
     duration: Float[Array, " P"]  # s
-    shape: tuple[str, ...] = eqx.field(static=True)
+    shape: Int[Array, " P"]  # index into SHAPES
 
     @property
     def count(self) -> int:
-        return len(self.shape)
+        return self.magnitude.shape[-1]
 
 
 def no_pulses() -> ForcePulses:
     z = jnp.zeros((0,))
-    return ForcePulses(jnp.zeros((0,), jnp.int32), jnp.zeros((0, 3)), jnp.zeros((0, 3)), z, z, z, ())
+    return ForcePulses(jnp.zeros((0,), jnp.int32), jnp.zeros((0, 3)), jnp.zeros((0, 3)), z, z, z,
+                       jnp.zeros((0,), jnp.int32))
 
 
 def build_pulses(specs, model, h: float, body_index) -> ForcePulses:
@@ -58,7 +60,8 @@ def build_pulses(specs, model, h: float, body_index) -> ForcePulses:
     rows = [_pulse(s, model, h, body_index) for s in specs]
     body, point, direction, magnitude, start, duration, shape = zip(*rows)
     return ForcePulses(jnp.asarray(body, jnp.int32), jnp.asarray(np.stack(point)), jnp.asarray(np.stack(direction)),
-                       jnp.asarray(magnitude), jnp.asarray(start), jnp.asarray(duration), tuple(shape))
+                       jnp.asarray(magnitude), jnp.asarray(start), jnp.asarray(duration),
+                       jnp.asarray([SHAPES.index(x) for x in shape], jnp.int32))
 
 
 def _pulse(s, model, h: float, body_index) -> tuple:
@@ -83,9 +86,8 @@ def _pulse(s, model, h: float, body_index) -> tuple:
 
 def replace_first(p: ForcePulses, first: ForcePulses) -> ForcePulses:
     """``p`` with pulse 0 replaced by the one pulse ``first`` (the pulse a sweep varies)."""
-    arrays = {f.name: np.concatenate([np.asarray(getattr(first, f.name)), np.asarray(getattr(p, f.name))[1:]])
-              for f in dataclasses.fields(p) if f.name != "shape"}
-    return ForcePulses(**arrays, shape=first.shape + p.shape[1:])
+    return ForcePulses(**{f.name: np.concatenate([np.asarray(getattr(first, f.name)), np.asarray(getattr(p, f.name))[1:]])
+                          for f in dataclasses.fields(p)})
 
 
 def unperturbed(p: ForcePulses) -> ForcePulses:
@@ -93,14 +95,12 @@ def unperturbed(p: ForcePulses) -> ForcePulses:
     return dataclasses.replace(p, magnitude=p.magnitude * 0)
 
 
-def pulse_profile(shape: str, s):
+def pulse_profile(shape, s):
+    """Unit-peak profile at phase ``s`` of shape ``shape`` (an index into SHAPES, or its name)."""
+    shape = SHAPES.index(shape) if isinstance(shape, str) else shape
     inside = (s >= 0.0) & (s < 1.0)
-    if shape == "square":
-        val = jnp.ones_like(s)
-    elif shape == "half_sine":
-        val = jnp.sin(jnp.pi * jnp.clip(s, 0.0, 1.0))
-    else:
-        val = 1.0 - jnp.abs(2.0 * jnp.clip(s, 0.0, 1.0) - 1.0)
+    c = jnp.clip(s, 0.0, 1.0)
+    val = jnp.select([shape == 0, shape == 1], [jnp.ones_like(s), jnp.sin(jnp.pi * c)], 1.0 - jnp.abs(2.0 * c - 1.0))
     return jnp.where(inside, val, 0.0)
 
 
@@ -108,8 +108,7 @@ def pulse_forces(p: ForcePulses, t) -> Float[Array, "P 3"]:
     """World force vector of each pulse at time t."""
     if p.count == 0:
         return jnp.zeros((0, 3))
-    s = (t - p.start) / p.duration
-    prof = jnp.stack([pulse_profile(shape, s[i]) for i, shape in enumerate(p.shape)])
+    prof = pulse_profile(p.shape, (t - p.start) / p.duration)
     return (p.magnitude * prof)[:, None] * p.direction
 
 

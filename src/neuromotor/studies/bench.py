@@ -38,6 +38,7 @@ from neuromotor.config import DEFAULT_HIT, SimulationConfig
 from neuromotor.physics import dynamics as dy
 from neuromotor.physics import solvers
 from neuromotor.physics.constraints import constraint_count, post_stabilize
+from neuromotor.physics.perturbation import build_pulses
 from neuromotor.physics.inverse import inverse_dynamics
 from neuromotor.physics.stiffness import DenseStiffness, StiffBlocks
 from neuromotor.physics.system import world_inertia
@@ -87,8 +88,7 @@ def _setup(clip, seconds: float, solver: str, load=None):
     config = SimulationConfig(clip=None if clip is None else str(clip), duration=seconds,
                               perturbations=[dict(DEFAULT_HIT, start=min(0.3, seconds / 2))])
     setup = prepare(config, character, traj)
-    setup.sim = dataclasses.replace(setup.sim, solver=solver)
-    return setup
+    return dataclasses.replace(setup, sim=dataclasses.replace(setup.sim, solver=solver))
 
 
 def _stages(setup) -> dict:
@@ -224,6 +224,15 @@ def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
              "max_theta_diff_rad": float(jnp.max(jnp.abs(runs[n].theta - last.theta)))} for n in steps]
 
 
+def scaled_pulses(setup, factors):
+    """The config's perturbations at each of ``factors`` times their magnitudes, stacked (one
+    leading run axis), through the one pulse builder."""
+    specs, h = setup.config.perturbations, setup.config.h
+    rows = [build_pulses([dataclasses.replace(s, magnitude=s.magnitude * float(f)) for s in specs], setup.model, h,
+                         setup.window.index) for f in factors]
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *rows)
+
+
 def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str = "float64") -> list[dict]:
     """Total steps per second of a vmap over pulse magnitudes, split over this process's devices
     as a sweep runs it (:func:`~neuromotor.studies.sweep.runner.shard_vmap`; one per core from
@@ -236,11 +245,10 @@ def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     out = []
     for size in sizes:
-        mags = jnp.linspace(0.5, 1.5, size)[:, None] * p.magnitude[None]
+        mags = scaled_pulses(setup, np.linspace(0.5, 1.5, size))
         cfg = dataclasses.replace(setup.sim, solver=solvers.Solver(setup.sim.solver).batched() if size > 1
                                   else setup.sim.solver, dtype=dtype)
-        one = lambda mag, shared, cfg=cfg: dy.rollout(m, shared[0], dataclasses.replace(p, magnitude=mag), shared[1],
-                                                       cfg).theta
+        one = lambda pulses, shared, cfg=cfg: dy.rollout(m, shared[0], pulses, shared[1], cfg).theta
         meshes = {"": batch_mesh(size, cfg) if size > 1 else None}
         if meshes[""] is not None:
             meshes["_one_device"] = None

@@ -211,14 +211,10 @@ def contrast(cfg: SimulationConfig, exp: ExperimentSpec, progress: bool = True) 
     fig.tight_layout()
     numbers["files"] = {"plot": str(save_figure(fig, out / "contrast.png"))}
     if exp.magnitudes:
-        from neuromotor.studies.simulate import body_lookup
-        from neuromotor.studies.sweep import SweepSpec, Sweeper, plot_sweep, run_sweep, write_csv
+        from neuromotor.studies.sweep import SweepSpec, plot_sweep, simulate_grid, write_csv
 
         spec = SweepSpec(list(exp.magnitudes), list(exp.controllers))
-        sweeper = Sweeper(base_setup.model, base_setup.ref, base_setup.sim, chunk=len(spec.magnitudes) * len(spec.gains),
-                          metric=cfg.metric)
-        res = run_sweep(sweeper, base_setup.gains, base_setup.pulses, spec.runs(cfg.perturbations[0]),
-                        body_lookup(base_setup.model), base_setup.model.body_names, progress=progress)
+        res = simulate_grid(cfg, spec, base_setup, chunk=len(spec.magnitudes) * len(spec.gains), progress=progress)
         numbers["files"]["sweep_csv"] = str(write_csv(res.rows, out / "sweep.csv"))
         numbers["files"]["sweep_plot"] = str(plot_sweep(res.rows, out / "contrast_sweep.png",
                                                         title="same hit, growing magnitude"))

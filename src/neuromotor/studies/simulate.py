@@ -23,6 +23,7 @@ from neuromotor.studies.ball import BallSetup, ball_metrics, ball_rollouts, ball
 from neuromotor.studies import metrics as mx
 from neuromotor.model.bvh import BvhClip
 from neuromotor.config import ConfigError, SimulationConfig
+from neuromotor.config.specs import onset
 from neuromotor.physics.control import Gains, make_gains
 from neuromotor.physics.dynamics import (Feedforward, Reference, Rollout, SimConfig, check_rollout, make_reference,
                                         rollout)
@@ -219,10 +220,7 @@ def run(setup: Setup, check: bool = True) -> RunResult:
 def run_metrics(setup: Setup, pert: Rollout, base: Rollout) -> dict:
     """Recovery metrics of d(t) by ``setup.config.metric`` (geodesic joint angles by default;
     :mod:`neuromotor.studies.metrics`) and the unperturbed run's error against the mocap."""
-    starts = [p["start"] for p in setup.config.perturbations]
-    if setup.ball is not None:
-        starts.append(float(setup.ball.ball.launch))
-    start = min(starts, default=float(np.asarray(setup.ref.time)[0]))
+    start = onset(setup.config.perturbations, setup.config.ball, default=float(np.asarray(setup.ref.time)[0]))
     metric = setup.config.metric
     dev, tracking, residual, violation = _metric_arrays(metric, setup.model, pert, base, setup.ref)
     out = mx.recovery_metrics(pert.time, dev, start)

@@ -139,8 +139,8 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
                  **surrogate) -> FitProblem:
     """A :class:`FitProblem` over the perturbation cases of ``setup.config.perturbations``.
 
-    Each ``[[perturbation]]`` entry is one case (one rollout); all cases must share a pulse
-    shape (a static field: one shape per vmapped batch). ``window`` = (t0, t1) in clip
+    Each ``[[perturbation]]`` entry is one case (one rollout), of any kind and shape (the
+    shape is an array leaf). ``window`` = (t0, t1) in clip
     seconds (default: the whole simulation).
     """
     from neuromotor.studies.simulate import body_lookup
@@ -154,10 +154,6 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
         raise ConfigError(f"{cfg.source}: a fit needs at least one [[perturbation]] (one per case)")
     index = body_lookup(setup.model, cfg.source, setup.character)
     per_case = [build_pulses([s], setup.model, setup.sim.h, index) for s in specs]
-    shapes = {p.shape for p in per_case}
-    if len(shapes) > 1:
-        raise ConfigError(f"{cfg.source}: field 'perturbation[*].shape': the cases of one fit must share a "
-                          f"pulse shape (and kind), got {sorted(s[0] for s in shapes)}")
     if kind == "features":
         per_case = per_case + [unperturbed(per_case[0])]
     batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *per_case)

@@ -103,9 +103,10 @@ def write_csv(rows: list[dict], path, columns: Sequence[str] = COLUMNS) -> pathl
 
 
 def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inner_batch=None,
-                  progress: bool = True) -> SweepResult:
+                  progress: bool = True, keep_curves: bool = False) -> SweepResult:
     """Every run of the grid of ``spec`` on the prepared ``setup`` of ``cfg``: force pulses, or
-    (``spec.kind == "ball"``) ball speeds; ``chunk`` and ``inner_batch`` default to the spec's."""
+    (``spec.kind == "ball"``) ball speeds; ``chunk`` and ``inner_batch`` default to the spec's;
+    ``keep_curves``: keep every run's deviation curve d(t)."""
     from neuromotor.studies.ball import balls_at_speeds
     from neuromotor.studies.simulate import body_lookup
 
@@ -121,7 +122,8 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
         except ValueError as e:
             raise ConfigError(f"{cfg.source}: field 'sweep.magnitudes': {e}") from None
         sweeper = BallSweeper(model, setup.ref, setup.sim, setup.ball, setup.pulses, **sizes)
-        return run_ball_sweep(sweeper, setup, spec.magnitudes, spec.gains, balls=balls, progress=progress)
+        return run_ball_sweep(sweeper, setup, spec.magnitudes, spec.gains, balls=balls, keep_curves=keep_curves,
+                              progress=progress)
     index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'", setup.character)  # names or segment keywords
     hit = cfg.perturbations[0]
     for i, b in enumerate(spec.bodies or []):  # every row of the grid can act (the rule of prepare)
@@ -130,8 +132,8 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
     for i, t in enumerate(spec.starts or []):
         setup.window.check(dataclasses.replace(hit, start=float(t)), "perturbation[0].body", f"sweep.starts[{i}]")
     sweeper = Sweeper(model, setup.ref, setup.sim, **sizes)
-    return run_sweep(sweeper, setup.gains, setup.pulses, spec.runs(hit), index, model.body_names,
-                     progress=progress)
+    return run_sweep(sweeper, setup.gains, setup.pulses, spec.runs(hit, cfg.perturbations[1:]), index, model.body_names,
+                     keep_curves=keep_curves, progress=progress)
 
 
 def _gains_map_title(cfg, spec: SweepSpec, name: str) -> str:

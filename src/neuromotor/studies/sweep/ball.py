@@ -3,6 +3,7 @@ against the same gains with the ball never launched."""
 
 from __future__ import annotations
 
+import functools
 from typing import Sequence
 
 import equinox as eqx
@@ -11,6 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from jax.sharding import PartitionSpec as P
+
+from neuromotor import compiler
 from neuromotor.config.specs import GainSetting
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import contact as ct
@@ -20,7 +24,7 @@ from neuromotor.physics.perturbation import ForcePulses
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.gains import apply_gains
 from neuromotor.studies.sweep.grid import _stack
-from neuromotor.studies.sweep.runner import Sweeper, SweepResult, sweep_batches
+from neuromotor.studies.sweep.runner import AXIS, Sweeper, SweepResult, sweep_batches
 
 
 class BallBatch(eqx.Module):
@@ -51,6 +55,13 @@ class BallSweeper(Sweeper):
                  pulses: ForcePulses, **kw):
         self.capsules, self.settings, self.pulses = ball_setup.capsules, ball_setup.settings, pulses
         super().__init__(model, ref, sim, **kw)
+
+    def _program(self, static):
+        self.model_static = static  # the contact rollout closes over this sweeper's ball set-up
+        local = lambda shared, batch: jax.lax.map(functools.partial(self._one, shared), batch,
+                                                  batch_size=None if self.inner_batch == 1 else self.inner_batch)
+        return compiler.jit(jax.shard_map(local, mesh=self.mesh, in_specs=(P(), P(AXIS)), out_specs=P(AXIS),
+                                          check_vma=False))
 
     def _one(self, shared, run: BallBatch) -> BallRunOut:
         model = eqx.combine(shared[0], self.model_static)

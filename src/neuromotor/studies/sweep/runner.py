@@ -91,25 +91,17 @@ class Sweeper:
             sim = dataclasses.replace(sim, solver=sim.solver.batched())
         self.sim, self.n_steps = sim, sim.n_steps
         self.model = model  # host copy: the one pulse builder reads each body's COM
-        self.model_static = eqx.partition(model, eqx.is_array)[1]
-        rep = P()
-        shared = (eqx.partition(model, eqx.is_array)[0], ref)
-        self.shared = jax.tree_util.tree_map(lambda x: _put(x, self.mesh, rep), shared)
-        self._simulate = compiler.jit(jax.shard_map(
-            self._local, mesh=self.mesh, in_specs=(rep, P(AXIS)), out_specs=P(AXIS), check_vma=False))
+        arrays, static = eqx.partition(model, eqx.is_array)
+        self.shared = jax.tree_util.tree_map(lambda x: _put(x, self.mesh, P()), (arrays, ref))
+        self._simulate = self._program(static)
 
-    def _one(self, shared, run: RunBatch) -> RunOut:
-        model = eqx.combine(shared[0], self.model_static)
-        r = rollout(model, run.gains, run.pulses, shared[1], self.sim)
-        return RunOut(self.pose(model, r), r.diverged_step, r.diverged_body, jnp.max(r.residual), jnp.max(r.violation))
+    def _program(self, static):
+        """The compiled chunk, ``f(shared, batch) -> RunOut`` (shared by sweepers of one layout)."""
+        return _chunk_program(_Layout(static), self.sim, self.metric, self.inner_batch, self.mesh)
 
     def pose(self, model: Model, r):
         """What d(t) is measured on (:class:`RunOut`): local joint quaternions, or theta (euler)."""
-        return r.theta if self.metric == "euler" else mx.joint_quats(model, r.states.quat)
-
-    def _local(self, shared, batch: RunBatch) -> RunOut:
-        size = None if self.inner_batch == 1 else self.inner_batch
-        return jax.lax.map(functools.partial(self._one, shared), batch, batch_size=size)
+        return _pose(self.metric, model, r)
 
     def pad(self, batch: RunBatch, lo: int, hi: int) -> RunBatch:
         """Rows lo:hi of a host batch, padded to the chunk size by repeating the last row."""
@@ -120,6 +112,43 @@ class Sweeper:
         """Device-resident outputs of one padded chunk (sharded along the run axis)."""
         placed = jax.tree_util.tree_map(lambda x: _put(x, self.mesh, P(AXIS)), batch)
         return self._simulate(self.shared, placed)
+
+
+def _pose(metric: str, model: Model, r):
+    return r.theta if metric == "euler" else mx.joint_quats(model, r.states.quat)
+
+
+class _Layout:
+    """The static part of a model as a cache key: sweeps of one skeleton share their program
+    (the model's arrays are arguments), so a process that sweeps again does not compile again."""
+
+    def __init__(self, static):
+        self.static = static
+        leaves, tree = jax.tree_util.tree_flatten(static)
+        self._key = (tree, tuple(leaves))
+
+    def __hash__(self):
+        return hash(self._key)
+
+    def __eq__(self, other):
+        return isinstance(other, _Layout) and self._key == other._key
+
+
+@functools.lru_cache(maxsize=16)
+def _chunk_program(layout: _Layout, sim: SimConfig, metric: str, inner_batch: int, mesh: Mesh):
+    """``f(shared, batch) -> RunOut``: a chunk of rollouts sharded over ``mesh``, ``jax.lax.map``
+    over each shard's runs (``inner_batch`` of them vmapped together)."""
+
+    def one(shared, run: RunBatch) -> RunOut:
+        model = eqx.combine(shared[0], layout.static)
+        r = rollout(model, run.gains, run.pulses, shared[1], sim)
+        return RunOut(_pose(metric, model, r), r.diverged_step, r.diverged_body, jnp.max(r.residual),
+                      jnp.max(r.violation))
+
+    def local(shared, batch: RunBatch) -> RunOut:
+        return jax.lax.map(functools.partial(one, shared), batch, batch_size=None if inner_batch == 1 else inner_batch)
+
+    return compiler.jit(jax.shard_map(local, mesh=mesh, in_specs=(P(), P(AXIS)), out_specs=P(AXIS), check_vma=False))
 
 
 @compiler.jit
@@ -159,7 +188,6 @@ def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[di
     # Baselines: the distinct gain settings without any pulse, simulated with the same program.
     base = jax.tree_util.tree_map(lambda x: np.asarray(x)[first], batch)
     base = dataclasses.replace(base, pulses=unperturbed(base.pulses))
-    starts = np.asarray(batch.pulses.start)
 
     def row(i: int, out: dict, dev, time) -> dict:
         r, g = runs[i], runs[i]["gain"]
@@ -169,7 +197,7 @@ def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[di
                 **reflex_columns(r, gains.reflex), "body": r["body"], "magnitude": r["magnitude"],
                 "direction_x": float(d[0]), "direction_y": float(d[1]), "direction_z": float(d[2]),
                 "start": r["start"], "duration": r["duration"],
-                **mx.recovery_metrics(time, dev, float(starts[i].min())),
+                **mx.recovery_metrics(time, dev, r["onset"]),
                 "max_kkt_residual": float(out["max_residual"]), "max_constraint_violation": float(out["max_violation"])}
 
     bar = tqdm(total=len(first) + len(runs), desc="sweep", unit="run", disable=not progress)
