@@ -105,6 +105,18 @@ def test_cli_sweep_start_outside_the_window_exits_2(tmp_path, capsys):
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("field", ["duration = 0.1", 'shape = "square"'])
+def test_an_impulse_refuses_a_duration_or_shape_it_would_ignore(tmp_path, capsys, field):
+    path = tmp_path / "impulse.toml"
+    path.write_text(f'[[perturbation]]\nkind = "impulse"\nbody = "chest"\nmagnitude = 10.0\n{field}\n')
+    for command in ("simulate", "sweep", "fit", "experiment"):  # the one parser: each refuses it the same way
+        assert cli.main([command, str(path), *(["-o", str(tmp_path / "run.npz")] if command == "simulate" else [])]) == 2
+        err = capsys.readouterr().err
+        key = field.split()[0]
+        assert f"field 'perturbation[0].{key}' does not apply to an impulse" in err, err
+        assert len(err.strip().splitlines()) == 1 and not (tmp_path / "run.npz").exists()
+
+
 def test_a_window_past_the_clips_end_by_less_than_a_step_is_rounded_down(character):
     h = 1.0 / 120.0
     end = character[0].clip.duration
@@ -153,3 +165,11 @@ def test_sweep_plot_axis_of_an_impulse_sweep_is_in_newton_seconds(impulse_sweep,
                                                                         real(fig, *a, **k))[1])
     sweep_plots.plot_sweep(impulse_sweep[0], tmp_path / "sweep.png")
     assert labels == ["impulse (N s)"]
+
+
+def test_info_on_a_config_says_it_is_not_a_run_file(tmp_path, capsys):
+    path = tmp_path / "run.toml"
+    path.write_text('[[perturbation]]\nbody = "chest"\nmagnitude = 10.0\n')
+    assert cli.main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "not a RUN.npz (not an .npz archive" in err and "pickle" not in err and len(err.strip().splitlines()) == 1

@@ -37,6 +37,11 @@ def parse_perturbation(table, where: str, source: str) -> PerturbationSpec:
     body = f.get("body")
     if not isinstance(body, str):
         f.fail("body", f"must be a body (joint) name, got {body!r}")
+    if kind == "impulse":
+        for key in ("duration", "shape"):
+            if key in table:
+                f.fail(key, "does not apply to an impulse (magnitude in N s, delivered within one step); "
+                            "use kind = \"force\" for a pulse of a shape and duration")
     spec = PerturbationSpec(
         kind=kind, body=body,
         point=f.vector("point", None) if "point" in table else None,

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+import zipfile
 from collections.abc import Iterable, Mapping
 
 import numpy as np
@@ -105,6 +106,14 @@ def _exists(path: pathlib.Path, error) -> None:
         raise error(f"{path}: no such run file")
 
 
+def _unreadable(path: pathlib.Path, e: Exception) -> str:
+    """Why a file is not a RUN.npz, in the user's terms (NumPy reads any non-zip file as a
+    pickle and says so, which misleads for a config or a clip given by mistake)."""
+    if not zipfile.is_zipfile(path):
+        return f"{path}: not a RUN.npz (not an .npz archive; give the file `neuromotor simulate -o` wrote)"
+    return f"{path}: cannot read as .npz: {e}"
+
+
 def read_run(run_path, fields: Iterable[str] = DRAW_FIELDS, error: type[ValueError] = RunFileError,
              check: bool = True) -> dict[str, np.ndarray]:
     """Read the arrays ``fields`` of a RUN.npz (each must be there) plus the optional fields
@@ -119,7 +128,7 @@ def read_run(run_path, fields: Iterable[str] = DRAW_FIELDS, error: type[ValueErr
     except error:
         raise
     except Exception as e:  # zipfile.BadZipFile, ValueError (pickled object arrays), OSError
-        raise error(f"{path}: cannot read as .npz: {e}") from None
+        raise error(_unreadable(path, e)) from None
     if check:
         check_run(path, data, error)
     return data
@@ -135,7 +144,7 @@ def read_run_info(path) -> dict:
             shapes = {k: list(data[k].shape) for k in data.files}
             text = {k: str(data[k]) for k in ("provenance_json", "metrics_json") if k in data.files}
     except Exception as e:  # zip, pickle, truncation errors all mean the same to the user
-        raise RunFileError(f"{path}: cannot read as .npz: {e}") from None
+        raise RunFileError(_unreadable(path, e)) from None
     _wanted_fields(path, set(shapes), INFO_FIELDS, RunFileError)
     out = {"file": str(path), "provenance": None, "metrics": None, "arrays": shapes}
     for key, field in (("provenance_json", "provenance"), ("metrics_json", "metrics")):
