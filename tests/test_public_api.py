@@ -25,6 +25,22 @@ def test_import_is_light():
     assert out.stdout.strip() == "[]"
 
 
+def test_x64_is_on_unless_the_user_chose_and_float64_is_never_run_in_float32(tmp_path):
+    """``import neuromotor`` turns x64 on, but an explicit JAX_ENABLE_X64 stands; a float64 run
+    with x64 off is refused (one line, exit 2), never silently run in float32."""
+    import os
+
+    code = "import jax, neuromotor; print(jax.config.jax_enable_x64)"
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    run = lambda cmd, **extra: subprocess.run(cmd, capture_output=True, text=True, env={**env, **extra}, cwd=tmp_path)
+    assert run([sys.executable, "-c", code]).stdout.strip() == "True"
+    assert run([sys.executable, "-c", code], JAX_ENABLE_X64="0").stdout.strip() == "False"
+    (tmp_path / "hit.toml").write_text('[[perturbation]]\nbody = "chest"\nmagnitude = 10.0\n')
+    out = run([sys.executable, "-m", "neuromotor", "simulate", "hit.toml", "-o", "run.npz"], JAX_ENABLE_X64="0")
+    assert out.returncode == 2 and "field 'sim.dtype' is float64 but JAX runs with x64 off" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and not (tmp_path / "run.npz").exists()
+
+
 def test_step_by_step_equals_the_rollout():
     """Three calls of ``neuromotor.step`` from ``init_data`` reproduce the scanned rollout's states."""
     cfg = neuromotor.SimulationConfig(duration=0.05, perturbations=[dict(neuromotor.DEFAULT_HIT, start=0.0)])

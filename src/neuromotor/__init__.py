@@ -1,6 +1,9 @@
 """neuromotor: motion perturbation with simple neuromotor control models (Yin, Cline & Pai 2003).
 
-Physics runs in float64: importing the package turns on ``jax_enable_x64``.
+Physics runs in float64: importing the package turns on ``jax_enable_x64``, unless the user has
+chosen (``JAX_ENABLE_X64`` set in the environment, which JAX reads itself). With x64 off, a
+float64 simulation is refused with a one-line error rather than run in float32 unasked;
+``[sim] dtype = "float32"`` still runs.
 
 The pipeline follows the paper: BVH -> body model -> kinematics -> inverse dynamics -> step ->
 fit / sweep -> pictures (``docs/architecture.md``). Where each equation lives:
@@ -28,10 +31,12 @@ The names below are the curated public API; they are imported on first use, so t
 """
 
 import importlib
+import os
 
 import jax
 
-jax.config.update("jax_enable_x64", True)
+if "JAX_ENABLE_X64" not in os.environ:  # the user's explicit choice stands
+    jax.config.update("jax_enable_x64", True)
 
 __version__ = "0.1.0"
 

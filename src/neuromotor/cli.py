@@ -174,6 +174,13 @@ class _Stages:
 
 def cmd_idyn(args) -> int:
     from neuromotor.physics.inverse import idyn_arrays
+
+    import jax
+
+    from neuromotor.errors import UserError
+
+    if not jax.config.jax_enable_x64:  # inverse dynamics is float64 only
+        raise UserError("JAX runs with x64 off (JAX_ENABLE_X64 is set to false): inverse dynamics is float64; unset it")
     from neuromotor.studies.simulate import save_npz_atomic
 
     stage = _Stages("idyn", getattr(args, "quiet", False))

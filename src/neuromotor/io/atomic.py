@@ -48,11 +48,6 @@ def temporary_prefix_suffix(out: pathlib.Path) -> tuple[str, str]:
     return f".{out.name[:100]}.{TAG}-{os.getpid()}-", ".tmp" + out.suffix[:20]  # within NAME_MAX
 
 
-def live_temporaries() -> list[str]:
-    with _lock:
-        return sorted(_live)
-
-
 def remove_live_temporaries() -> None:
     """Remove every temporary this process has open (from a signal handler or at exit)."""
     with _lock:

@@ -162,7 +162,7 @@ def feedback_multipliers(
 
     ``angle_error`` is theta_d - theta and ``rate_error`` thetadot_d - thetadot per DOF;
     ``activation`` is the signal-dependent magnitude that scales the feedback (|tau_i|, see
-    :func:`joint_torque_projection`).
+    :func:`neuromotor.physics.control.make_gains`).
     """
     ks, kd = gains.per_dof()
     magnitude = _feedback_magnitude(gains, activation)

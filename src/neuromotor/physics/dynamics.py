@@ -6,7 +6,8 @@ One step from t to t + h (Anitescu & Potra's linearly implicit scheme, Section 4
     [       J             0  ] [ lam ] = [       b(t+h)      ]          (2)
 
 with k = f_ext + H^T (tau + feedback) + perturbations, K = dk/dx over the position tangent space
-and D = dk/dv, both by ``jax.jacfwd`` (:mod:`neuromotor.physics.stiffness`). b carries the
+and D = dk/dv, both in closed form (:mod:`neuromotor.physics.stiffness`; ``jax.jacfwd`` of k
+is the check, ``SimConfig.jacobians``). b carries the
 driven root's (and driven joints') velocity. Positions then move with v+ (quaternions by the
 exponential map) and are projected back onto the constraint manifold (Cline & Pai 2003) by
 ``SimConfig.stabilization_steps`` Newton steps (:func:`neuromotor.physics.constraints.post_stabilize`).
@@ -86,7 +87,8 @@ class SimConfig(eqx.Module):
     stabilization_steps: int = eqx.field(static=True, default=2)
     max_speed: float = eqx.field(static=True, default=200.0)  # rad/s or m/s: beyond it, diverged
     free_root: bool = eqx.field(static=True, default=False)  # drop the 6 driven-root rows
-    # The solver of Eq. 2 (a Solver or its string): null-space (default, fastest), tree, dense.
+    # The solver of Eq. 2 (a Solver or its string): null-space (default, fastest), branch (its
+    # batched twin, for vmapped sweeps), tree, dense.
     solver: Solver = eqx.field(static=True, default=Solver.NULLSPACE, converter=Solver)
     # The dtype of the rollout's arrays (a Precision or its string): float64, or float32 (docs/float32.md).
     dtype: Precision = eqx.field(static=True, default=Precision.FLOAT64, converter=Precision)

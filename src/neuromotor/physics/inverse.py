@@ -127,11 +127,6 @@ def inverse_dynamics(model: Model, traj: Trajectory, times: Float[Array, " T"],
     return InverseDynamics(times, tau, lam, axes, res)
 
 
-def feedforward_torques(model: Model, traj: Trajectory, times) -> Float[Array, "T n"]:
-    """tau_i(t) of Eq. 4 at the given times."""
-    return inverse_dynamics(model, traj, times).tau
-
-
 def idyn_arrays(model: Model, traj: Trajectory, times: np.ndarray) -> dict[str, np.ndarray]:
     """Everything ``neuromotor idyn`` writes (see the README's file contract)."""
     times = jnp.asarray(times)

@@ -248,14 +248,6 @@ def soft_time_of_peak(time, dev, beta: float = 5.0):
     return jnp.sum(w * time)
 
 
-def soft_recovery_time(time, dev, start, threshold, width: float = 0.1):
-    """Integral after ``start`` of sigmoid((d - threshold) / (width * threshold)) dt."""
-    dt = time[1] - time[0]
-    gate = jax.nn.sigmoid((time - start) / dt)
-    above = jax.nn.sigmoid((dev - threshold) / (width * threshold))
-    return jnp.sum(gate * above) * dt
-
-
 def soft_overshoot(time, dev, t_return, beta: float = 5.0):
     """Smooth peak of the deviation after the (soft) return time ``t_return``."""
     gate = jax.nn.sigmoid((time - t_return) / (time[1] - time[0]))

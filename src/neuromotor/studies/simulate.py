@@ -13,6 +13,7 @@ import importlib.resources
 import pathlib
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -21,7 +22,6 @@ from neuromotor import compiler
 from neuromotor.physics.contact import ContactRollout
 from neuromotor.studies.ball import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies import metrics as mx
-from neuromotor.model.bvh import BvhClip
 from neuromotor.config import ConfigError, SimulationConfig
 from neuromotor.config.specs import onset
 from neuromotor.physics.control import Gains, make_gains
@@ -29,6 +29,7 @@ from neuromotor.physics.dynamics import (Feedforward, Reference, Rollout, SimCon
                                         rollout)
 from neuromotor.model.kinematics import Trajectory, trajectory_from_clip
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
+from neuromotor.physics.precision import Precision
 from neuromotor.model.anatomy import prepare_clip
 from neuromotor.model.skeleton import BODY_KEYWORDS, Character, MassModelOptions, Model, build_character, keyword_body
 from neuromotor.io.runfile import read_run_info, save_npz_atomic  # noqa: F401  (re-exported)
@@ -141,6 +142,9 @@ class ActingWindow:
 
 def prepare(config: SimulationConfig, character: Character | None = None,
             traj: Trajectory | None = None) -> Setup:
+    if config.dtype is Precision.FLOAT64 and not jax.config.jax_enable_x64:
+        raise ConfigError(f"{config.source}: field 'sim.dtype' is float64 but JAX runs with x64 off "
+                          "(JAX_ENABLE_X64 is set to false): unset it, or set [sim] dtype = \"float32\"")
     if character is None:
         character, traj = load_character(config.clip, config.units, config.up_axis, config.stature,
                                          config.mass_options())
@@ -271,6 +275,3 @@ def _tracking(metric, model, run_, ref):
     local = mx.joint_quats(model, run_.states.quat)
     return mx.rms_joint_angle_deg(local, ref.rel_quat[: local.shape[0]])
 
-
-def clip_of(setup: Setup) -> BvhClip:
-    return setup.character.clip

@@ -1,5 +1,7 @@
-"""Solvers of Eq. 2 and of post-stabilization, one per module, behind one interface
-(:class:`~neuromotor.physics.solvers.base.KKTSolver`), picked by :class:`Solver`."""
+"""Solvers of Eq. 2 and of post-stabilization behind one interface
+(:class:`~neuromotor.physics.solvers.base.KKTSolver`), picked by :class:`Solver`: one per
+module, except :class:`BranchSolver`, the null-space solver's batched twin, which lives beside
+it in ``nullspace.py`` (it only swaps the factorization for :mod:`.branch`'s)."""
 
 from __future__ import annotations
 
