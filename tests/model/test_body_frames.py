@@ -101,3 +101,12 @@ def test_a_rig_that_does_not_stand_in_its_zero_pose_keeps_its_body_with_its_upri
     frames = np.arange(raw.n_frames)
     for part in (frames[max(ref - 5, 0): ref + 15], frames[::-1], [ref]):
         assert_same_body(whole, body(with_frames(raw, part)))
+
+
+def test_inspect_says_what_the_shapes_are_built_on(capsys):
+    from neuromotor.cli import main
+
+    assert main(["inspect", str(ALL_CLIPS["mocapbank_19joint"])]) == 0
+    assert "shapes    built on the zero pose" in capsys.readouterr().out
+    assert main(["inspect", str(ALL_CLIPS["walk_22joint_zyx"]), "--json"]) == 0
+    assert '"shape_frame": 0' in capsys.readouterr().out
