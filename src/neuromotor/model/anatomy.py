@@ -832,8 +832,8 @@ def _zero_pose(tree: _Tree, clip: BvhClip) -> tuple[np.ndarray, np.ndarray]:
 def _standing_up(pos, ends, legs, head_chain, arm_branch) -> np.ndarray | None:
     """Up of a pose (1, J, 3) if it is a standing pose, else None: the head top above the
     mid-ankles along a coordinate axis and the trunk upright (within 20 deg), each leg straight
-    and hanging (within 30 deg). Many rigs' zero pose is one; others keep the rest orientation in the motion
-    (every bone along its joint's X axis) and stand only in their frames."""
+    and hanging (within 30 deg). Many rigs' zero pose is one; others keep the rest orientation
+    in the motion (every bone along its joint's X axis) and stand only in their frames."""
     if not head_chain or any(not l.groups[l.upper] for l in legs):
         return None
     ankles = _ankle_points(legs, pos, ends)[0]
