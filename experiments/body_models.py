@@ -1,5 +1,5 @@
 """Picture of the body model of every shipped clip (docs/body_models.png): each clip's polyhedra
-at its reference frame, seen from a three-quarter front view of its facing direction.
+in the pose they are built on (the zero pose, or the most upright frame), seen from a three-quarter front view of its facing direction.
 
     python experiments/body_models.py [CLIP.bvh ...] [-o docs/body_models.png]
 """
@@ -29,13 +29,13 @@ def main() -> None:
     for i, path in enumerate(args.clips):
         character, _ = load_character(path)
         clip, anat, model = character.clip, character.anatomy, character.model
-        pos, rot = world_frames(clip, joint_offsets(clip), anat.reference_frame)
+        pos, rot = world_frames(clip, joint_offsets(clip), anat.shape_frame)
         plotter.subplot(0, i)
         for b, k in enumerate(model.body_joint):
             shape = character.shapes[b]
             faces = np.hstack([np.full((len(shape.faces), 1), 3), shape.faces]).ravel()
             plotter.add_mesh(pv.PolyData(pos[k] + shape.vertices @ rot[k].T, faces), color="#c9a27e")
-        up, fwd = anat.up, anat.forward
+        up, fwd = anat.shape_up, anat.shape_forward
         view = np.cos(np.radians(35)) * fwd + np.sin(np.radians(35)) * np.cross(up, fwd) + 0.2 * up
         centre = pos[list(model.body_joint)].mean(0)
         plotter.camera_position = [tuple(centre + 6.0 * view), tuple(centre), tuple(up)]

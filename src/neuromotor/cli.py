@@ -89,6 +89,7 @@ def model_json(character) -> dict:
         "length_scale": clip.length_scale,
         "stature": anat.stature,
         "up": [float(x) for x in anat.up],
+        "shape_frame": anat.shape_frame,  # null: shapes built on the zero pose (the skeleton alone)
         "warnings": list(character.warnings),
         "gravity": [float(x) for x in model.gravity],
         "frame_time": clip.frame_time,
@@ -135,6 +136,10 @@ def cmd_inspect(args) -> int:
     print(f"units     {anat.units} ({clip.length_scale:g} m per file unit)")
     print(f"stature   {anat.stature:.3f} m, up axis {up}")
     print(f"bodies    {model.n_bodies}, simulated DOFs {model.n_dofs}, constraint rows {model.n_constraints}")
+    if anat.humanoid:  # docs/body-model.md, "What the body depends on"
+        print("shapes    " + ("built on the zero pose (the skeleton alone)" if anat.shape_frame is None else
+                              f"built on frame {anat.shape_frame + 1}, the most upright (the zero pose does "
+                              "not stand): a part of the clip without it gets another body"))
     total = float(np.sum(model.mass))
     source = ("given" if character.options.body_mass is not None else
               f"BMI {total / anat.stature ** 2:.0f} at the stature") if anat.humanoid else "polyhedra at 1000 kg/m^3"

@@ -99,11 +99,11 @@ def test_hands_feet_and_head_exist_even_with_zero_length_end_sites(character):
 
 
 def test_shapes_look_human(character):
-    """Flat hands and feet (thinner than wide), feet with soles near the floor at the reference
-    frame, a head above the shoulders."""
+    """Flat hands and feet (thinner than wide), feet with soles near the floor in the pose the
+    shapes are built on, a head above the shoulders."""
     anat, model, clip = character.anatomy, character.model, character.clip
-    pos, rot = world_frames(clip, joint_offsets(clip), anat.reference_frame)
-    up = anat.up
+    pos, rot = world_frames(clip, joint_offsets(clip), anat.shape_frame)
+    up = anat.shape_up
     low = np.inf
     for b, k in enumerate(model.body_joint):
         verts = character.shapes[b].vertices

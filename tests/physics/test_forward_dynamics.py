@@ -224,3 +224,18 @@ def test_export_bvh_round_trip(tmp_path, hit_setup, hit_result):
     data = np.load(run_path)
     back = reread_angles(out, "auto", data["dof_names"])
     assert np.abs(back - data["theta"]).max() < 1e-6
+
+
+def test_an_exported_run_loads_as_the_same_character(tmp_path, bank, hit_setup, hit_result):
+    """Issue 35: the run's BVH (2 s of the clip, simulated angles) builds the same body as the
+    clip it came from; the body does not depend on which frames a file holds."""
+    from neuromotor.io.export import export_bvh
+    from neuromotor.studies.simulate import run_arrays, save_npz_atomic
+
+    run_path = save_npz_atomic(tmp_path / "run.npz", run_arrays(hit_setup, hit_result))
+    again, _ = load_character(export_bvh(run_path, tmp_path / "out.bvh"))
+    model, back = bank[0].model, again.model
+    assert back.body_names == model.body_names
+    np.testing.assert_allclose(back.mass, model.mass, rtol=1e-9, atol=0)
+    np.testing.assert_allclose(back.com, model.com, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(back.inertia, model.inertia, rtol=1e-9, atol=1e-12)

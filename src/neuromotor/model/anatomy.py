@@ -1,9 +1,9 @@
 """What a humanoid BVH skeleton from the wild is made of (numpy only).
 
 :func:`analyse` labels every joint of a clip with the body segment it carries, its side and its
-mirror joint, and finds the world up axis, the facing direction, a reference frame, the stature
-and the length unit. It works from topology, bone lengths and the motion, never from the rest
-pose's orientation and only as a last resort from names:
+mirror joint, and finds the world up axis, the facing direction, a reference frame, the pose the
+body shapes are built on, the stature and the length unit. It works from topology, bone lengths
+and the motion, never from the rest pose's orientation and only as a last resort from names:
 
 * Limbs are the two largest pairs of sibling subtrees with matching bone-length structure; the
   pair whose two longest consecutive bones are longer is the legs (thigh + shank is ~1.5x upper
@@ -18,9 +18,11 @@ pose's orientation and only as a last resort from names:
   facing direction comes from the feet (ankle to toe), else the knees; left = up x forward.
 * Stature from the long bones with de Leva's (1996) segment/stature ratios; ``units="auto"``
   picks the unit in :data:`UNIT_CHOICES` that makes a plausible adult.
+* The body shapes are built on the zero pose when it stands (head above the feet along an axis,
+  straight hanging legs, upright trunk), from the skeleton alone; else on the most upright frame.
 
-:func:`collapse_virtual_root` removes a ROOT that is only a ground marker (its link to the body
-changes length every frame) and :func:`prepare_clip` chains reading, collapsing and analysis.
+:func:`collapse_virtual_root` removes a ROOT that is only a ground marker (its one child carries
+its own position channels) and :func:`prepare_clip` chains reading, collapsing and analysis.
 
 Conventions are those of :mod:`neuromotor.model.bvh`: rotation channels are intrinsic Euler angles in
 file order, ``p_parent = R @ p_joint + translation``, position channels replace the OFFSET.
@@ -84,6 +86,12 @@ class Anatomy:
     units: str  # key of UNIT_CHOICES, "given" or "scaled"
     warnings: tuple[str, ...]
     limb_chains: dict  # "arm_left", "arm_right", "leg_left", "leg_right", "head", "spine" -> joint indices
+    # The pose the body shapes are built on: None is the zero pose (every rotation channel 0, the
+    # skeleton alone), used when it is a standing pose; else a frame of the clip (reference_frame).
+    # shape_up and shape_forward are up and facing in that pose (None: up and forward).
+    shape_frame: int | None = None
+    shape_up: np.ndarray | None = None
+    shape_forward: np.ndarray | None = None
 
     @property
     def humanoid(self) -> bool:
@@ -235,22 +243,7 @@ def _is_below(clip: BvhClip, j: int, k: int) -> bool:
     return False
 
 
-def _rest_size(clip: BvhClip, k: int) -> float:
-    """Bounding-box diagonal of joint k's subtree in its zero pose (offsets only)."""
-    stop = _subtree_end(clip, k)
-    pos = {k: np.zeros(3)}
-    pts = [np.zeros(3)]
-    for j in range(k + 1, stop):
-        pos[j] = pos[clip.joints[j].parent] + clip.joints[j].offset
-        pts.append(pos[j])
-    for j in range(k, stop):
-        if clip.joints[j].end_site is not None:
-            pts.append(pos[j] + clip.joints[j].end_site)
-    pts = np.array(pts)
-    return float(np.linalg.norm(pts.max(0) - pts.min(0)))
-
-
-def _collapse_once(clip: BvhClip, tolerance_m: float):
+def _collapse_once(clip: BvhClip):
     joints = clip.joints
     root = joints[0]
     if not root.translation_columns:
@@ -273,14 +266,11 @@ def _collapse_once(clip: BvhClip, tolerance_m: float):
         if clip.children(o) or np.linalg.norm(j.offset) > 0 or (
                 j.end_site is not None and np.linalg.norm(j.end_site) > 0):
             return None
+    # Decided on the skeleton alone, not on how far the link moves, so a window of the clip in
+    # which the marker stands still is read the same.
     child = joints[c]
-    trans = clip.motion[:, list(child.translation_columns)]
-    lengths = np.linalg.norm(trans, axis=1)
+    lengths = np.linalg.norm(clip.motion[:, list(child.translation_columns)], axis=1)
     change = float(lengths.max() - lengths.min())
-    # Tolerance relative to the skeleton: tolerance_m on a 1.75 m body whatever the unit.
-    size = _rest_size(clip, c)
-    if not change > tolerance_m * size / _FALLBACK_M:
-        return None
 
     rows = np.arange(clip.n_frames)
     local_rot, local_trans = _local_motion(clip, rows)
@@ -305,16 +295,16 @@ def _collapse_once(clip: BvhClip, tolerance_m: float):
         column += len(j.channels)
     new_clip = dataclasses.replace(clip, joints=tuple(new_joints), motion=np.concatenate(blocks, axis=1))
     removed = (root.name,) + tuple(joints[o].name for o in others)
-    warning = (f"joint {root.name!r} is a virtual root (its link to {child.name!r} changes length by "
-               f"{change:.4g} file units over the clip): removed, {child.name!r} is the root now and "
-               f"carries the composed world motion")
+    warning = (f"joint {root.name!r} is a virtual root (its only child {child.name!r} carries its own "
+               f"position channels; their length changes by {change:.4g} file units over the clip): removed, "
+               f"{child.name!r} is the root now and carries the composed world motion")
     return new_clip, removed, warning
 
 
-def collapse_virtual_root(clip: BvhClip, tolerance_m: float = 0.01) -> tuple[BvhClip, tuple[str, ...], tuple[str, ...]]:
+def collapse_virtual_root(clip: BvhClip) -> tuple[BvhClip, tuple[str, ...], tuple[str, ...]]:
     """Remove a ROOT that is only a ground marker: it has position channels, no real bone of its own
-    (other children and End Site zero-length or absent), and its one child with position channels
-    changes distance from it over the clip by more than ``tolerance_m`` (scaled to a 1.75 m body).
+    (other children and End Site zero-length or absent), and one child with position channels
+    (that child's place is data, not a bone). Decided on the skeleton, whatever the frames.
     The child becomes the ROOT with position channels plus its own rotation order (the root's if it
     has none) and the composed world motion ``R = R_root R_child``, ``p = R_root p_child + p_root``
     (Euler angles kept continuous over time). Repeats while it applies.
@@ -323,7 +313,7 @@ def collapse_virtual_root(clip: BvhClip, tolerance_m: float = 0.01) -> tuple[Bvh
     removed: list[str] = []
     warnings: list[str] = []
     while True:
-        result = _collapse_once(clip, tolerance_m)
+        result = _collapse_once(clip)
         if result is None:
             return clip, tuple(removed), tuple(warnings)
         clip, names, warning = result
@@ -374,6 +364,7 @@ class _Tree:
             cols = joint.translation_columns
             # Translation channels replace the OFFSET: their mean is the bone.
             offsets[k] = clip.motion[:, list(cols)].mean(axis=0) if cols else joint.offset
+        self.offsets = offsets
         self.L = np.linalg.norm(offsets, axis=1)
         self.L[0] = 0.0
         self.end_len = np.array([0.0 if j.end_site is None else float(np.linalg.norm(j.end_site))
@@ -613,7 +604,7 @@ def _no_limbs_anatomy(clip: BvhClip, pos, rows, fixed, stature, warnings: list[s
                             [j.end_site for j in clip.joints])
     scale, unit_name, stat = _choose_units(height, fixed, stature, warnings)
     return Anatomy(("trunk",) * J, ("",) * J, (-1,) * J, up, np.array([0.0, 0.0, 1.0]), ref, stat,
-                   scale, unit_name, tuple(warnings), {})
+                   scale, unit_name, tuple(warnings), {})  # generic shapes: the offsets alone
 
 
 def _upward_children(tree: _Tree, pos, ends, cur: int, paired: set, up0) -> list[int]:
@@ -821,6 +812,59 @@ def _ankle_points(legs, pos, ends):  # (T, 2, 3)
     return np.stack([ends[:, l.end_point] if l.end_is_site else pos[:, l.end_point] for l in legs], axis=1)
 
 
+_STANDING_COS = math.cos(math.radians(20.0))
+_LEG_HANG_COS = math.cos(math.radians(30.0))  # CMU's zero pose stands with its feet 20 deg apart
+
+
+def _zero_pose(tree: _Tree, clip: BvhClip) -> tuple[np.ndarray, np.ndarray]:
+    """Joint positions and End Site points (1, J, 3) of the zero pose (every rotation 0, the root at
+    the origin, the tree's fixed offsets): the skeleton alone, no frame of the motion."""
+    pos = np.zeros((1, tree.J, 3))
+    for k in range(1, tree.J):
+        pos[0, k] = pos[0, tree.parents[k]] + tree.offsets[k]
+    ends = pos.copy()
+    for k, joint in enumerate(clip.joints):
+        if joint.end_site is not None:
+            ends[0, k] = pos[0, k] + np.asarray(joint.end_site, dtype=np.float64)
+    return pos, ends
+
+
+def _standing_up(pos, ends, legs, head_chain, arm_branch) -> np.ndarray | None:
+    """Up of a pose (1, J, 3) if it is a standing pose, else None: the head top above the
+    mid-ankles along a coordinate axis and the trunk upright (within 20 deg), each leg straight
+    and hanging (within 30 deg). Many rigs' zero pose is one; others keep the rest orientation
+    in the motion (every bone along its joint's X axis) and stand only in their frames."""
+    if not head_chain or any(not l.groups[l.upper] for l in legs):
+        return None
+    ankles = _ankle_points(legs, pos, ends)[0]
+    v = ends[0, head_chain[-1]] - ankles.mean(axis=0)
+    up = _nearest_axis(v)
+    if not v @ up > _STANDING_COS * np.linalg.norm(v):
+        return None
+    hips = []
+    for l, ankle in zip(legs, ankles):
+        hip = pos[0, l.groups[l.upper][0]]
+        d = ankle - hip
+        if not (-d @ up > _LEG_HANG_COS * np.linalg.norm(d) and np.linalg.norm(d) > 0.9 * l.window):
+            return None
+        hips.append(hip)
+    t = pos[0, arm_branch] - np.mean(hips, axis=0)
+    return up if t @ up > _STANDING_COS * np.linalg.norm(t) else None
+
+
+def _standing_forward(tree: _Tree, pos, ends, legs, up, chains) -> np.ndarray | None:
+    """Unit facing of a standing pose (1, J, 3): from the feet, else left = up x forward from the
+    labelled hips; None if neither tells."""
+    f, facing_from = _facing_per_frame(tree, pos, ends, legs, up, 1)
+    f = f[0]
+    if not facing_from:
+        lat = _horizontal(pos[:, chains["leg_left"][0]] - pos[:, chains["leg_right"][0]], up)[0]
+        f = np.cross(lat, up)
+    f = _horizontal(f[None], up)[0]
+    n = float(np.linalg.norm(f))
+    return f / n if n > 1e-9 * tree.size else None
+
+
 def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatomy:
     """Anatomy of ``clip``, whose lengths are taken as file units (read it with ``units=1.0``).
 
@@ -859,15 +903,30 @@ def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatom
         head_top = pos[:, arm_branch]
     up = _nearest_axis((head_top - ankles).mean(axis=0))
     ref_i = int(np.argmax((head_top - ankles) @ up))
+    # Shapes are built on the zero pose when it stands (the skeleton alone, so a window or a
+    # re-export of the clip gets the same body), else on the most upright of all frames (not
+    # of the analysis sample, whose spacing depends on the clip's length).
+    shape_pos, shape_ends = _zero_pose(tree, clip)
+    shape_up = _standing_up(shape_pos, shape_ends, legs, head_chain, arm_branch)
+    shape_frame = None
+    if shape_up is None:
+        shape_up = up
+        all_pos, _, all_ends = forward_kinematics(clip)
+        top = all_ends[:, head_chain[-1]] if head_chain else all_pos[:, arm_branch]
+        shape_frame = int(np.argmax((top - _ankle_points(legs, all_pos, all_ends).mean(axis=1)) @ up))
+        shape_pos, shape_ends = all_pos[shape_frame:shape_frame + 1], all_ends[shape_frame:shape_frame + 1]
 
     fwd_t, facing_from = _facing_per_frame(tree, pos, ends, legs, up, len(rows))
     judge = _SideJudge(tree, pos, np.cross(up, fwd_t), facing_from, names)
     labels = _Labels(["detail"] * tree.J, [""] * tree.J, [-1] * tree.J)
-    _label_limbs(labels, judge, tree, pos[ref_i], ends[ref_i], (("leg", legs_pair, legs), ("arm", arms_pair, arms)),
+    _label_limbs(labels, judge, tree, shape_pos[0], shape_ends[0], (("leg", legs_pair, legs), ("arm", arms_pair, arms)),
                  warnings)
     _label_other_pairs(labels, judge, tree, pairs, limb_roots)
     _label_head_and_trunk(labels, tree, head_chain, limb_roots, arm_branch)
     forward = _forward_at(ref_i, fwd_t, up, tree, judge, labels.chains, warnings)
+    shape_forward = _standing_forward(tree, shape_pos, shape_ends, legs, shape_up, labels.chains)
+    if shape_forward is None:
+        shape_forward = forward if shape_frame is not None else _horizontal(np.roll(shape_up, 1)[None], shape_up)[0]
 
     # Stature from the long bones, sides averaged.
     leg = float(np.mean([l.window for l in legs]))
@@ -876,10 +935,10 @@ def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatom
     scale, unit_name, stat = _choose_units(height_raw, fixed, stature, warnings)
     _translation_warnings(clip, scale, warnings)
 
-    up.setflags(write=False)
-    forward.setflags(write=False)
+    for v in (up, forward, shape_up, shape_forward):
+        v.setflags(write=False)
     return Anatomy(tuple(labels.segment), tuple(labels.side), tuple(labels.mirror), up, forward, int(rows[ref_i]),
-                   stat, scale, unit_name, tuple(warnings), labels.chains)
+                   stat, scale, unit_name, tuple(warnings), labels.chains, shape_frame, shape_up, shape_forward)
 
 
 def _pick_legs(tree: _Tree, pairs, windows, names) -> int:

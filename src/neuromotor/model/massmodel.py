@@ -21,10 +21,11 @@ The paper approximates the character "with polyhedra ... assuming the density of
   few fixed-point steps, until their volume at ``density`` gives the segment's target; the mass,
   COM and inertia are then integrated exactly from the polyhedra (:mod:`neuromotor.model.polyhedron`).
 
-Directions that the zero pose cannot give (which way is up, forward, left for a body) come from
-the clip's reference frame (:class:`neuromotor.model.anatomy.Anatomy`), a frame of the motion where
-the character stands upright, so a rig whose zero pose is not a standing pose still gets
-flat feet on the floor.
+The shapes are built in one pose (``Anatomy.shape_frame``): the zero pose (every rotation 0)
+when it is a standing pose, so the body depends on the skeleton and the options only, whatever
+frames the clip holds; else the clip's most upright frame, so a rig whose zero pose is not a
+standing pose (every bone along its joint's X axis) still gets flat feet on the floor. Up, forward
+and left for a body are those of that pose (``shape_up``, ``shape_forward``).
 """
 
 from __future__ import annotations
@@ -71,21 +72,24 @@ class BodyPlan:
     segment_mass: dict  # (segment, side) -> kg
 
 
-def world_frames(clip: BvhClip, offsets: np.ndarray, frame: int) -> tuple[np.ndarray, np.ndarray]:
+def world_frames(clip: BvhClip, offsets: np.ndarray, frame: int | None) -> tuple[np.ndarray, np.ndarray]:
     """World origins (J, 3) and rotations (J, 3, 3) of every joint at one frame of the clip,
-    with the fixed ``offsets`` (non-root translation channels replaced as in the model).
+    with the fixed ``offsets`` (non-root translation channels replaced as in the model); frame
+    None is the zero pose (every rotation 0, the root at the origin).
 
     Not :func:`neuromotor.model.anatomy.forward_kinematics`: that one follows the file's
     translation channels frame by frame (what the capture shows); the bodies are shaped on the
     model's fixed offsets."""
     n = len(clip.joints)
     pos, rot = np.zeros((n, 3)), np.zeros((n, 3, 3))
-    row = np.asarray(clip.motion[frame], dtype=np.float64)
+    row = None if frame is None else np.asarray(clip.motion[frame], dtype=np.float64)
     for k, joint in enumerate(clip.joints):
         cols = joint.rotation_columns
-        local = euler_to_matrix(joint.rotation_order, np.deg2rad(row[list(cols)])) if cols else np.eye(3)
+        local = euler_to_matrix(joint.rotation_order, np.deg2rad(row[list(cols)])) if cols and row is not None \
+            else np.eye(3)
         if joint.parent < 0:
-            t = row[list(joint.translation_columns)] if joint.translation_columns else joint.offset
+            t = np.zeros(3) if row is None else \
+                row[list(joint.translation_columns)] if joint.translation_columns else joint.offset
             pos[k], rot[k] = t, local
         else:
             p = joint.parent
@@ -116,7 +120,7 @@ def _perp(v, axis, fallback):
 
 
 class _Geometry:
-    """The clip at its reference frame, in world coordinates, with its anatomy."""
+    """The clip in the pose the shapes are built on, in world coordinates, with its anatomy."""
 
     def __init__(self, clip: BvhClip, anatomy: Anatomy, offsets: np.ndarray):
         self.clip, self.anat = clip, anatomy
@@ -126,10 +130,12 @@ class _Geometry:
         for k, j in enumerate(clip.joints):
             if j.parent >= 0:
                 self.children[j.parent].append(k)
-        self.pos, self.rot = world_frames(clip, offsets, anatomy.reference_frame)
+        self.pos, self.rot = world_frames(clip, offsets, anatomy.shape_frame)
         self.H = float(anatomy.stature)
-        self.up = _unit(anatomy.up)
-        self.forward = _perp(anatomy.forward, self.up, np.roll(self.up, 1))
+        up = anatomy.up if anatomy.shape_up is None else anatomy.shape_up
+        forward = anatomy.forward if anatomy.shape_forward is None else anatomy.shape_forward
+        self.up = _unit(up)
+        self.forward = _perp(forward, self.up, np.roll(self.up, 1))
         self.left = np.cross(self.up, self.forward)
 
     def descendants(self, k) -> list[int]:
