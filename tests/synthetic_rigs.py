@@ -78,7 +78,8 @@ def _orthonormal_with_x(d: np.ndarray, rng) -> np.ndarray:
 def make_rig(seed: int, **options) -> Rig:
     """A random rig; any option not given is drawn. Options: fingers, toes, face, props (0-2),
     twist, hip_link, six_channels, zero_end_sites, bent_zero_pose, up ("Y"/"Z"), virtual_root,
-    unit (key of UNITS), stature (m), scale (extra factor, e.g. 2 for a giant), frames."""
+    unit (key of UNITS), stature (m), scale (extra factor, e.g. 2 for a giant), frames; thumbs and
+    hand_end (a one-link thumb, a still tip joint under each hand without fingers; never drawn)."""
     rng = np.random.default_rng(seed)
     draw = {
         "fingers": bool(rng.random() < 0.5), "toes": bool(rng.random() < 0.6), "face": bool(rng.random() < 0.5),
@@ -87,6 +88,7 @@ def make_rig(seed: int, **options) -> Rig:
         "bent_zero_pose": bool(rng.random() < 0.4), "up": str(rng.choice(["Y", "Z"])),
         "virtual_root": bool(rng.random() < 0.3), "unit": str(rng.choice(list(UNITS))),
         "stature": float(rng.uniform(1.5, 1.95)), "scale": 1.0, "frames": 60,
+        "thumbs": False, "hand_end": False,  # not drawn: seeds keep their rigs
     }
     unknown = set(options) - set(draw)
     if unknown:
@@ -159,9 +161,20 @@ def make_rig(seed: int, **options) -> Rig:
         if o["twist"]:
             el = add(el, elbow + down * fore * 0.6, "forearm", side, "fore_twist", rot=twist)
         hand_rot = lambda ph: _rot("x", 10 * np.sin(2 * ph)) @ _rot("z", s * 6 * np.sin(ph))
-        if not o["fingers"]:
+        if not o["fingers"] and not (o["thumbs"] or o["hand_end"]):
             add(el, wrist, "hand", side, "hand", rot=hand_rot,
                 end=[0, 0, 0] if zero else down * jit(0.09) * H)
+            return
+        if not o["fingers"]:  # a thumb and/or a tip joint under the hand (Hand_End of some exporters)
+            hand = add(el, wrist, "hand", side, "hand", rot=hand_rot)
+            if o["thumbs"]:
+                base = wrist + [s * 0.012 * H, -0.015 * H, 0.012 * H]
+                direction = np.array([s * 0.3, -0.6, 0.75]) / np.linalg.norm([0.3, 0.6, 0.75])
+                add(hand, base, "finger", side, "thumb", rot=lambda ph: _rot("x", -(10 + 10 * np.sin(ph))),
+                    end=direction * 0.03 * H)
+            if o["hand_end"]:
+                add(hand, wrist + down * 0.09 * H, "finger", side, "hand_end", rot=_still,
+                    end=[0, 0, 0] if zero else down * 0.01 * H)
             return
         hand = add(el, wrist, "hand", side, "hand", rot=hand_rot)
         for f in range(5):

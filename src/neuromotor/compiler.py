@@ -18,6 +18,10 @@ the time. Every program of the package is built by :func:`jit`, which passes the
 process is untouched. They are given only when the default backend is the CPU, decided at a program's first
 use (wrapping a program at import touches no backend, so a device count forced later still takes
 effect). Set ``NEUROMOTOR_XLA_TUNING=0`` to compile with XLA's defaults.
+
+A float32 compile with these options was reported to exhaust memory on one rig (issue 35); it did
+not reproduce, so they stay: ``tests/physics/test_compile_memory.py`` guards the peak of a cold
+float32 ``simulate`` (docs/benchmarks.md, "Compile memory").
 """
 
 from __future__ import annotations
