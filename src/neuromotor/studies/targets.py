@@ -31,7 +31,11 @@ fit counts misses in standard deviations and a wide corridor pulls less than a n
 Recorded trials (BVH): a BVH of the perturbed trial on the same skeleton (the recorded reaction)
 gives every non-root rotation channel as a joint-angle column named ``JOINT.Zrotation``, read in
 the file's degrees and unwrapped in time; frame 0 sits at clip time ``time_offset`` (the
-``[fit.target]`` field, default 0: the trial shares the clip's clock).
+``[fit.target]`` field, default 0: the trial shares the clip's clock). :func:`match_trial` then
+puts it on the model: the simulated DOFs only, in the clip's Euler orders (a joint written in
+another order is decomposed again from its rotation), on the mocap's angle branch; channels of
+joints the model does not simulate (toes, fingers, face, the driven root) are left out and
+counted; another skeleton, length unit or an incommensurate frame time is refused.
 
 Feature targets
 ---------------
