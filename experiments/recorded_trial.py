@@ -103,10 +103,10 @@ def main(argv=None) -> int:
         res, doc, _ = round_trip(clip, args.ks, args.kd, args.start_ks, args.start_kd, orders=orders, h=args.h,
                                  start=args.start, duration=args.duration)
         v = res.values
+        notes = "".join(f"{doc[k]}; " for k in ("not_fitted", "euler_orders_converted") if k in doc)
         print(f"{label}: ks = {v['ks']:.6g} ({v['ks'] / args.ks - 1:+.2e}), kd = {v['kd']:.6g} "
               f"({v['kd'] / args.kd - 1:+.2e}), {res.status}, {res.iterations} iterations, residual "
-              f"{res.residual_norm:.3g} rad, {doc.get('not_fitted', '')} {time.perf_counter() - t0:.0f} s",
-              flush=True)
+              f"{res.residual_norm:.3g} rad, {notes}{time.perf_counter() - t0:.0f} s", flush=True)
     return 0
 
 

@@ -308,8 +308,9 @@ def cmd_fit(args) -> int:
             print(f"wrote {path}")
             return 0
         cal = load_calibration(args.config, solver=args.solver)
-        if cal.not_fitted:
-            print(f"neuromotor fit: {cal.not_fitted}", file=sys.stderr)
+        for line in (cal.not_fitted, cal.converted):
+            if line:
+                print(f"neuromotor fit: {line}", file=sys.stderr)
         res, _ = calibrate(cal, args.output, progress=not args.quiet)
     except FitError as e:  # the fit ran and failed: not bad input, a status of its own
         print(f"neuromotor fit: error: {e}", file=sys.stderr)

@@ -90,7 +90,7 @@ def test_round_trip_on_synthetic_rigs_with_extremities_and_other_euler_orders(tm
     res, doc, character = _round_trip(tmp_path, clip, orders=orders)
     assert len(_unsimulated(character)) > 4  # fingers, toes, face: not simulated, not fitted
     assert re.match(r"not fitted: \d+ channel\(s\) of \d+ joint\(s\)", doc["not_fitted"])
-    assert "Euler orders converted" in doc["not_fitted"]
+    assert doc["euler_orders_converted"].startswith("Euler orders converted (trial->clip): ")
 
 
 def test_trial_in_other_euler_orders_gives_the_clips_angles(tmp_path):
@@ -112,6 +112,7 @@ def test_trial_in_other_euler_orders_gives_the_clips_angles(tmp_path):
             want = np.unwrap(np.deg2rad(src.motion[:, col]))
             np.testing.assert_allclose(table.values[0, skip:, 7 * k], want, atol=1e-7, err_msg=f"{orders} {name}")
         assert "24 channel(s) of 8 joint(s)" in table.not_fitted
+        assert bool(table.converted) == (orders is not None)
 
 
 def _edit(text: str, pattern: str, repl: str, count: int = 1) -> str:

@@ -89,6 +89,7 @@ class TargetTable:
     radians: bool = False  # angles already in radians whatever the config's angle_unit (BVH)
     bvh: object | None = None  # BVH trial: the parsed file (file units), until match_trial puts it on the model
     not_fitted: str = ""  # BVH trial: the channels match_trial left out, one line for the fit's summary
+    converted: str = ""  # BVH trial: the joints match_trial read in another Euler order, one line
 
 
 def _fail(source, field, msg):
@@ -330,13 +331,15 @@ def match_trial(table: TargetTable, character, h: float) -> TargetTable:
     simulated = set(dof_joints)
     left = [j for j in trial.joints[1:] if j.name not in simulated and j.rotation_order]
     n_left = sum(len(j.channels) for j in left)
-    note = ""
+    note, converted = "", ""
     if left:
         note = (f"not fitted: {n_left} channel(s) of {len(left)} joint(s) the model does not simulate "
                 f"({', '.join(j.name for j in left[:4])}{', ...' if len(left) > 4 else ''})")
     if reordered:
-        note += ("; " if note else "") + f"Euler orders converted: {', '.join(reordered[:3])}"
-    return dataclasses.replace(table, names=names, values=values[None], bvh=None, not_fitted=note)
+        more = f" (and {len(reordered) - 3} more)" if len(reordered) > 3 else ""
+        converted = f"Euler orders converted (trial->clip): {', '.join(reordered[:3])}{more}"
+    return dataclasses.replace(table, names=names, values=values[None], bvh=None, not_fitted=note,
+                               converted=converted)
 
 
 def window_indices(sim_time: np.ndarray, window, source: str, field: str) -> tuple[int, int]:

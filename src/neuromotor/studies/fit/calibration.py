@@ -36,6 +36,7 @@ class Calibration:
     labels: tuple[str, ...] = ()  # one per plotted curve column
     target_file: str | None = None
     not_fitted: str = ""  # a BVH trial: its channels left out (joints the model does not simulate)
+    converted: str = ""  # a BVH trial: its joints read in another Euler order than the clip's
     feature_table: list[dict] = dataclasses.field(default_factory=list)  # per case: name -> value/sd/source
     source: str = "<calibration>"
 
@@ -153,7 +154,8 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
                                                         spec.window, t.angle_unit, cfg.source, spec.parameters)
     common["x0"] = fp.start(setup.gains, problem.names, cfg.source)
     return Calibration(setup=setup, problem=problem, target=target, weights=w, labels=labels,
-                       target_file=str(t.file), not_fitted=table.not_fitted, **common)
+                       target_file=str(t.file), not_fitted=table.not_fitted,
+                       converted=table.converted, **common)
 
 
 def _feature_calibration(setup, spec: FitSpec, common: dict) -> Calibration:
@@ -189,6 +191,8 @@ def calibrate(cal: Calibration, outdir=None, progress: bool = True, evaluator: R
            "cases": [dict(p) for p in cal.setup.config.perturbations], **res.to_json()}
     if cal.not_fitted:
         doc["not_fitted"] = cal.not_fitted
+    if cal.converted:
+        doc["euler_orders_converted"] = cal.converted
     if cal.problem.spec.kind == "features":
         doc["features"] = _feature_report(cal, ev, res)
     doc = json_safe(doc)  # NaN/inf (e.g. an exact recovery time that never came) -> null
