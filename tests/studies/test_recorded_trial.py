@@ -9,8 +9,8 @@ one line naming the file.
 
 The default run fits one synthetic rig with fingers, toes and face (its trial re-encoded in other
 Euler orders); every shipped clip and a second rig (Z up, inches, a ground-marker root) are the
-extended run (about 1-2 min each on a shared 2-core CPU; experiments/recorded_trial.py prints the
-same numbers for docs/fitting.md).
+extended run (22-55 s each with a warm compile cache on a shared 2-core CPU, 2-5 min cold;
+experiments/recorded_trial.py prints the same numbers for docs/fitting.md).
 """
 
 import re
