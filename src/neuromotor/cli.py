@@ -319,8 +319,11 @@ def cmd_fit(args) -> int:
                                           seed=args.seed)
             print(f"wrote {path}")
             return 0
-        res, _ = calibrate(load_calibration(args.config, solver=args.solver), args.output,
-                           progress=not args.quiet)
+        cal = load_calibration(args.config, solver=args.solver)
+        for line in (cal.not_fitted, cal.converted):
+            if line:
+                print(f"neuromotor fit: {line}", file=sys.stderr)
+        res, _ = calibrate(cal, args.output, progress=not args.quiet)
     except FitError as e:  # the fit ran and failed: not bad input, a status of its own
         print(f"neuromotor fit: error: {e}", file=sys.stderr)
         return 3

@@ -31,7 +31,11 @@ fit counts misses in standard deviations and a wide corridor pulls less than a n
 Recorded trials (BVH): a BVH of the perturbed trial on the same skeleton (the recorded reaction)
 gives every non-root rotation channel as a joint-angle column named ``JOINT.Zrotation``, read in
 the file's degrees and unwrapped in time; frame 0 sits at clip time ``time_offset`` (the
-``[fit.target]`` field, default 0: the trial shares the clip's clock).
+``[fit.target]`` field, default 0: the trial shares the clip's clock). :func:`match_trial` then
+puts it on the model: the simulated DOFs only, in the clip's Euler orders (a joint written in
+another order is decomposed again from its rotation), on the mocap's angle branch; channels of
+joints the model does not simulate (toes, fingers, face, the driven root) are left out and
+counted; another skeleton, length unit or an incommensurate frame time is refused.
 
 Feature targets
 ---------------
@@ -83,6 +87,9 @@ class TargetTable:
     source: str
     sd: np.ndarray | None = None  # corridor: standard deviation over subjects, same shape as values
     radians: bool = False  # angles already in radians whatever the config's angle_unit (BVH)
+    bvh: object | None = None  # BVH trial: the parsed file (file units), until match_trial puts it on the model
+    not_fitted: str = ""  # BVH trial: the channels match_trial left out, one line for the fit's summary
+    converted: str = ""  # BVH trial: the joints match_trial read in another Euler order, one line
 
 
 def _fail(source, field, msg):
@@ -222,13 +229,14 @@ def _corridor(table: TargetTable) -> TargetTable:
 
 def _read_bvh(path, quantity: str, time_offset: float) -> TargetTable:
     """A recorded trial as BVH: every non-root rotation channel as joint angles (radians,
-    unwrapped in time), named like the model's DOFs (``JOINT.Zrotation``)."""
+    unwrapped in time), named like the model's DOFs (``JOINT.Zrotation``). The parsed file rides
+    along (``bvh``): :func:`match_trial` checks it against the clip and keeps the simulated DOFs."""
     from neuromotor.model.bvh import read_bvh
 
     src = str(path)
     if quantity != "joint_angles":
         raise ConfigError(f"{src}: a BVH target gives joint angles; use kind = \"joint_angles\"")
-    clip = read_bvh(path)
+    clip = read_bvh(path, units=1.0)  # file units: compared with the clip's own in match_trial
     names, cols = [], []
     for j in clip.joints[1:]:
         for axis, col in zip(j.rotation_order, j.rotation_columns):
@@ -238,7 +246,100 @@ def _read_bvh(path, quantity: str, time_offset: float) -> TargetTable:
         raise ConfigError(f"{src}: the BVH has no joint rotation channels below its root")
     values = np.unwrap(np.deg2rad(clip.motion[:, cols]), axis=0)
     time = time_offset + clip.frame_time * np.arange(clip.motion.shape[0])
-    return TargetTable(time, tuple(names), values[None], quantity, src, radians=True)
+    return TargetTable(time, tuple(names), values[None], quantity, src, radians=True, bvh=clip)
+
+
+# A trial's lengths may differ from the clip's by rounding and by a re-solved skeleton (bone by
+# bone); all of them by one factor beyond this is another length unit.
+UNIT_RTOL = 0.02
+# Frame time and step are commensurate when their ratio is this close to a whole number (BVH
+# headers hold 6-7 digits: 0.0333333 s is 4 steps of 1/120 s to 1e-6).
+FRAME_RATIO_TOL = 1e-4
+
+
+def match_trial(table: TargetTable, character, h: float) -> TargetTable:
+    """A BVH trial (from :func:`read_target`) on the model of ``character``: one column per
+    simulated DOF, in the clip's own Euler orders and on the mocap's angle branch.
+
+    Refused (:class:`ConfigError`, one line naming the file): a skeleton other than the clip's
+    (joint names, parents), a joint of a simulated DOF without rotation channels, lengths in
+    another unit, a frame time that is neither a whole number of simulation steps ``h`` nor a
+    whole fraction of one. Channels of joints the model does not simulate (toes, fingers, face,
+    end effectors following the capture), the root's and a virtual root's are left out and
+    counted in ``not_fitted``. A joint whose Euler order differs from the clip's is read as the
+    same rotation and decomposed in the clip's order, so residuals compare joint rotations, not
+    raw Euler numbers of two conventions."""
+    from neuromotor.rotations import euler_to_matrix, matrix_to_euler
+
+    trial, clip, model = table.bvh, character.source, character.model
+    src = table.source
+    if trial is None:
+        return table
+    where = f"{src}: not the skeleton of the clip {clip.path}"
+    parents = lambda c: {j.name: (c.joints[j.parent].name if j.parent >= 0 else None) for j in c.joints}
+    a, b = parents(trial), parents(clip)
+    missing, extra = [n for n in b if n not in a], [n for n in a if n not in b]
+    moved = [f"{n} (parent {a[n]} in the trial, {b[n]} in the clip)" for n in b if n in a and a[n] != b[n]]
+    if missing or extra or moved:
+        parts = ([f"joints missing {missing[:4]}"] if missing else []) + \
+                ([f"joints not in the clip {extra[:4]}"] if extra else []) + moved[:2]
+        raise ConfigError(f"{where}: {'; '.join(parts)}")
+    # Units: the median ratio of bone lengths, file units of both.
+    tj = {j.name: j for j in trial.joints}
+    ratios = []
+    for j in clip.joints:
+        ref = np.linalg.norm(j.offset) / clip.length_scale
+        if ref > 0:
+            ratios.append(np.linalg.norm(tj[j.name].offset) / ref)
+    ratio = float(np.median(ratios)) if ratios else 1.0
+    if not abs(ratio - 1.0) <= UNIT_RTOL:
+        raise ConfigError(f"{where}: its lengths are {ratio:.4g} times the clip's (another length unit?)")
+    ft = trial.frame_time
+    k = ft / h if ft >= h else h / ft
+    if abs(k - round(k)) > FRAME_RATIO_TOL * k:
+        raise ConfigError(f"{src}: frame time {ft:.7g} s and the simulation step h = {h:.7g} s are not "
+                          f"multiples of one another; set [sim] h to the trial's frame time or a whole fraction of it")
+    # Reference branch: the clip's own (unwrapped) angles at the trial's frames.
+    ref_motion = np.unwrap(np.deg2rad(np.asarray(clip.motion)), axis=0)
+    clip_t = clip.frame_time * np.arange(clip.n_frames)
+
+    def ref_at(cols):
+        return np.stack([np.interp(table.time, clip_t, ref_motion[:, c]) for c in cols], -1)
+
+    dof_joints = list(dict.fromkeys(n.rsplit(".", 1)[0] for n in model.dof_names))
+    per_joint, reordered = {}, []
+    for name in dof_joints:
+        cj, t = clip.joints[clip.joint_index(name)], tj[name]
+        if not t.rotation_order:
+            raise ConfigError(f"{where}: joint {name} has no rotation channels in the trial (simulated DOFs "
+                              f"{cj.rotation_order})")
+        raw = np.deg2rad(np.asarray(trial.motion)[:, list(t.rotation_columns)])
+        ref = ref_at(cj.rotation_columns)
+        if t.rotation_order == cj.rotation_order:
+            ang = np.unwrap(raw, axis=0)
+            ang = ang - 2 * np.pi * np.round((ang[0] - ref[0]) / (2 * np.pi))
+        elif len(t.rotation_order) == 3 and len(cj.rotation_order) == 3:
+            reordered.append(f"{name} {t.rotation_order}->{cj.rotation_order}")
+            rot = np.asarray(euler_to_matrix(raw, t.rotation_order))
+            ang = np.unwrap(np.asarray(matrix_to_euler(rot, cj.rotation_order, ref)), axis=0)
+        else:
+            raise ConfigError(f"{where}: joint {name} rotates by {t.rotation_order} in the trial, "
+                              f"{cj.rotation_order} in the clip")
+        per_joint[name] = dict(zip(cj.rotation_order, ang.T))
+    names = tuple(model.dof_names)
+    values = np.stack([per_joint[n.rsplit(".", 1)[0]][n.rsplit(".", 1)[1][0]] for n in names], -1)
+    simulated = set(dof_joints)
+    left = [j for j in trial.joints[1:] if j.name not in simulated and j.rotation_order]
+    n_left = sum(len(j.channels) for j in left)
+    note, converted = "", ""
+    if left:
+        note = (f"not fitted: {n_left} channel(s) of {len(left)} joint(s) the model does not simulate "
+                f"({', '.join(j.name for j in left[:4])}{', ...' if len(left) > 4 else ''})")
+    if reordered:
+        more = f" (and {len(reordered) - 3} more)" if len(reordered) > 3 else ""
+        converted = f"Euler orders converted (trial->clip): {', '.join(reordered[:3])}{more}"
+    return dataclasses.replace(table, names=names, values=values[None], bvh=None, not_fitted=note,
+                               converted=converted)
 
 
 def window_indices(sim_time: np.ndarray, window, source: str, field: str) -> tuple[int, int]:

@@ -63,7 +63,7 @@ from neuromotor.studies.fit.solvers import GaussNewtonLineSearch, run_solver
 from neuromotor.studies.fit.surrogate import (
     acceleration_deg, deviation_deg, exact_peak_acceleration, response_features, soft_max_weighted, soft_recovery,
 )
-from neuromotor.studies.fit.synthetic import synthetic_target, truth_recovery, write_synthetic_target
+from neuromotor.studies.fit.synthetic import record_trial, synthetic_target, truth_recovery, write_synthetic_target
 
 __all__ = [
     "CONVERGED_STATUSES", "Calibration", "Evaluation", "FEATURE_NAMES", "FitError", "FitProblem", "FitResult",
@@ -72,7 +72,7 @@ __all__ = [
     "ResponseSpec", "SOLVERS", "SolverOptions", "acceleration_deg", "calibrate", "calibration_from_dict",
     "calibration_from_spec", "compiled_response", "deviation_deg", "exact_peak_acceleration", "fit",
     "gauss_newton_covariance",
-    "load_calibration", "loss", "loss_is_flat", "make_problem", "residual_function", "response_features",
-    "run_solver", "soft_max_weighted", "soft_recovery", "synthetic_target", "trajectory_calibration", "truth_recovery",
-    "write_synthetic_target",
+    "load_calibration", "loss", "loss_is_flat", "make_problem", "record_trial", "residual_function",
+    "response_features", "run_solver", "soft_max_weighted", "soft_recovery", "synthetic_target",
+    "trajectory_calibration", "truth_recovery", "write_synthetic_target",
 ]

@@ -35,6 +35,8 @@ class Calibration:
     jacobian: str = "forward"
     labels: tuple[str, ...] = ()  # one per plotted curve column
     target_file: str | None = None
+    not_fitted: str = ""  # a BVH trial: its channels left out (joints the model does not simulate)
+    converted: str = ""  # a BVH trial: its joints read in another Euler order than the clip's
     feature_table: list[dict] = dataclasses.field(default_factory=list)  # per case: name -> value/sd/source
     source: str = "<calibration>"
 
@@ -56,8 +58,9 @@ def trajectory_calibration(setup, table, quantity: str, names=None, weights=None
     Returns (problem, target, weights, labels). ``names``: the DOFs or bodies to fit (default:
     every column of the file); ``weights``: name -> weight (default 1).
     """
-    from neuromotor.studies.targets import resample
+    from neuromotor.studies.targets import match_trial, resample
 
+    table = match_trial(table, setup.character, setup.sim.h)  # a BVH trial: the simulated DOFs only
     model = setup.model
     src = source or setup.config.source
     known = model.dof_names if quantity == "joint_angles" else model.body_names
@@ -139,12 +142,20 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
         setup = prepare(cfg, character, traj)
         return _feature_calibration(setup, spec, common)
     table = read_target(t.file, t.kind, t.time_offset)  # before the (slow) inverse dynamics: bad files fail fast
+    if table.bvh is not None:  # a recorded trial: checked against the clip before the inverse dynamics too
+        from neuromotor.studies.simulate import load_character
+        from neuromotor.studies.targets import match_trial
+
+        if character is None:
+            character, traj = load_character(cfg.clip, cfg.units, cfg.up_axis, cfg.stature, cfg.mass_options())
+        table = match_trial(table, character, cfg.h)
     setup = prepare(cfg, character, traj)
     problem, target, w, labels = trajectory_calibration(setup, table, t.kind, t.names or None, t.weights,
                                                         spec.window, t.angle_unit, cfg.source, spec.parameters)
     common["x0"] = fp.start(setup.gains, problem.names, cfg.source)
     return Calibration(setup=setup, problem=problem, target=target, weights=w, labels=labels,
-                       target_file=str(t.file), **common)
+                       target_file=str(t.file), not_fitted=table.not_fitted,
+                       converted=table.converted, **common)
 
 
 def _feature_calibration(setup, spec: FitSpec, common: dict) -> Calibration:
@@ -178,6 +189,10 @@ def calibrate(cal: Calibration, outdir=None, progress: bool = True, evaluator: R
     doc = {"config": cal.source, "target_file": cal.target_file, "target_kind": cal.problem.spec.kind,
            "window_s": [float(cal.time[0]), float(cal.time[-1])], "h": cal.setup.sim.h,
            "cases": [dict(p) for p in cal.setup.config.perturbations], **res.to_json()}
+    if cal.not_fitted:
+        doc["not_fitted"] = cal.not_fitted
+    if cal.converted:
+        doc["euler_orders_converted"] = cal.converted
     if cal.problem.spec.kind == "features":
         doc["features"] = _feature_report(cal, ev, res)
     doc = json_safe(doc)  # NaN/inf (e.g. an exact recovery time that never came) -> null

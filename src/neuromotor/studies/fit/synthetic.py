@@ -104,3 +104,24 @@ def truth_recovery(cal: Calibration, truth: dict, noise: float, seeds, evaluator
                         if res.standard_errors[n] > 0 else float("nan")})
         rows.append(row)
     return rows
+
+
+def record_trial(data: dict, ks: float, kd: float, out_dir, source: str = "<recorded trial>", character=None,
+                 traj=None) -> pathlib.Path:
+    """A 'recorded trial' with a known truth: the config table ``data`` (``[sim]``, the clip,
+    ``[[perturbation]]``) simulated at (ks, kd), written as ``out_dir/run.npz`` and exported by
+    ``export-bvh`` as ``out_dir/trial.bvh`` in the clip's own skeleton (channels of joints the
+    model does not simulate follow the capture). Frame 0 is at clip time ``sim.start``. Returns
+    the BVH's path."""
+    from neuromotor.config.parse import simulation_config
+    from neuromotor.io.export import export_bvh
+    from neuromotor.studies.simulate import load_character, prepare, run, run_arrays, save_npz_atomic
+
+    cfg = simulation_config(data, source).with_gains(ks, kd)
+    if character is None:
+        character, traj = load_character(cfg.clip, cfg.units, cfg.up_axis, cfg.stature, cfg.mass_options())
+    setup = prepare(cfg, character, traj)
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    save_npz_atomic(out_dir / "run.npz", run_arrays(setup, run(setup)))
+    return export_bvh(out_dir / "run.npz", out_dir / "trial.bvh")
