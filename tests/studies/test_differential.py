@@ -192,3 +192,35 @@ def test_every_sweep_row_equals_its_single_run(character, table, axes):
         metrics, dev = _single(single, character)
         np.testing.assert_allclose(curve, dev, rtol=0, atol=CURVE_TOL)
         _same_figures(row, metrics, f"row {row['run']}")
+
+
+def test_a_ball_gives_the_same_answer_through_every_command(character, tmp_path):
+    """A [ball] through simulate, a one-row ball-speed sweep and experiment (contrast with its
+    one-speed sweep); a fit, whose forward model has no contact, refuses it naming the field."""
+    from neuromotor.config.parse import fit_spec
+
+    data = config_data([])
+    data["ball"] = {"radius": 0.11, "mass": 1.0, "position": [-0.3, 1.4, 2.0], "speed": 10.0, "target": "chest",
+                    "launch": 0.85}
+    cfg = simulation_config(data, "ball.toml")
+    metrics, dev = _single(cfg, character)
+    assert metrics["peak_deviation_deg"] > 0.5  # the ball hits within the window
+
+    grid = sw.simulate_grid(cfg, SweepSpec([10.0], [GainSetting(400.0, 20.0)], kind="ball"), prepare(cfg, *character),
+                            progress=False, keep_curves=True)
+    np.testing.assert_allclose(grid.curves[0], dev, rtol=0, atol=CURVE_TOL)
+    _same_figures(grid.rows[0], metrics, "ball sweep")
+
+    exp = ExperimentSpec(kind="contrast", output=tmp_path, controllers=(GainSetting(400.0, 20.0),), magnitudes=(10.0,))
+    numbers = experiments.contrast(cfg, exp, progress=False)
+    _same_figures(numbers["controllers"][0], metrics, "experiment")
+    np.testing.assert_allclose(np.load(numbers["controllers"][0]["run"])["deviation"], dev, rtol=0, atol=CURVE_TOL)
+    assert numbers["hit"]["kind"] == "ball"
+
+    fit = {"fit": {"target": {"kind": "features", "case": [{"peak_deviation_deg": 1.0}]}}}
+    with pytest.raises(ConfigError, match="field 'ball': a fit simulates its"):
+        fit_spec(fit, cfg)
+    mixed = simulation_config(dict(data, perturbation=[{"body": "head", "magnitude": 50.0}]), "mixed.toml")
+    with pytest.raises(ConfigError, match="field 'ball': a sweep varies either"):
+        sw.simulate_grid(mixed, SweepSpec([50.0], [GainSetting(400.0, 20.0)]), prepare(mixed, *character),
+                         progress=False)

@@ -360,8 +360,9 @@ def experiment_spec(data: dict, cfg: SimulationConfig, base_dir=None,
     mags = f.number_list("magnitudes", None, nonneg=True)
     controllers = gain_settings(f, "controller", cfg)
     f.done()
-    if not cfg.perturbations:
-        raise ConfigError(f"{cfg.source}: field 'perturbation' is required: every experiment hits the character")
+    if not cfg.perturbations and cfg.ball is None:
+        raise ConfigError(f"{cfg.source}: field 'perturbation' is required (or a [ball]): every experiment hits "
+                          "the character")
     return ExperimentSpec(kind, output_dir(out, base_dir), frames, video, arm,
                           d("controllers") if controllers is None else tuple(controllers),
                           None if mags is None else tuple(mags))
@@ -448,6 +449,9 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
     source = cfg.source
     if "fit" not in data:
         raise ConfigError(f"{source}: a fit config needs a [fit] table")
+    if cfg.ball is not None:  # the fit's forward model has no contact: it would leave the ball out
+        raise ConfigError(f"{source}: field 'ball': a fit simulates its [[perturbation]] cases without contact, "
+                          "so it cannot take a [ball] (remove it; a ball-speed sweep maps a ball's effect)")
     f = Fields(data["fit"], "fit", source)
     d = lambda name: default(SolverOptions, name)
     solver = f.choice("solver", default(FitSpec, "solver"), SOLVERS)

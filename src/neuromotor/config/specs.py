@@ -172,6 +172,15 @@ class BallSpec(_KeyView):
     def of(cls, value) -> "BallSpec | None":
         return value if value is None or isinstance(value, cls) else cls(**dict(value))
 
+    @property
+    def launch_speed(self) -> float:
+        """m/s: ``speed``, or the norm of ``velocity``."""
+        return float(self.speed) if self.velocity is None else float(sum(v * v for v in self.velocity) ** 0.5)
+
+    def label(self, speed: float | None = None) -> str:
+        """How figures name it: "1 kg ball at 14 m/s"."""
+        return f"{self.mass:g} kg ball at {self.launch_speed if speed is None else speed:g} m/s"
+
 
 @dataclasses.dataclass(frozen=True)
 class GainSetting:

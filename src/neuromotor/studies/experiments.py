@@ -22,7 +22,7 @@ Every experiment writes into its output folder ``run*.npz`` (the RUN.npz contrac
     frames = 6                    # filmstrip panels
     video = "video.gif"           # full_body: "" for none; .mp4 or .gif
     arm = ["LeftShoulder", "LeftElbow", "LeftWrist"]   # arm: the free joints to plot
-    magnitudes = [100.0, 200.0]   # contrast: also sweep these magnitudes (sweep module)
+    magnitudes = [100.0, 200.0]   # contrast: also sweep these magnitudes (N or N s; a [ball]: speeds, m/s)
 
     [[experiment.controller]]     # contrast: any number; default: the three described above
     label = "PD tracker, high gain"
@@ -41,7 +41,7 @@ import numpy as np
 
 from neuromotor.config.parse import experiment_spec, load_experiment
 from neuromotor.config.specs import EXPERIMENT_KINDS as KINDS
-from neuromotor.config.specs import DEFAULT_CONTRAST, ExperimentSpec, GainSetting, SimulationConfig
+from neuromotor.config.specs import DEFAULT_CONTRAST, ExperimentSpec, GainSetting, SimulationConfig, onset
 from neuromotor.errors import ConfigError
 from neuromotor.io.tables import write_json as _write_json
 from neuromotor.studies import metrics as mx
@@ -56,9 +56,21 @@ def write_json(obj: Any, path) -> pathlib.Path:
     return _write_json(path, obj, strict=False)
 
 
-def _hit_span(cfg: SimulationConfig):
-    p = cfg.perturbations[0]
-    return p.start, p.start + (p.duration if p.kind == "force" else cfg.h)
+def _hit_span(cfg: SimulationConfig) -> tuple[float, float]:
+    """Clip seconds the hit spans: from its :func:`~neuromotor.config.specs.onset` to the end of
+    the last pulse (an impulse: one step; a ball: one step from its launch, its contact comes later)."""
+    start = onset(cfg.perturbations, cfg.ball)
+    ends = [p.start + (p.duration if p.kind == "force" else cfg.h) for p in cfg.perturbations]
+    return start, max(ends, default=start + cfg.h)
+
+
+def _hit(cfg: SimulationConfig) -> tuple[dict, str]:
+    """The hit as configured (metrics.json) and as a title names it."""
+    if cfg.perturbations:
+        p = cfg.perturbations[0]
+        return dict(p), f"{p.label()} on {p.body}"
+    aim = f" at {cfg.ball.target}" if cfg.ball.target is not None else ""
+    return {"kind": "ball", **dict(cfg.ball)}, cfg.ball.label() + aim
 
 
 def _simulate(cfg: SimulationConfig, out: pathlib.Path, name: str = "run.npz", setting: GainSetting | None = None,
@@ -168,10 +180,10 @@ def full_body(cfg: SimulationConfig, exp: ExperimentSpec) -> dict:
     ax.axvspan(start, end, color="C1", alpha=0.25, lw=0, label="hit")
     ax.set(xlabel="clip time (s)", ylabel="RMS deviation (deg)")
     ax.legend(fontsize=7)
-    hit = cfg.perturbations[0]
-    ax.set_title(f"Full body, {hit.label()} on {hit.body}", fontsize=10)
+    hit, title = _hit(cfg)
+    ax.set_title(f"Full body, {title}", fontsize=10)
     fig.tight_layout()
-    numbers = {"metrics": result.metrics, "hit": dict(hit),
+    numbers = {"metrics": result.metrics, "hit": hit,
                "files": {"run": str(npz), "deviation": str(save_figure(fig, out / "deviation.png"))}}
     numbers["files"].update(_render(npz, out, exp, video=True))
     write_json(numbers, out / "metrics.json")
@@ -185,7 +197,7 @@ def contrast(cfg: SimulationConfig, exp: ExperimentSpec, progress: bool = True) 
     out = exp.output
     base_setup = prepare(cfg)
     start, end = _hit_span(cfg)
-    numbers: dict[str, Any] = {"hit": dict(cfg.perturbations[0]), "controllers": []}
+    numbers: dict[str, Any] = {"hit": _hit(cfg)[0], "controllers": []}
     curves = []
     for i, setting in enumerate(exp.controllers):
         setup, result, npz = _simulate(cfg, out, f"run_{i}.npz", setting, setup=base_setup)
@@ -213,7 +225,7 @@ def contrast(cfg: SimulationConfig, exp: ExperimentSpec, progress: bool = True) 
     if exp.magnitudes:
         from neuromotor.studies.sweep import SweepSpec, plot_sweep, simulate_grid, write_csv
 
-        spec = SweepSpec(list(exp.magnitudes), list(exp.controllers))
+        spec = SweepSpec(list(exp.magnitudes), list(exp.controllers), kind="force" if cfg.perturbations else "ball")
         res = simulate_grid(cfg, spec, base_setup, chunk=len(spec.magnitudes) * len(spec.gains), progress=progress)
         numbers["files"]["sweep_csv"] = str(write_csv(res.rows, out / "sweep.csv"))
         numbers["files"]["sweep_plot"] = str(plot_sweep(res.rows, out / "contrast_sweep.png",

@@ -110,6 +110,10 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
     from neuromotor.studies.ball import balls_at_speeds
     from neuromotor.studies.simulate import body_lookup
 
+    if (cfg.ball is not None) != (spec.kind == "ball") or (spec.kind == "ball" and cfg.perturbations):
+        # A pulse sweep's rollouts have no contact, a ball sweep's twins no pulses: never half a config.
+        raise ConfigError(f"{cfg.source}: field 'ball': a sweep varies either the ball's speed (a [ball] and no "
+                          "[[perturbation]]) or perturbation[0] (no [ball]), not both")
     model = setup.model
     mesh = None if devices is None else device_mesh(devices)
     sizes = dict(chunk=chunk or spec.chunk, inner_batch=inner_batch or spec.inner_batch, mesh=mesh,
