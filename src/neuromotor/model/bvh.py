@@ -53,7 +53,7 @@ from typing import Callable, NoReturn
 import numpy as np
 
 from neuromotor.errors import UserError
-from neuromotor.model.units import UNIT_SCALES, auto_scale, resolve_units
+from neuromotor.model.units import auto_scale, resolve_units
 
 __all__ = [
     "BvhError",
