@@ -126,7 +126,7 @@ def test_z_up_copy_gives_the_same_masses_and_angles(character):
     """Rotate the whole capture to Z-up (root position and rotation): same bodies and masses,
     the joint-angle motion untouched, gravity along -Z."""
     from neuromotor.model.bvh import write_bvh
-    from neuromotor.model.anatomy import euler_to_matrix
+    from neuromotor.rotations_np import euler_to_matrix
     from neuromotor.rotations import matrix_to_euler
     import jax.numpy as jnp
     import tempfile, pathlib
@@ -137,7 +137,7 @@ def test_z_up_copy_gives_the_same_masses_and_angles(character):
     root = src.joints[0]
     tcols, rcols = list(root.translation_columns), list(root.rotation_columns)
     motion[:, tcols] = motion[:, tcols] @ turn.T
-    mats = np.stack([turn @ euler_to_matrix(root.rotation_order, np.deg2rad(r)) for r in motion[:, rcols]])
+    mats = np.stack([turn @ euler_to_matrix(np.deg2rad(r), root.rotation_order) for r in motion[:, rcols]])
     ang = np.asarray(matrix_to_euler(jnp.asarray(mats), root.rotation_order, jnp.deg2rad(jnp.asarray(motion[:, rcols]))))
     motion[:, rcols] = np.rad2deg(ang)
     with tempfile.TemporaryDirectory() as tmp:

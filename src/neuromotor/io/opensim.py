@@ -53,8 +53,9 @@ import numpy as np
 from neuromotor.errors import UserError
 from neuromotor.io.tables import atomic_write
 from neuromotor.model.skeleton import Character, Model
+from neuromotor.rotations import AXIS
+from neuromotor.rotations_np import axis_rotation, matrix_to_euler
 
-AXES = {"X": 0, "Y": 1, "Z": 2}
 ROTATION_RANGE = (-4.0 * np.pi, 4.0 * np.pi)  # unwrapped angles may pass +-2 pi; nothing is clamped
 TRANSLATION_RANGE = (-100.0, 100.0)
 OSIM_VERSION = "40600"
@@ -111,24 +112,12 @@ def layout(model: Model) -> Layout:
 # Frames
 # ----------------------------------------------------------------------------------------------
 
-def axis_matrix(axis: int, angle) -> np.ndarray:
-    """Rotation by ``angle`` (rad, any shape) about coordinate axis 0, 1 or 2: (..., 3, 3)."""
-    angle = np.asarray(angle, dtype=np.float64)
-    c, s = np.cos(angle), np.sin(angle)
-    out = np.zeros(angle.shape + (3, 3))
-    i, j = (axis + 1) % 3, (axis + 2) % 3
-    out[..., axis, axis] = 1.0
-    out[..., i, i], out[..., j, j] = c, c
-    out[..., i, j], out[..., j, i] = -s, s
-    return out
-
-
 def channel_rotation(angles, order: str) -> np.ndarray:
     """Body-fixed product ``R_a1(t1) R_a2(t2) ...`` of a joint's channels: (..., 3, 3)."""
     angles = np.asarray(angles, dtype=np.float64)
     out = np.broadcast_to(np.eye(3), angles.shape[:-1] + (3, 3)).copy()
     for i, a in enumerate(order):
-        out = out @ axis_matrix(AXES[a], angles[..., i])
+        out = out @ axis_rotation(AXIS[a], angles[..., i])
     return out
 
 
@@ -139,17 +128,15 @@ def channel_axes(parent_rot, angles, order: str) -> np.ndarray:
     rot = np.broadcast_to(np.asarray(parent_rot, dtype=np.float64), angles.shape[:-1] + (3, 3))
     axes = []
     for i, a in enumerate(order):
-        axes.append(rot[..., :, AXES[a]])
-        rot = rot @ axis_matrix(AXES[a], angles[..., i])
+        axes.append(rot[..., :, AXIS[a]])
+        rot = rot @ axis_rotation(AXIS[a], angles[..., i])
     return np.stack(axes, -2)
 
 
 def euler_angles(rot, order: str) -> np.ndarray:
     """Angles (..., 3) with ``channel_rotation(angles, order) == rot`` for a three-axis order, on
     the branch with the middle angle in [-pi/2, pi/2], unwrapped along the leading (time) axis."""
-    from neuromotor.rotations import matrix_to_euler
-
-    angles = np.asarray(matrix_to_euler(np.asarray(rot, dtype=np.float64), order))
+    angles = matrix_to_euler(rot, order)
     return np.unwrap(angles, axis=0) if angles.ndim > 1 else angles
 
 
@@ -164,7 +151,7 @@ def ground_rotation(gravity) -> np.ndarray:
     axis, c = np.cross(up, y), float(up @ y)
     s = np.linalg.norm(axis)
     if s < 1e-12:
-        return np.eye(3) if c > 0 else axis_matrix(0, np.pi)
+        return np.eye(3) if c > 0 else axis_rotation(0, np.pi)
     k = axis / s
     kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     return np.eye(3) + s * kx + (1.0 - c) * kx @ kx
@@ -206,7 +193,7 @@ def _spatial_transform(joint, names: list[str], order: str, translate: bool) -> 
     """Rotations about the channel axes in order (unused rotation axes: the remaining coordinate
     axes, fixed at 0), then translations along the parent frame's X, Y, Z."""
     st = ET.SubElement(joint, "SpatialTransform")
-    rot_axes = [AXES[a] for a in order] + [a for a in range(3) if a not in [AXES[c] for c in order]]
+    rot_axes = [AXIS[a] for a in order] + [a for a in range(3) if a not in [AXIS[c] for c in order]]
     for i, axis in enumerate(rot_axes[:3]):
         _transform_axis(st, f"rotation{i + 1}", axis, names[i] if i < len(order) else None)
     for i in range(3):

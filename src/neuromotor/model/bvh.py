@@ -19,10 +19,10 @@ Units
 -----
 Lengths (OFFSETs, End Sites, position channels) are stored in metres: file value times
 ``length_scale``. Rotation channels stay in degrees, as in the file. ``units`` is a key of
-:data:`UNIT_SCALES` (m, cm, mm, in, cmu = CMU's 1/0.45 inch, ft, dm), a positive float (metres per
+:data:`neuromotor.model.units.UNIT_SCALES` (m, cm, mm, in, cmu = CMU's 1/0.45 inch, ft, dm), a positive float (metres per
 file unit) or ``"auto"``. Humanoid clips get their unit from the stature their long bones give
 (:func:`neuromotor.model.anatomy.prepare_clip`, which reads files with ``units=1.0``); this module's own
-``"auto"`` rule, used for skeletons that are not humanoid: place the skeleton in its rest pose (all rotations zero, the root at
+``"auto"`` rule (:func:`neuromotor.model.units.auto_scale`), used for skeletons that are not humanoid: place the skeleton in its rest pose (all rotations zero, the root at
 the origin, i.e. the root OFFSET is ignored), take the diagonal of the bounding box of all joint and
 End Site positions as its size in file units, and choose among m, cm and mm the scale whose size in
 metres is closest to 1.8 m in log ratio (smallest ``|log(size * scale / 1.8)|``; ties go to the
@@ -53,6 +53,7 @@ from typing import Callable, NoReturn
 import numpy as np
 
 from neuromotor.errors import UserError
+from neuromotor.model.units import auto_scale, resolve_units
 
 __all__ = [
     "BvhError",
@@ -63,12 +64,6 @@ __all__ = [
     "write_bvh",
     "rest_pose_positions",
 ]
-
-# Metres per file unit. "cmu" is the CMU database's own unit, 1/0.45 inch.
-UNIT_SCALES: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "cmu": 0.0254 / 0.45,
-                                 "ft": 0.3048, "dm": 0.1}
-_AUTO_UNITS: tuple[float, ...] = (1.0, 0.01, 0.001)  # m, cm, mm, in this order (ties -> larger unit)
-_AUTO_TARGET_SIZE_M = 1.8
 
 _CHANNEL_RE = re.compile(r"^([xyz])(position|rotation)$", re.IGNORECASE)
 _FRAMES_RE = re.compile(r"^frames\s*:\s*(.*)$", re.IGNORECASE)
@@ -621,22 +616,6 @@ def _parse_motion(lines: list[str], motion_index: int, n_channels: int,
     return frame_time, motion, warnings
 
 
-def _resolve_units_arg(units: str | float) -> float | None:
-    """Metres per file unit, or None for 'auto'. ValueError naming ``units`` if invalid."""
-    if isinstance(units, str):
-        key = units.strip().lower()
-        if key == "auto":
-            return None
-        if key in UNIT_SCALES:
-            return UNIT_SCALES[key]
-    elif isinstance(units, (int, float, np.integer, np.floating)) and not isinstance(units, (bool, np.bool_)):
-        value = float(units)
-        if math.isfinite(value) and value > 0:
-            return value
-    raise UserError(f"units must be 'auto', one of {', '.join(UNIT_SCALES)} or a positive number of "
-                     f"metres per file unit, got {units!r}")
-
-
 def _rest_points(offsets: np.ndarray, parents: list[int], end_sites: list[np.ndarray | None],
                  root_at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rest-pose joint positions (J, 3) and End Site positions (E, 3), root placed at ``root_at``."""
@@ -647,15 +626,6 @@ def _rest_points(offsets: np.ndarray, parents: list[int], end_sites: list[np.nda
     return pos, np.array(ends, dtype=np.float64).reshape(-1, 3)
 
 
-def _auto_scale(offsets: np.ndarray, parents: list[int], end_sites: list[np.ndarray | None]) -> float:
-    pos, ends = _rest_points(offsets, parents, end_sites, np.zeros(3))
-    points = np.concatenate([pos, ends])
-    size = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-    if not (math.isfinite(size) and size > 0):
-        return 1.0
-    return min(_AUTO_UNITS, key=lambda s: abs(math.log(size * s / _AUTO_TARGET_SIZE_M)))
-
-
 def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") -> BvhClip:
     """Parse BVH text into a :class:`BvhClip` (lengths in metres, see the module docstring).
 
@@ -663,7 +633,7 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
     malformed file and ValueError on a bad ``units``.
     """
     path = str(path)
-    fixed_scale = _resolve_units_arg(units)
+    fixed_scale = resolve_units(units)
 
     def fail(line: int | None, message: str) -> NoReturn:
         raise BvhError(path, line, message)
@@ -676,7 +646,8 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
     offsets = np.array([n.offset for n in nodes], dtype=np.float64)
     parents = [n.parent for n in nodes]
     end_sites = [None if n.end_site is None else np.array(n.end_site, dtype=np.float64) for n in nodes]
-    scale = fixed_scale if fixed_scale is not None else _auto_scale(offsets, parents, end_sites)
+    scale = fixed_scale if fixed_scale is not None else auto_scale(
+        np.concatenate(_rest_points(offsets, parents, end_sites, np.zeros(3))))
 
     joints = []
     column = 0
@@ -701,7 +672,7 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
 
 def read_bvh(path: str | os.PathLike, units: str | float = "auto") -> BvhClip:
     """Read a BVH file (UTF-8, falling back to Latin-1) and parse it with :func:`parse_bvh`."""
-    _resolve_units_arg(units)  # fail on a bad argument before touching the disk
+    resolve_units(units)  # fail on a bad argument before touching the disk
     with open(path, "rb") as fh:
         data = fh.read()
     try:

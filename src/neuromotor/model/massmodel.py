@@ -36,9 +36,10 @@ import numpy as np
 
 from neuromotor.model import deleva
 from neuromotor.model import polyhedron as poly
-from neuromotor.model.anatomy import DETAIL_SEGMENTS, Anatomy, euler_to_matrix
+from neuromotor.model.anatomy import DETAIL_SEGMENTS, Anatomy
 from neuromotor.model.bvh import BvhClip
 from neuromotor.errors import UserError
+from neuromotor.rotations_np import euler_to_matrix
 
 # (overhang past the distal joint, distal/proximal radius) of the limb frustums. A frustum of
 # taper t has its COM at (1 + 2t + 3t^2) / (4 (1 + t + t^2)) of its length: these put the COM
@@ -77,7 +78,7 @@ def world_frames(clip: BvhClip, offsets: np.ndarray, frame: int | None) -> tuple
     with the fixed ``offsets`` (non-root translation channels replaced as in the model); frame
     None is the zero pose (every rotation 0, the root at the origin).
 
-    Not :func:`neuromotor.model.anatomy.forward_kinematics`: that one follows the file's
+    Not :func:`neuromotor.model.clip_edit.forward_kinematics`: that one follows the file's
     translation channels frame by frame (what the capture shows); the bodies are shaped on the
     model's fixed offsets."""
     n = len(clip.joints)
@@ -85,7 +86,7 @@ def world_frames(clip: BvhClip, offsets: np.ndarray, frame: int | None) -> tuple
     row = None if frame is None else np.asarray(clip.motion[frame], dtype=np.float64)
     for k, joint in enumerate(clip.joints):
         cols = joint.rotation_columns
-        local = euler_to_matrix(joint.rotation_order, np.deg2rad(row[list(cols)])) if cols and row is not None \
+        local = euler_to_matrix(np.deg2rad(row[list(cols)]), joint.rotation_order) if cols and row is not None \
             else np.eye(3)
         if joint.parent < 0:
             t = np.zeros(3) if row is None else \
