@@ -26,7 +26,7 @@ import tempfile
 from collections.abc import Iterable
 
 from neuromotor.errors import UserError
-from neuromotor.io.atomic import TAG
+from neuromotor.atomic import TAG
 
 
 class OutputError(UserError):
