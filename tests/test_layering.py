@@ -9,8 +9,6 @@ those count as well (but not the importer's own packages, which Python has alrea
 import ast
 import pathlib
 
-import pytest
-
 SRC = pathlib.Path(__file__).resolve().parents[1] / "src"
 
 # Lowest first. A layer may import its own modules and those of the layers listed for it.
@@ -81,12 +79,11 @@ GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
 
 
 def layer_of(module: str) -> str | None:
-    best, layer = -1, None
-    for key, prefixes in LAYERS.items():
-        for p in prefixes:
-            if (module == p or module.startswith(p + ".")) and len(p) > best and (p != "neuromotor" or module == p):
-                best, layer = len(p), key
-    return layer
+    """The layer of the longest listed name that is ``module`` or a package above it (the package
+    root ``neuromotor`` is listed for itself only)."""
+    owners = [(len(p), key) for key, names in LAYERS.items() for p in names
+              if module == p or (p != "neuromotor" and module.startswith(p + "."))]
+    return max(owners)[1] if owners else None
 
 
 def upward_imports(graph: dict[str, set[str]]) -> list[str]:
@@ -156,7 +153,8 @@ def test_the_checks_see_the_package():
     assert "neuromotor.physics.solvers" in GRAPH["neuromotor.physics.constraints"]  # the package it runs
     assert layer_of("neuromotor.physics.solvers.nullspace") == "physics" and layer_of("neuromotor") == "base"
     planted = {**GRAPH, "neuromotor.model.bvh": GRAPH["neuromotor.model.bvh"] | {"neuromotor.io.runfile"}}
-    assert upward_imports(planted) == ["neuromotor.model.bvh (model) -> neuromotor.io.runfile (io)"]
+    assert set(upward_imports(planted)) - set(upward_imports(GRAPH)) == {
+        "neuromotor.model.bvh (model) -> neuromotor.io.runfile (io)"}
     planted = {**GRAPH, "neuromotor.physics.system": GRAPH["neuromotor.physics.system"] | {"neuromotor.physics.dynamics"}}
     assert find_cycle(planted) is not None
 

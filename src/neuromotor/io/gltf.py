@@ -32,8 +32,8 @@ import struct
 
 import numpy as np
 
-from neuromotor.errors import UserError
 from neuromotor.atomic import atomic_path
+from neuromotor.errors import UserError
 from neuromotor.io.palette import COLOR_BALL, COLOR_GHOST, COLOR_PERTURBED
 from neuromotor.io.runfile import SHAPE_FIELDS, read_run
 

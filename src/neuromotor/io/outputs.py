@@ -25,8 +25,8 @@ import stat
 import tempfile
 from collections.abc import Iterable
 
-from neuromotor.errors import UserError
 from neuromotor.atomic import TAG
+from neuromotor.errors import UserError
 
 
 class OutputError(UserError):

@@ -29,7 +29,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from neuromotor.config.specs import DEVIATION_METRICS, RECOVERY_FLOOR_DEG, RECOVERY_FRACTION
+from neuromotor.config.specs import (
+    DEVIATION_METRICS,
+    RECOVERY_FLOOR_DEG,
+    RECOVERY_FRACTION,
+)
 from neuromotor.rotations import quat_conj, quat_log, quat_mul, quat_rotate
 
 

@@ -4,8 +4,16 @@ are the run's one palette (:mod:`neuromotor.io.palette`), shared with the glTF e
 from __future__ import annotations
 
 from neuromotor.io.palette import (  # noqa: F401  (re-exported: the pictures' colours)
-    COLOR_BALL, COLOR_FORCE, COLOR_GHOST, COLOR_GHOST_JOINT, COLOR_ORIGINAL, COLOR_ORIGINAL_JOINT, COLOR_ORIGINAL_VIDEO,
-    COLOR_PERTURBED, COLOR_PERTURBED_JOINT, GROUND_COLORS,
+    COLOR_BALL,
+    COLOR_FORCE,
+    COLOR_GHOST,
+    COLOR_GHOST_JOINT,
+    COLOR_ORIGINAL,
+    COLOR_ORIGINAL_JOINT,
+    COLOR_ORIGINAL_VIDEO,
+    COLOR_PERTURBED,
+    COLOR_PERTURBED_JOINT,
+    GROUND_COLORS,
 )
 
 FORCE_SCALE_N_PER_M = 500.0   # arrow length: 1 m per 500 N
