@@ -9,7 +9,7 @@ import math
 
 import _common  # noqa: F401
 
-from neuromotor.studies.precision import clip_config, compare, default_hit_config
+from neuromotor.studies.float32_compare import clip_config, compare, default_hit_config
 
 SHARED = _common.REPO.parent / "shared" / "mocap"
 

@@ -48,8 +48,9 @@ def test_api_reference_documents_the_public_names(site):
     physics, studies, fit, sweep = (_text(site, f"api/{p}") for p in ("physics", "studies", "fit", "sweep"))
     for name in ("SimModel", "Params", "Data", "simulate", "step", "rollout"):
         assert re.search(rf'id="neuromotor\.physics\.dynamics\.{name}"', physics), name
-    for name in ("prepare", "run", "load_character"):
+    for name in ("prepare", "run"):
         assert f'id="neuromotor.studies.simulate.{name}"' in studies, name
+    assert 'id="neuromotor.model.load.load_character"' in _text(site, "api/model")
     assert 'id="neuromotor.studies.fit.driver.fit"' in fit and 'id="neuromotor.studies.fit.problem.make_problem"' in fit
     assert 'id="neuromotor.studies.sweep.sweep_from_config"' in sweep
     # A docstring's text made it through (not only the signature).

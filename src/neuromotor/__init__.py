@@ -55,6 +55,7 @@ _API = {
     "Model": "neuromotor.model.skeleton",
     "Character": "neuromotor.model.skeleton",
     "Trajectory": "neuromotor.model.kinematics",
+    "load_character": "neuromotor.model.load",
     # physics: inverse dynamics, controller, step, rollout
     "inverse_dynamics": "neuromotor.physics.inverse",
     "discrete_inverse_dynamics": "neuromotor.physics.discrete",
@@ -81,7 +82,6 @@ _API = {
     "check_rollout": "neuromotor.physics.dynamics",
     "SimulationDiverged": "neuromotor.physics.dynamics",
     # studies
-    "load_character": "neuromotor.studies.simulate",
     "prepare": "neuromotor.studies.simulate",
     "run": "neuromotor.studies.simulate",
     "Setup": "neuromotor.studies.simulate",

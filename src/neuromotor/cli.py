@@ -42,7 +42,7 @@ def _table(rows: list[list[str]], header: list[str]) -> str:
     return "\n".join([line(header), line(["-" * w for w in widths])] + [line(r) for r in rows])
 
 
-def json_safe(metrics: dict) -> dict:
+def metrics_json(metrics: dict) -> dict:
     """Metrics as strict JSON: NaN and infinities become null, and ``null_reasons`` says why."""
     why = {"recovery_time_s": "the deviation does not stay below recovery_threshold_deg before the window ends"}
     out, reasons = {}, {}
@@ -232,7 +232,8 @@ def _sim_config(args):
 
 
 def cmd_simulate(args) -> int:
-    from neuromotor.studies.simulate import load_character, prepare, run, run_arrays, save_npz_atomic
+    from neuromotor.studies.record import run_arrays
+    from neuromotor.studies.simulate import load_character, prepare, run, save_npz_atomic
 
     stage = _Stages("simulate", getattr(args, "quiet", False))
     cfg = _sim_config(args)
@@ -249,7 +250,7 @@ def cmd_simulate(args) -> int:
     arrays = run_arrays(setup, result)
     save_npz_atomic(args.output, arrays)
     if args.json:
-        print(json.dumps(json_safe(result.metrics), indent=2))
+        print(json.dumps(metrics_json(result.metrics), indent=2))
     else:
         m = result.metrics
         print(f"wrote {args.output}: peak deviation {m['peak_deviation_deg']:.2f} deg at "

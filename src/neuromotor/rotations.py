@@ -7,6 +7,7 @@ BVH convention: a joint with rotation channels in file order (a1, a2, a3) has lo
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 AXIS = {"X": 0, "Y": 1, "Z": 2}
@@ -308,3 +309,16 @@ def right_jacobian_inv(e: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
 def rotation_error(r_a: Float[Array, "... 3 3"], r_b: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
     """World-frame rotation vector e with exp(e) r_b = r_a."""
     return quat_log(matrix_to_quat(mmt(r_a, r_b)))
+
+
+def continuous_angles(theta, reference=None) -> np.ndarray:
+    """(T, n) angles made continuous in time (``np.unwrap`` along axis 0), each column then
+    shifted by a whole number of turns so that its first sample is the branch nearest
+    ``reference[0]`` (e.g. the mocap's angles; default: the wrapped first sample). NumPy."""
+    theta = np.unwrap(np.asarray(theta, dtype=np.float64), axis=0)
+    if theta.shape[0] == 0:
+        return theta
+    first = theta[0]
+    target = np.arctan2(np.sin(first), np.cos(first)) if reference is None else np.asarray(reference, dtype=np.float64)[0]
+    turns = np.round((first - target) / (2 * np.pi))
+    return theta - 2 * np.pi * turns

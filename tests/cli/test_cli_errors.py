@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from neuromotor.cli import json_safe, main
+from neuromotor.cli import main, metrics_json
 
 
 def test_version(capsys):
@@ -41,12 +41,12 @@ def test_output_closed_early_is_not_an_error(flags):
 
 
 def test_metrics_json_is_strict_and_says_why_a_value_is_null():
-    out = json_safe({"peak_deviation_deg": 1.5, "recovery_time_s": math.nan, "diverged": False})
+    out = metrics_json({"peak_deviation_deg": 1.5, "recovery_time_s": math.nan, "diverged": False})
     text = json.dumps(out, allow_nan=False)  # raises on NaN
     back = json.loads(text)
     assert back["recovery_time_s"] is None and back["peak_deviation_deg"] == 1.5
     assert "recovery_threshold_deg" in back["null_reasons"]["recovery_time_s"]
-    assert "null_reasons" not in json_safe({"peak_deviation_deg": 1.5})
+    assert "null_reasons" not in metrics_json({"peak_deviation_deg": 1.5})
 
 
 def test_every_option_says_what_it_means():

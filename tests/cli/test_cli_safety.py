@@ -17,7 +17,8 @@ import time
 import numpy as np
 import pytest
 
-from neuromotor.io import atomic, outputs
+from neuromotor import atomic
+from neuromotor.io import outputs
 
 from neuromotor import cli
 from neuromotor.cli import main

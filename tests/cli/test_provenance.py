@@ -11,7 +11,8 @@ import pytest
 from neuromotor import cli
 from neuromotor.config import SimulationConfig
 from neuromotor.io.export import export_bvh, reread_angles
-from neuromotor.studies.simulate import prepare, run, run_arrays, save_npz_atomic
+from neuromotor.studies.record import run_arrays
+from neuromotor.studies.simulate import prepare, run, save_npz_atomic
 
 from synthetic_rigs import make_rig
 

@@ -154,7 +154,7 @@ def test_inverse_dynamics_solver_matches_idyn(exported):
     rot = np.asarray(quat_to_matrix(arrays["root_quat"]))
     q = nos.motion_values(character.model, arrays["root_pos"], rot, theta)
     qd, qdd = _rates(character, arrays)
-    ours = nos.generalized_forces(character.model, rot, theta, arrays["joint_torque_world"], arrays["root_wrench"])
+    ours = nos.coordinate_forces(character.model, rot, theta, arrays["joint_torque_world"], arrays["root_wrench"])
     n = len(lay.coordinates)
     u_of = _speed_order(model, state, n)
     solver, cs = osim.InverseDynamicsSolver(model), model.getCoordinateSet()

@@ -25,7 +25,8 @@ from neuromotor.model.kinematics import (
     trajectory_from_clip,
 )
 from neuromotor.rotations import matrix_to_euler, quat_to_matrix, vee
-from neuromotor.studies.simulate import joint_frames_from_state, load_character
+from neuromotor.studies.record import joint_frames_from_state
+from neuromotor.studies.simulate import load_character
 from neuromotor.model.skeleton import build_character
 from neuromotor.physics.system import (
     constraint_jacobian,

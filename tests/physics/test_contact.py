@@ -20,7 +20,8 @@ from neuromotor.studies import ball as sb
 from neuromotor.config import ConfigError, SimulationConfig, simulation_config
 from neuromotor.physics.dynamics import SimConfig, SimulationDiverged
 from neuromotor.rotations import quat_to_matrix, rotation_error
-from neuromotor.studies.simulate import body_lookup, load_character, prepare, run, run_arrays
+from neuromotor.studies.record import run_arrays
+from neuromotor.studies.simulate import body_lookup, load_character, prepare, run
 
 H = 1.0 / 120.0
 G = 9.81

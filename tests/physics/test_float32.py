@@ -25,7 +25,7 @@ from neuromotor.physics import dynamics as dy
 from neuromotor.physics.contact.step import ContactScene, contact_step, initial_contact_data
 from neuromotor.physics.precision import Precision, cast
 from neuromotor.physics.solvers import Solver
-from neuromotor.studies import precision as pr
+from neuromotor.studies import float32_compare as pr
 from neuromotor.studies import sweep as sw
 from neuromotor.studies.record import provenance
 from neuromotor.studies.simulate import body_lookup, load_character, prepare

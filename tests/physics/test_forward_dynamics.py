@@ -217,7 +217,8 @@ def test_config_errors_name_the_field():
 
 def test_export_bvh_round_trip(tmp_path, hit_setup, hit_result):
     from neuromotor.io.export import export_bvh, reread_angles
-    from neuromotor.studies.simulate import run_arrays, save_npz_atomic
+    from neuromotor.studies.record import run_arrays
+    from neuromotor.studies.simulate import save_npz_atomic
 
     run_path = save_npz_atomic(tmp_path / "run.npz", run_arrays(hit_setup, hit_result))
     out = export_bvh(run_path, tmp_path / "out.bvh")
@@ -230,7 +231,8 @@ def test_an_exported_run_loads_as_the_same_character(tmp_path, bank, hit_setup, 
     """Issue 35: the run's BVH (2 s of the clip, simulated angles) builds the same body as the
     clip it came from; the body does not depend on which frames a file holds."""
     from neuromotor.io.export import export_bvh
-    from neuromotor.studies.simulate import run_arrays, save_npz_atomic
+    from neuromotor.studies.record import run_arrays
+    from neuromotor.studies.simulate import save_npz_atomic
 
     run_path = save_npz_atomic(tmp_path / "run.npz", run_arrays(hit_setup, hit_result))
     again, _ = load_character(export_bvh(run_path, tmp_path / "out.bvh"))

@@ -26,7 +26,7 @@ def _random_tree(seed):
 
 
 def _dense_j(n, r_parent, r_child, r0, driven, free_root):
-    """Rows of J as constraints.full_constraints lays them out: root (6), ball joints, driven."""
+    """Rows of J as system.full_constraints lays them out: root (6), ball joints, driven."""
     def skew(a):
         return np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
 

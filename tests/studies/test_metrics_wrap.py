@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from neuromotor.rotations import continuous_angles
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.fit import acceleration_deg, deviation_deg
 
@@ -91,14 +92,14 @@ def test_acceleration_is_not_wrapped():
 
 def test_continuous_angles():
     _, base, pert, pert_wrapped = _crossing()
-    out = mx.continuous_angles(pert_wrapped, base)
+    out = continuous_angles(pert_wrapped, base)
     np.testing.assert_allclose(out, pert, atol=1e-12)
     assert np.abs(np.diff(out, axis=0)).max() < 0.1
     # A series stored a whole turn away from its reference is put back on the reference's branch.
-    shifted = mx.continuous_angles(pert + 2 * np.pi, base)
+    shifted = continuous_angles(pert + 2 * np.pi, base)
     np.testing.assert_allclose(shifted, pert, atol=1e-12)
     # Already continuous and on the branch: returned exactly.
-    assert np.array_equal(mx.continuous_angles(pert, base), pert)
+    assert np.array_equal(continuous_angles(pert, base), pert)
 
 
 # --- Fit convergence in the loss (issue 16, item 6) --------------------------------------------

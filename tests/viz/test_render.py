@@ -206,7 +206,8 @@ def synth(tmp_path_factory):
 @pytest.fixture(scope="module")
 def real_run(tmp_path_factory):
     from neuromotor.config import DEFAULT_HIT, SimulationConfig
-    from neuromotor.studies.simulate import prepare, run, run_arrays, save_npz_atomic
+    from neuromotor.studies.record import run_arrays
+    from neuromotor.studies.simulate import prepare, run, save_npz_atomic
 
     hit = dict(DEFAULT_HIT, start=0.1)
     setup = prepare(SimulationConfig(duration=0.6, perturbations=[hit]))

@@ -69,7 +69,7 @@ from neuromotor.config.parse import (
     parse_perturbation, read_fitted, simulation_config, sweep_spec,
 )
 from neuromotor.config.specs import (
-    CONTROLLERS, DEFAULT_CONTRAST, DEFAULT_HIT, FEATURE_NAMES, SOLVERS, TARGET_KINDS, BallSpec, ExperimentSpec,
+    CONTROLLERS, DEFAULT_CONTRAST, DEFAULT_HIT, FEATURE_NAMES, FIT_SOLVERS, TARGET_KINDS, BallSpec, ExperimentSpec,
     FeatureTarget, FitSpec, FitTargetSpec, GainSetting, PerturbationSpec, SimulationConfig, SolverOptions, Surrogate,
     ReflexSpec, SweepSpec,
 )
@@ -77,7 +77,7 @@ from neuromotor.errors import ConfigError, UserError
 
 __all__ = [
     "BallSpec", "CONTROLLERS", "ConfigError", "DEFAULT_CONTRAST", "DEFAULT_HIT", "ExperimentSpec", "FEATURE_NAMES",
-    "FeatureTarget", "Fields", "FitSpec", "FitTargetSpec", "GainSetting", "PerturbationSpec", "ReflexSpec", "SOLVERS",
+    "FeatureTarget", "Fields", "FitSpec", "FitTargetSpec", "GainSetting", "PerturbationSpec", "ReflexSpec", "FIT_SOLVERS",
     "SimulationConfig", "SolverOptions", "Surrogate", "SweepSpec", "TARGET_KINDS", "UserError", "experiment_spec",
     "fit_spec", "load_experiment", "load_simulation_config", "load_sweep_config", "parse_ball", "parse_perturbation",
     "read_fitted", "read_toml", "simulation_config", "sweep_spec",

@@ -13,10 +13,9 @@ import pathlib
 import numpy as np
 
 from neuromotor.config.fields import Fields, read_toml, resolve
-from neuromotor.studies.metrics import METRICS
 from neuromotor.config.specs import (
     CONTROLLERS, EXPERIMENT_KINDS, FEATURE_NAMES, JACOBIANS, PERTURBATION_KINDS, PULSE_SHAPES,
-    SEXES, SOLVERS, TARGET_KINDS, BallSpec, ExperimentSpec, FeatureTarget, FitSpec, FitTargetSpec, GainSetting,
+    DEVIATION_METRICS, SEXES, FIT_SOLVERS, TARGET_KINDS, BallSpec, ExperimentSpec, FeatureTarget, FitSpec, FitTargetSpec, GainSetting,
     PerturbationSpec, ReflexSpec, SimulationConfig, SolverOptions, Surrogate, SweepSpec, check_fit_parameters,
     default, reflex_grid, REFLEX_AXES, REFLEX_DELAY_LIMIT,
 )
@@ -133,7 +132,7 @@ def _sim_fields(top: Fields) -> dict:
     out["dtype"] = Precision(sim.choice("dtype", d("dtype").value, [p.value for p in Precision]))
     out["feedforward"] = Feedforward(sim.choice("feedforward", d("feedforward").value, [f.value for f in Feedforward]))
     out["joint_law"] = JointLaw(sim.choice("joint_law", d("joint_law").value, [f.value for f in JointLaw]))
-    out["metric"] = sim.choice("metric", d("metric"), METRICS)
+    out["metric"] = sim.choice("metric", d("metric"), DEVIATION_METRICS)
     sim.done()
     gains = top.sub("gains")
     for key in ("ks", "kd", "tau_floor"):
@@ -454,7 +453,7 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
                           "so it cannot take a [ball] (remove it; a ball-speed sweep maps a ball's effect)")
     f = Fields(data["fit"], "fit", source)
     d = lambda name: default(SolverOptions, name)
-    solver = f.choice("solver", default(FitSpec, "solver"), SOLVERS)
+    solver = f.choice("solver", default(FitSpec, "solver"), FIT_SOLVERS)
     opts = SolverOptions(max_steps=int(f.number("max_steps", d("max_steps"), positive=True)),
                          rtol=f.number("rtol", d("rtol"), positive=True),
                          atol=f.number("atol", d("atol"), positive=True),

@@ -21,12 +21,11 @@ from neuromotor.physics.options import Feedforward, JointLaw
 from neuromotor.errors import ConfigError
 from neuromotor.physics.precision import Precision
 from neuromotor.physics import perturbation as _perturbation, reflex as _reflex
-from neuromotor.studies.metrics import METRICS, RECOVERY_FLOOR_DEG, RECOVERY_FRACTION
 
 PERTURBATION_KINDS, PULSE_SHAPES = _perturbation.KINDS, _perturbation.SHAPES
 SEXES = ("average", "male", "female")
 CONTROLLERS = ("neuromotor", "pd")  # the paper's model, or the high-gain PD tracker
-SOLVERS = ("optimistix_lm", "optimistix_gn", "optimistix_bfgs", "jaxopt_lm", "jaxopt_lbfgs")
+FIT_SOLVERS = ("optimistix_lm", "optimistix_gn", "optimistix_bfgs", "jaxopt_lm", "jaxopt_lbfgs")
 JACOBIANS = ("forward", "reverse")
 TARGET_KINDS = ("joint_angles", "body_positions", "features")
 FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg",
@@ -34,6 +33,11 @@ FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "ove
 EXPERIMENT_KINDS = ("arm", "full_body", "contrast")
 # What a fit may tune (neuromotor.studies.fit.parameters): the muscle feedback pair and the reflex paths.
 FIT_PARAMETERS = ("ks", "kd", "reflex_gain", "reflex_delay", "long_latency_gain", "long_latency_delay")
+# The recovery metrics (neuromotor.studies.metrics): the deviation's definition ([sim] metric, the first
+# the default) and the recovery threshold max(RECOVERY_FRACTION * peak, RECOVERY_FLOOR_DEG).
+DEVIATION_METRICS = ("geodesic", "euler")
+RECOVERY_FRACTION = 0.2
+RECOVERY_FLOOR_DEG = 0.5
 
 
 def check_fit_parameters(names, has_reflex: bool, source: str, field: str = "fit.parameters") -> tuple[str, ...]:
@@ -250,8 +254,8 @@ class SimulationConfig:
         object.__setattr__(self, "dtype", Precision(self.dtype))
         object.__setattr__(self, "feedforward", Feedforward(self.feedforward))
         object.__setattr__(self, "joint_law", JointLaw(self.joint_law))
-        if self.metric not in METRICS:
-            raise ConfigError(f"{self.source}: field 'sim.metric' must be one of {list(METRICS)}, got {self.metric!r}")
+        if self.metric not in DEVIATION_METRICS:
+            raise ConfigError(f"{self.source}: field 'sim.metric' must be one of {list(DEVIATION_METRICS)}, got {self.metric!r}")
         object.__setattr__(self, "perturbations", [PerturbationSpec.of(p) for p in self.perturbations])
         object.__setattr__(self, "ball", BallSpec.of(self.ball))
 

@@ -16,9 +16,8 @@ import numpy as np
 
 from neuromotor.io.runfile import EXPORT_FIELDS, read_run
 from neuromotor.model.bvh import read_bvh, write_bvh
-from neuromotor.studies.metrics import continuous_angles
-from neuromotor.rotations import matrix_to_euler, quat_to_matrix
-from neuromotor.studies.simulate import load_character
+from neuromotor.model.load import load_character
+from neuromotor.rotations import continuous_angles, matrix_to_euler, quat_to_matrix
 from neuromotor.errors import UserError
 
 

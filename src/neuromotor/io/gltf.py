@@ -32,8 +32,9 @@ import struct
 
 import numpy as np
 
+from neuromotor.atomic import atomic_path
 from neuromotor.errors import UserError
-from neuromotor.io.atomic import atomic_path
+from neuromotor.io.palette import COLOR_BALL, COLOR_GHOST, COLOR_PERTURBED
 from neuromotor.io.runfile import SHAPE_FIELDS, read_run
 
 GLTF_SUFFIXES = (".glb", ".gltf")
@@ -181,8 +182,6 @@ def body_side(name: str) -> int:
 def body_colors(names) -> np.ndarray:
     """(B, 3) linear RGB per body: the perturbed orange, lighter on the left, darker on the right,
     stepped along the body list so that neighbours differ."""
-    from neuromotor.viz.style import COLOR_PERTURBED
-
     base = np.asarray(COLOR_PERTURBED)
     out = []
     for b, name in enumerate(names):
@@ -291,8 +290,6 @@ def _character(doc: _Doc, run: GltfRun, ghost: bool) -> dict:
     if not ghost:
         joints["unperturbed"] = joints["perturbed"]
         return joints
-    from neuromotor.viz.style import COLOR_GHOST
-
     prim = {"attributes": attrs, "indices": doc.buf.add(run.faces.reshape(-1), UINT, ELEMENT_ARRAY_BUFFER),
             "material": doc.material("ghost", np.asarray(COLOR_GHOST) ** 2.2, GHOST_ALPHA)}
     doc.meshes.append({"name": "ghost", "primitives": [prim]})
@@ -305,8 +302,6 @@ def _character(doc: _Doc, run: GltfRun, ghost: bool) -> dict:
 
 def _ball(doc: _Doc, run: GltfRun) -> int:
     """The ball's node (a UV sphere at its first position)."""
-    from neuromotor.viz.style import COLOR_BALL
-
     verts, faces = uv_sphere(run.ball_radius)
     prim = {"attributes": {"POSITION": doc.buf.add(verts, FLOAT, ARRAY_BUFFER, bounds=True)},
             "indices": doc.buf.add(faces.reshape(-1), UINT, ELEMENT_ARRAY_BUFFER),

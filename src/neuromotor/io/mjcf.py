@@ -35,7 +35,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from neuromotor.io.atomic import atomic_path
+from neuromotor.atomic import atomic_path
 from neuromotor.model.skeleton import Character
 from neuromotor.errors import UserError
 

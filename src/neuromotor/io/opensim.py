@@ -356,7 +356,7 @@ def write_motion(path, model: Model, time, root_origin, root_rot, theta_sim, nam
     return write_storage(path, name, lay.coordinates, time, values, in_degrees=True)
 
 
-def generalized_forces(model: Model, root_rot, theta_sim, joint_torque_world, root_wrench) -> np.ndarray:
+def coordinate_forces(model: Model, root_rot, theta_sim, joint_torque_world, root_wrench) -> np.ndarray:
     """(T, n) the generalized forces of the exported model's coordinates (:func:`layout` order):
     ``h_i . T_k`` for rotation channel i of joint k, with h_i its world axis and T_k the joint's
     world torque on its child (``idyn``'s ``joint_torque_world``); for the root, the axes of
@@ -389,7 +389,7 @@ def write_idyn_storage(folder, character: Character, arrays: dict) -> dict[str, 
     folder, model = pathlib.Path(folder), character.model
     theta = np.asarray(arrays["theta"])[:, list(model.sim_dof_columns)]
     root_rot = np.asarray(quat_to_matrix(np.asarray(arrays["root_quat"], dtype=np.float64)))
-    forces = generalized_forces(model, root_rot, theta, arrays["joint_torque_world"], arrays["root_wrench"])
+    forces = coordinate_forces(model, root_rot, theta, arrays["joint_torque_world"], arrays["root_wrench"])
     return {
         "model": export_osim(character, folder / "model.osim"),
         "motion": write_motion(folder / "motion.mot", model, arrays["time"], arrays["root_pos"], root_rot, theta),

@@ -25,8 +25,8 @@ import stat
 import tempfile
 from collections.abc import Iterable
 
+from neuromotor.atomic import TAG
 from neuromotor.errors import UserError
-from neuromotor.io.atomic import TAG
 
 
 class OutputError(UserError):

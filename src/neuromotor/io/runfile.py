@@ -35,8 +35,8 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
+from neuromotor.atomic import atomic_path
 from neuromotor.errors import UserError
-from neuromotor.io.atomic import atomic_path
 
 INFO_FIELDS = ("time", "theta")
 DRAW_FIELDS = ("time", "skeleton_points", "skeleton_points_unperturbed", "skeleton_edges",

@@ -1,5 +1,5 @@
 """The JSON and CSV files of the studies (fit.json, metrics.json, sweep.csv), each written through
-a temporary file renamed into place (:func:`neuromotor.io.atomic.atomic_path`)."""
+a temporary file renamed into place (:func:`neuromotor.atomic.atomic_path`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from neuromotor.io.atomic import atomic_path
+from neuromotor.atomic import atomic_path
 
 TEXT_COLUMNS = {"label", "controller", "body", "diverged_body", "kind", "hit_body", "dtype",
                 "feedback", "stability", "path"}  # the last three: the reflex studies (studies.reflex)

@@ -52,6 +52,7 @@ from typing import Callable, NoReturn
 
 import numpy as np
 
+from neuromotor.atomic import atomic_path
 from neuromotor.errors import UserError
 from neuromotor.model.units import auto_scale, resolve_units
 
@@ -735,10 +736,8 @@ def _format_bvh(clip: BvhClip, motion: np.ndarray, precision: int) -> str:
 
 def _atomic_write(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to a temp file beside ``path`` and rename it over ``path`` (see
-    :func:`neuromotor.io.atomic.atomic_path`: an existing file's mode is kept, signals clean up;
+    :func:`neuromotor.atomic.atomic_path`: an existing file's mode is kept, signals clean up;
     the folder must exist)."""
-    from neuromotor.io.atomic import atomic_path
-
     with atomic_path(path, make_parents=False) as tmp:
         tmp.write_bytes(data)
 

@@ -20,7 +20,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from neuromotor.model.skeleton import Model
-from neuromotor.physics.system import constraint_error, constraint_jacobian, joint_levers, retract, root_lever
+from neuromotor.physics.solvers import nullspace
+from neuromotor.physics.system import constraint_error, joint_levers, retract, root_lever
 from neuromotor.rotations import mm, mv, quat_to_matrix, rotation_error
 
 
@@ -34,29 +35,13 @@ class PoseTargets(eqx.Module):
 
 
 def constraint_count(model: Model, driven: tuple[int, ...], free_root: bool) -> int:
-    """Rows of :func:`full_constraints`."""
+    """Rows of :func:`~neuromotor.physics.system.full_constraints`."""
     return model.n_constraints - (6 if free_root else 0) + 3 * len(driven)
-
-
-def full_constraints(model: Model, driven: tuple[int, ...], rot, free_root: bool = False) -> Float[Array, "nc 6B"]:
-    """J with extra rows for driven joints (relative angular velocity of child and parent);
-    without the 6 root rows when the root floats free."""
-    jac = constraint_jacobian(model, rot)[6 if free_root else 0:]
-    if not driven:
-        return jac
-    n = model.n_bodies
-    rows = jnp.zeros((3 * len(driven), 6 * n), rot.dtype)
-    eye = jnp.eye(3, dtype=rot.dtype)
-    for i, b in enumerate(driven):
-        p = model.body_parent[b]
-        rows = rows.at[3 * i:3 * i + 3, 6 * b + 3:6 * b + 6].set(eye)
-        rows = rows.at[3 * i:3 * i + 3, 6 * p + 3:6 * p + 6].set(-eye)
-    return jnp.concatenate([jac, rows], 0)
 
 
 def full_constraint_error(model: Model, driven: tuple[int, ...], pos, rot, targets: PoseTargets,
                           free_root: bool = False) -> Float[Array, " nc"]:
-    """C(x) over the rows of :func:`full_constraints`."""
+    """C(x) over the rows of :func:`~neuromotor.physics.system.full_constraints`."""
     err = constraint_error(model, pos, rot, targets.root_origin, targets.root_rot)[6 if free_root else 0:]
     if not driven:
         return err
@@ -79,24 +64,12 @@ def constraint_velocity(model: Model, driven: tuple[int, ...], rot, root_vel, ro
     return jnp.concatenate([b, extra])
 
 
-def apply_inverse_mass(model: Model, rot, g: Float[Array, "... 6B"]) -> Float[Array, "... 6B"]:
-    """M^-1 g for generalized vectors (rows of g)."""
-    inv_m = 1.0 / model.mass
-    inv_i = rot @ jnp.linalg.inv(model.inertia) @ jnp.swapaxes(rot, -1, -2)
-    g = g.reshape(g.shape[:-1] + (model.n_bodies, 6))
-    lin = g[..., :3] * inv_m[:, None]
-    ang = jnp.einsum("bij,...bj->...bi", inv_i, g[..., 3:])
-    return jnp.concatenate([lin, ang], -1).reshape(g.shape[:-2] + (6 * model.n_bodies,))
-
-
 def closing_step(model: Model, cfg, rot, c: Float[Array, " nc"], unrolled: bool = False) -> Float[Array, "B 6"]:
     """A dx with ``J dx = -C`` and no solve: each subtree moves by its joint's gap, the root and
     the driven joints turn by their errors (:func:`~neuromotor.physics.solvers.nullspace.particular_correction`).
     Not of least M-norm, so post-stabilization uses it only after the projection, where C is
     about 1e-8 m and the metric no longer shows (Ascher et al. 1995: any correction F with
     ``J F = 1`` keeps the iteration's convergence). ``unrolled``: the batched form of the sums."""
-    from neuromotor.physics.solvers import nullspace  # the solvers import this module
-
     st = nullspace.structure(model.topology, cfg.driven, cfg.free_root, unrolled)
     geo = nullspace.geometry(st, *joint_levers(model, rot), root_lever(model, rot))
     return nullspace.particular_correction(st, geo, c)

@@ -58,7 +58,7 @@ from neuromotor.physics.discrete import discrete_inverse_dynamics, landing_veloc
 from neuromotor.physics.options import Feedforward, JointLaw
 from neuromotor.physics.reflex import History, empty_history, push
 from neuromotor.physics.inverse import inverse_dynamics, sim_columns
-from neuromotor.physics.perturbation import ForcePulses, generalized_forces, no_pulses
+from neuromotor.physics.perturbation import ForcePulses, no_pulses, pulse_wrenches
 from neuromotor.physics.solvers import Solver
 from neuromotor.physics.precision import Precision, cast
 from neuromotor.physics.stiffness import (DenseStiffness, Jacobians, StiffBlocks, explicit_forces, stiff_blocks,
@@ -244,7 +244,7 @@ class StepInfo(eqx.Module):
     violation: Float[Array, ""]  # max |C(x)| after post-stabilization (m or rad)
     force: Float[Array, "B 3"]  # perturbation force per body (world, N)
     points: Float[Array, "P 3"]  # world application points of the pulses
-    lam: Float[Array, " nc"]  # constraint forces (rows of constraints.full_constraints)
+    lam: Float[Array, " nc"]  # constraint forces (rows of system.full_constraints)
     reflex: Float[Array, "C 3"] | None = None  # the delayed reflex's r_i per joint and DOF (N m); None: no reflex
 
 
@@ -269,8 +269,8 @@ class Data(eqx.Module):
 def init_data(sim: SimModel, params: Params) -> Data:
     """Data at t_0: the reference's initial state, zero diagnostics."""
     model, cfg, state = sim.model, sim.cfg, sim.ref.init
-    _, force, points = generalized_forces(params.pulses, sim.ref.time[0], model.n_bodies, state.pos, state.rot,
-                                          model.com)
+    _, force, points = pulse_wrenches(params.pulses, sim.ref.time[0], model.n_bodies, state.pos, state.rot,
+                                      model.com)
     zero = jnp.zeros((), state.pos.dtype)
     lam = jnp.zeros(constraint_count(model, cfg.driven, cfg.free_root), state.pos.dtype)
     reflex = params.gains.reflex
@@ -319,8 +319,8 @@ def stiff_forces(sim: SimModel, gains: Gains, inputs: ControllerInputs, state: S
 def applied_forces(sim: SimModel, pulses: ForcePulses, k, state: State):
     """Stage 3: gravity and the perturbation pulses, ``(forces (B, 6), per-body force, points)``."""
     model = sim.model
-    f_pert, per_body, points = generalized_forces(pulses, sim.ref.time[k], model.n_bodies, state.pos, state.rot,
-                                                  model.com)
+    f_pert, per_body, points = pulse_wrenches(pulses, sim.ref.time[k], model.n_bodies, state.pos, state.rot,
+                                              model.com)
     return (gravity_forces(model) + f_pert).reshape(-1, 6), per_body, points
 
 

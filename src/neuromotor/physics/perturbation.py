@@ -112,8 +112,9 @@ def pulse_forces(p: ForcePulses, t) -> Float[Array, "P 3"]:
     return (p.magnitude * prof)[:, None] * p.direction
 
 
-def generalized_forces(p: ForcePulses, t, n_bodies: int, pos, rot, com) -> tuple[Float[Array, " 6B"], Float[Array, "B 3"], Float[Array, "P 3"]]:
-    """Generalized force of the pulses (6B), per-body force (B,3), and world points (P,3)."""
+def pulse_wrenches(p: ForcePulses, t, n_bodies: int, pos, rot, com) -> tuple[Float[Array, " 6B"], Float[Array, "B 3"], Float[Array, "P 3"]]:
+    """The pulses' wrenches at time t: as a generalized force (6B: each body's force and torque
+    about its COM), the force on each body (B, 3), and the pulses' world points (P, 3)."""
     zeros = jnp.zeros((n_bodies, 6), pos.dtype)
     if p.count == 0:
         return zeros.reshape(-1), jnp.zeros((n_bodies, 3), pos.dtype), jnp.zeros((0, 3), pos.dtype)

@@ -95,6 +95,16 @@ def mass_matrix(model: Model, rot: Float[Array, "B 3 3"]) -> Float[Array, "6B 6B
     return _block_diag(blocks)
 
 
+def apply_inverse_mass(model: Model, rot, g: Float[Array, "... 6B"]) -> Float[Array, "... 6B"]:
+    """M^-1 g for generalized vectors (rows of g)."""
+    inv_m = 1.0 / model.mass
+    inv_i = rot @ jnp.linalg.inv(model.inertia) @ jnp.swapaxes(rot, -1, -2)
+    g = g.reshape(g.shape[:-1] + (model.n_bodies, 6))
+    lin = g[..., :3] * inv_m[:, None]
+    ang = jnp.einsum("bij,...bj->...bi", inv_i, g[..., 3:])
+    return jnp.concatenate([lin, ang], -1).reshape(g.shape[:-2] + (6 * model.n_bodies,))
+
+
 def _block_diag(blocks: Float[Array, "n 6 6"]) -> Float[Array, "6n 6n"]:
     n = blocks.shape[0]
     eye = jnp.eye(n, dtype=blocks.dtype)
@@ -148,6 +158,22 @@ def constraint_jacobian(model: Model, rot) -> Float[Array, "nc 6B"]:
     sel_p, sel_c = jnp.asarray(topo.sel_parent, dtype), jnp.asarray(topo.sel_child, dtype)
     rows = (jnp.einsum("cb,cij->cibj", sel_p, blk_parent) + jnp.einsum("cb,cij->cibj", sel_c, blk_child))
     return jnp.concatenate([root.reshape(6, 6 * n), rows.reshape(3 * (n - 1), 6 * n)], 0)
+
+
+def full_constraints(model: Model, driven: tuple[int, ...], rot, free_root: bool = False) -> Float[Array, "nc 6B"]:
+    """J with extra rows for driven joints (relative angular velocity of child and parent);
+    without the 6 root rows when the root floats free."""
+    jac = constraint_jacobian(model, rot)[6 if free_root else 0:]
+    if not driven:
+        return jac
+    n = model.n_bodies
+    rows = jnp.zeros((3 * len(driven), 6 * n), rot.dtype)
+    eye = jnp.eye(3, dtype=rot.dtype)
+    for i, b in enumerate(driven):
+        p = model.body_parent[b]
+        rows = rows.at[3 * i:3 * i + 3, 6 * b + 3:6 * b + 6].set(eye)
+        rows = rows.at[3 * i:3 * i + 3, 6 * p + 3:6 * p + 6].set(-eye)
+    return jnp.concatenate([jac, rows], 0)
 
 
 def joint_jacobian_blocks(model: Model, rot) -> tuple[Float[Array, "C 3 6"], Float[Array, "C 3 6"]]:

@@ -76,7 +76,8 @@ def _hit(cfg: SimulationConfig) -> tuple[dict, str]:
 def _simulate(cfg: SimulationConfig, out: pathlib.Path, name: str = "run.npz", setting: GainSetting | None = None,
               setup=None):
     """One perturbed + unperturbed pair, saved as RUN.npz; returns (setup, result, npz path)."""
-    from neuromotor.studies.simulate import prepare, run, run_arrays, save_npz_atomic
+    from neuromotor.studies.record import run_arrays
+    from neuromotor.studies.simulate import prepare, run, save_npz_atomic
 
     if setup is None:
         setup = prepare(cfg)

@@ -29,11 +29,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from neuromotor.config.specs import (
+    DEVIATION_METRICS,
+    RECOVERY_FLOOR_DEG,
+    RECOVERY_FRACTION,
+)
 from neuromotor.rotations import quat_conj, quat_log, quat_mul, quat_rotate
-
-RECOVERY_FRACTION = 0.2
-RECOVERY_FLOOR_DEG = 0.5
-METRICS = ("geodesic", "euler")  # [sim] metric: the deviation's definition (geodesic: the default)
 
 
 def wrap_angle(a):
@@ -47,19 +48,6 @@ def wrap_angle_np(a) -> np.ndarray:
     """:func:`wrap_angle` in NumPy (no device round trip)."""
     a = np.asarray(a, dtype=np.float64)
     return np.arctan2(np.sin(a), np.cos(a))
-
-
-def continuous_angles(theta, reference=None) -> np.ndarray:
-    """(T, n) angles made continuous in time (``np.unwrap`` along axis 0), each column then
-    shifted by a whole number of turns so that its first sample is the branch nearest
-    ``reference[0]`` (e.g. the mocap's angles; default: the wrapped first sample)."""
-    theta = np.unwrap(np.asarray(theta, dtype=np.float64), axis=0)
-    if theta.shape[0] == 0:
-        return theta
-    first = theta[0]
-    target = wrap_angle_np(first) if reference is None else np.asarray(reference, dtype=np.float64)[0]
-    turns = np.round((first - target) / (2 * np.pi))
-    return theta - 2 * np.pi * turns
 
 
 def deviation(theta, theta_ref, dofs=None) -> Float[Array, " T"]:
@@ -206,7 +194,7 @@ def run_deviation(metric: str, model_or_topology, run_a, run_b, joints=None) -> 
             body = np.asarray(_topology(model_or_topology).dof_body)
             dofs = np.nonzero(np.isin(body, np.asarray(joints)))[0]
         return deviation(run_a.theta, run_b.theta, dofs)
-    raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
+    raise ValueError(f"metric must be one of {DEVIATION_METRICS}, got {metric!r}")
 
 
 def recovery_metrics(time, dev, start: float, fraction: float = RECOVERY_FRACTION,

@@ -24,7 +24,7 @@ from neuromotor import compiler
 from neuromotor.model.facing import facing_direction
 from neuromotor.model.kinematics import Trajectory, body_poses, local_rotations, skeleton_edges, skeleton_points
 from neuromotor.model.skeleton import Model
-from neuromotor.rotations import quat_to_matrix
+from neuromotor.rotations import continuous_angles, quat_to_matrix
 from neuromotor.studies import metrics as mx
 
 if TYPE_CHECKING:
@@ -101,11 +101,11 @@ def _motion_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
     # Continuous angles (no 2 pi jumps in time), on the mocap's branch at the start: what
     # export-bvh writes and what a plot of theta against time should show.
     theta_desired = np.asarray(setup.ref.theta)[: pert.time.shape[0]]
-    theta_base = mx.continuous_angles(np.asarray(base.theta), theta_desired)
+    theta_base = continuous_angles(np.asarray(base.theta), theta_desired)
     return {
         "time": np.asarray(pert.time),
         "dof_names": np.array(model.dof_names),
-        "theta": mx.continuous_angles(np.asarray(pert.theta), theta_base),
+        "theta": continuous_angles(np.asarray(pert.theta), theta_base),
         "theta_unperturbed": theta_base,
         "theta_desired": theta_desired,
         # d(t) as the metrics measured it ([sim] metric), so plots and the viewer draw that curve

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import importlib.resources
-import pathlib
 from typing import Callable
 
 import jax
@@ -27,30 +25,12 @@ from neuromotor.config.specs import onset
 from neuromotor.physics.control import Gains, make_gains
 from neuromotor.physics.dynamics import (Feedforward, Reference, Rollout, SimConfig, check_rollout, make_reference,
                                         rollout)
-from neuromotor.model.kinematics import Trajectory, trajectory_from_clip
+from neuromotor.model.kinematics import Trajectory
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
 from neuromotor.physics.precision import Precision
-from neuromotor.model.anatomy import prepare_clip
-from neuromotor.model.skeleton import BODY_KEYWORDS, Character, MassModelOptions, Model, build_character, keyword_body
+from neuromotor.model.load import DEFAULT_CLIP_NAME, default_clip_path, load_character  # noqa: F401  (re-exported)
+from neuromotor.model.skeleton import BODY_KEYWORDS, Character, Model, keyword_body
 from neuromotor.io.runfile import read_run_info, save_npz_atomic  # noqa: F401  (re-exported)
-from neuromotor.studies.record import (file_sha256, joint_frames_from_state, provenance,  # noqa: F401
-                                       rollout_points, run_arrays, up_axis_of)
-
-DEFAULT_CLIP_NAME = "mocapbank_19joint.bvh"
-
-
-def default_clip_path() -> pathlib.Path:
-    """Path of the embedded default clip (MocapBank capture, MIT; see data/README.md)."""
-    return pathlib.Path(str(importlib.resources.files("neuromotor") / "data" / DEFAULT_CLIP_NAME))
-
-
-def load_character(path=None, units="auto", up_axis: int | None = None, stature: float | None = None,
-                   options: MassModelOptions | None = None) -> tuple[Character, Trajectory]:
-    """Read a clip, understand its skeleton (units, up axis, segments, a virtual root) and build
-    the character and its mocap trajectory. ``up_axis`` None: found from the motion."""
-    clip, anatomy, source = prepare_clip(path or default_clip_path(), units=units, stature=stature)
-    character = build_character(clip, options, up_axis=up_axis, anatomy=anatomy, source_clip=source)
-    return character, trajectory_from_clip(character.model, clip)
 
 
 @dataclasses.dataclass

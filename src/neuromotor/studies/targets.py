@@ -61,7 +61,7 @@ import pathlib
 
 import numpy as np
 
-from neuromotor.io.atomic import atomic_path
+from neuromotor.atomic import atomic_path
 from neuromotor.config import ConfigError
 
 FEATURES = {

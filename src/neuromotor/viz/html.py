@@ -41,7 +41,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from neuromotor.io.atomic import atomic_path
+from neuromotor.atomic import atomic_path
 from neuromotor.io.runfile import DRAW_FIELDS, PLOT_FIELDS, check_run, json_field, source_clip
 from neuromotor.viz.data import RenderError, load_run
 from neuromotor.viz.scene import Scene

@@ -6,7 +6,7 @@ import pathlib
 
 import numpy as np
 
-from neuromotor.io.atomic import atomic_path
+from neuromotor.atomic import atomic_path
 from neuromotor.io.runfile import PLOT_FIELDS, json_field
 from neuromotor.viz.data import RenderError, load_run
 

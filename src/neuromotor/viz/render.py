@@ -46,7 +46,7 @@ import pathlib
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
-from neuromotor.io.atomic import atomic_path
+from neuromotor.atomic import atomic_path
 from neuromotor.model.facing import facing_direction, facing_from_skeleton  # noqa: F401
 from neuromotor.viz.camera import camera_view  # noqa: F401
 from neuromotor.viz.data import RenderError, load_run  # noqa: F401

@@ -1,6 +1,20 @@
-"""How pictures look: sizes, colours, the force arrow's scale and the camera's angles."""
+"""How pictures look: sizes, colours, the force arrow's scale and the camera's angles. The colours
+are the run's one palette (:mod:`neuromotor.io.palette`), shared with the glTF export."""
 
 from __future__ import annotations
+
+from neuromotor.io.palette import (  # noqa: F401  (re-exported: the pictures' colours)
+    COLOR_BALL,
+    COLOR_FORCE,
+    COLOR_GHOST,
+    COLOR_GHOST_JOINT,
+    COLOR_ORIGINAL,
+    COLOR_ORIGINAL_JOINT,
+    COLOR_ORIGINAL_VIDEO,
+    COLOR_PERTURBED,
+    COLOR_PERTURBED_JOINT,
+    GROUND_COLORS,
+)
 
 FORCE_SCALE_N_PER_M = 500.0   # arrow length: 1 m per 500 N
 FORCE_VISIBLE_FRACTION = 0.01  # draw the arrow while |F| > 1% of its peak
@@ -15,14 +29,4 @@ VIDEO_FPS = {".mp4": 30.0, ".gif": 25.0}  # GIF delays are whole centiseconds: 4
 IMAGE_EXTENSIONS = (".png",)
 VIDEO_EXTENSIONS = (".mp4", ".gif")
 
-COLOR_ORIGINAL = (0.52, 0.64, 0.84)       # blue-grey
-COLOR_ORIGINAL_JOINT = (0.36, 0.47, 0.68)
-COLOR_ORIGINAL_VIDEO = (0.66, 0.76, 0.92)  # lighter, for the original beside the perturbed one
-COLOR_GHOST = (0.80, 0.84, 0.90)          # the original, drawn behind the perturbed one
-COLOR_GHOST_JOINT = (0.72, 0.77, 0.85)
-COLOR_PERTURBED = (0.90, 0.45, 0.20)      # orange
-COLOR_PERTURBED_JOINT = (0.62, 0.26, 0.10)
-COLOR_FORCE = (0.85, 0.05, 0.05)
-COLOR_BALL = (0.95, 0.85, 0.15)
-GROUND_COLORS = ((0.93, 0.93, 0.91), (0.84, 0.84, 0.82))
 GROUND_TILE_M = 0.5

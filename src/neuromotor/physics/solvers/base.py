@@ -72,7 +72,7 @@ class KKTSolver(abc.ABC):
 
     @abc.abstractmethod
     def multipliers(self, system, r, b, v, aux) -> tuple[Float[Array, " nc"], Float[Array, ""]]:
-        """``(lam, residual)``: the constraint multipliers (rows of ``constraints.full_constraints``)
+        """``(lam, residual)``: the constraint multipliers (rows of ``system.full_constraints``)
         and the relative residual of both block rows of Eq. 2."""
 
     @abc.abstractmethod

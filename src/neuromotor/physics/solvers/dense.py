@@ -12,9 +12,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from neuromotor.physics.constraints import apply_inverse_mass, full_constraints
 from neuromotor.physics.solvers.base import KKTSolver, relative_residual
-from neuromotor.physics.system import mass_matrix
+from neuromotor.physics.system import apply_inverse_mass, full_constraints, mass_matrix
 
 
 class DenseKKT(eqx.Module):

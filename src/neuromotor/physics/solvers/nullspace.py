@@ -266,7 +266,7 @@ def known_velocities(st: Structure, r0: Float[Array, "3"], b: Float[Array, " nc"
 
 
 def multipliers(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[Array, " nc"]:
-    """lam from ``J^T lam = f`` (f = A v - r), in the row order of ``constraints.full_constraints``.
+    """lam from ``J^T lam = f`` (f = A v - r), in the row order of ``system.full_constraints``.
 
     Ball joint k: minus the total force on its subtree. Root rows: the total force, and the
     total moment about the root COM less the lever's share. Driven joint k: the moment about
@@ -423,7 +423,7 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
 def kkt_residual(st: Structure, geo: Geometry, r_parent, r_child, f: Float[Array, "B 6"], v: Float[Array, "B 6"],
                  lam: Float[Array, " nc"], b: Float[Array, " nc"], parent: np.ndarray):
     """Both block rows of the residual of Eq. 2, ``(A v - r) - J^T lam`` and ``J v - b``, with
-    J applied joint by joint (the same rows as ``constraints.full_constraints``)."""
+    J applied joint by joint (the same rows as ``system.full_constraints``)."""
     n = geo.com.shape[0]
     m0 = 0 if st.free_root else 6
     child = np.arange(1, n)

@@ -161,7 +161,7 @@ def matvec(sys: TreeKKT, topo: Topology, v, lam_root, lam):
 
 
 def tree_constraints(model, driven: tuple[int, ...], rot, free_root: bool):
-    """Rows of ``constraints.full_constraints`` grouped by owner: the root's rows and, per
+    """Rows of ``system.full_constraints`` grouped by owner: the root's rows and, per
     non-root body, its ball joint's 3 rows followed (when any joint is driven) by 3 driven-joint
     rows or 3 padding rows. Returns ``(j_root, j_own, j_par, pad)``."""
     dtype = rot.dtype
@@ -183,7 +183,7 @@ def tree_constraints(model, driven: tuple[int, ...], rot, free_root: bool):
 
 
 def split_rows(n_bodies: int, driven, values: Float[Array, " nc"], free_root: bool):
-    """A vector over the rows of ``constraints.full_constraints`` in tree layout (root, (C, m))."""
+    """A vector over the rows of ``system.full_constraints`` in tree layout (root, (C, m))."""
     m0 = 0 if free_root else 6
     nj = n_bodies - 1
     root, joints = values[:m0], values[m0:m0 + 3 * nj].reshape(nj, 3)

@@ -20,7 +20,7 @@ Derivatives (:mod:`.evaluate`). ``J = dr/dx`` by ``jax.jacfwd`` (two tangents th
 or in reverse mode (``jacobian="reverse"``: one recorded forward pass, then one backward pass
 per residual, a few at a time), which pays off when residuals are few or parameters many.
 
-Solvers (:mod:`.solvers`, by name in :data:`SOLVERS`): optimistix Levenberg-Marquardt,
+Solvers (:mod:`.solvers`, by name in :data:`FIT_SOLVERS`): optimistix Levenberg-Marquardt,
 Gauss-Newton with an Armijo line search (:class:`GaussNewtonLineSearch`) and BFGS, jaxopt
 Levenberg-Marquardt and L-BFGS. All see the same residual: :class:`ResponseEvaluator` compiles
 ``x -> (y, dy/dx)`` once and :func:`residual_function` (:mod:`.bridge`) exposes it as a JAX
@@ -44,7 +44,7 @@ Config files (:mod:`.calibration`): the ``[fit]`` table is parsed by
 :mod:`neuromotor.viz.fit_plots`.
 """
 
-from neuromotor.config.specs import FEATURE_NAMES, SOLVERS, SolverOptions
+from neuromotor.config.specs import FEATURE_NAMES, FIT_SOLVERS, SolverOptions
 from neuromotor.config.specs import TARGET_KINDS as KINDS
 from neuromotor.studies.fit.bridge import residual_function
 from neuromotor.studies.fit.calibration import (
@@ -69,7 +69,7 @@ __all__ = [
     "CONVERGED_STATUSES", "Calibration", "Evaluation", "FEATURE_NAMES", "FitError", "FitProblem", "FitResult",
     "IDENTIFIABLE_SE_LOG", "PARAMETERS", "identifiability",
     "GaussNewtonLineSearch", "KINDS", "LOSS_FLAT_ITERATIONS", "LOSS_FLAT_RTOL", "REVERSE_BATCH", "ResponseEvaluator",
-    "ResponseSpec", "SOLVERS", "SolverOptions", "acceleration_deg", "calibrate", "calibration_from_dict",
+    "ResponseSpec", "FIT_SOLVERS", "SolverOptions", "acceleration_deg", "calibrate", "calibration_from_dict",
     "calibration_from_spec", "compiled_response", "deviation_deg", "exact_peak_acceleration", "fit",
     "gauss_newton_covariance",
     "load_calibration", "loss", "loss_is_flat", "make_problem", "record_trial", "residual_function",

@@ -9,7 +9,7 @@ import pathlib
 
 import numpy as np
 
-from neuromotor.config.specs import FEATURE_NAMES, SOLVERS, FitSpec, SolverOptions
+from neuromotor.config.specs import FEATURE_NAMES, FIT_SOLVERS, FitSpec, SolverOptions
 from neuromotor.errors import ConfigError
 from neuromotor.io.tables import json_safe, write_json
 from neuromotor.studies import metrics as mx
@@ -132,8 +132,8 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
     from neuromotor.studies.simulate import prepare
     from neuromotor.studies.targets import read_target
 
-    if solver is not None and solver not in SOLVERS:
-        raise ConfigError(f"unknown solver {solver!r}; choose one of {', '.join(SOLVERS)}")
+    if solver is not None and solver not in FIT_SOLVERS:
+        raise ConfigError(f"unknown solver {solver!r}; choose one of {', '.join(FIT_SOLVERS)}")
     if any(n in ("ks", "kd") for n in spec.parameters) and not (cfg.ks > 0 and cfg.kd > 0):
         raise ConfigError(f"{cfg.source}: field 'gains.ks'/'gains.kd' (the starting gains) must be > 0")
     common = dict(solver=solver or spec.solver, options=spec.options, jacobian=spec.jacobian, source=cfg.source)

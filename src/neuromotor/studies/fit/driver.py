@@ -9,7 +9,7 @@ from typing import Callable
 
 import numpy as np
 
-from neuromotor.config.specs import SOLVERS, SolverOptions
+from neuromotor.config.specs import FIT_SOLVERS, SolverOptions
 from neuromotor.studies.fit.bridge import residual_function
 from neuromotor.studies.fit.covariance import gauss_newton_covariance
 from neuromotor.studies.fit.evaluate import Evaluation, ResponseEvaluator
@@ -32,8 +32,8 @@ def fit(evaluator: ResponseEvaluator, target, weights, x0, solver: str = "optimi
     """
     from tqdm.auto import tqdm
 
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}; choose one of {', '.join(SOLVERS)}")
+    if solver not in FIT_SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}; choose one of {', '.join(FIT_SOLVERS)}")
     opts = options or SolverOptions()
     target, weights, x0 = (np.asarray(a, np.float64) for a in (target, weights, x0))
     t_start, evals0, div0 = _time.perf_counter(), evaluator.n_evals, len(evaluator.diverged_evals)

@@ -13,7 +13,7 @@ import numpy as np
 import optimistix as optx
 
 from neuromotor import compiler
-from neuromotor.config.specs import SOLVERS, SolverOptions
+from neuromotor.config.specs import FIT_SOLVERS, SolverOptions
 
 
 class GaussNewtonLineSearch(optx.AbstractGaussNewton):
@@ -123,4 +123,4 @@ def run_solver(name: str, residual: Callable, x0, m: int, opts: SolverOptions, o
         # Relative gradient tolerance: the residual's units (rad, m, feature sds) vary by target.
         g0 = float(jnp.linalg.norm(jax.grad(objective)(x0)))
         return _jaxopt_loop(solver, x0, opts, on_iter, opts.gtol * max(g0, 1e-300))
-    raise ValueError(f"unknown solver {name!r}; choose one of {', '.join(SOLVERS)}")
+    raise ValueError(f"unknown solver {name!r}; choose one of {', '.join(FIT_SOLVERS)}")

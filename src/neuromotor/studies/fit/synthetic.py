@@ -115,7 +115,8 @@ def record_trial(data: dict, ks: float, kd: float, out_dir, source: str = "<reco
     the BVH's path."""
     from neuromotor.config.parse import simulation_config
     from neuromotor.io.export import export_bvh
-    from neuromotor.studies.simulate import load_character, prepare, run, run_arrays, save_npz_atomic
+    from neuromotor.studies.record import run_arrays
+    from neuromotor.studies.simulate import load_character, prepare, run, save_npz_atomic
 
     cfg = simulation_config(data, source).with_gains(ks, kd)
     if character is None:

@@ -77,8 +77,8 @@ class Sweeper:
 
     def __init__(self, model: Model, ref: Reference, sim: SimConfig, *, chunk: int = 64,
                  inner_batch: int = 1, mesh: Mesh | None = None, metric: str = "geodesic"):
-        if metric not in mx.METRICS:
-            raise ValueError(f"metric must be one of {mx.METRICS}, got {metric!r}")
+        if metric not in mx.DEVIATION_METRICS:
+            raise ValueError(f"metric must be one of {mx.DEVIATION_METRICS}, got {metric!r}")
         self.metric = metric
         if mesh is None:
             local = jax.local_devices()
