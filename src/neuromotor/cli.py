@@ -62,7 +62,7 @@ def model_json(character) -> dict:
     model, clip, anat = character.model, character.clip, character.anatomy
     joints = []
     cols = {}
-    for i, name in enumerate(model.dof_names):
+    for name in model.dof_names:
         cols.setdefault(name.rsplit(".", 1)[0], []).append(name)
     for k, joint in enumerate(clip.joints):
         b = model.joint_body[k]
@@ -447,7 +447,8 @@ def cmd_info(args) -> int:
             print(f"  {k.ljust(width)}  {v}")
     print()
     arrays = info["arrays"]
-    print(f"arrays: {len(arrays)} ({', '.join(f'{k} {tuple(v)}' for k, v in arrays.items() if k in ('time', 'theta'))}, ...)")
+    shown = ', '.join(f'{k} {tuple(v)}' for k, v in arrays.items() if k in ('time', 'theta'))
+    print(f"arrays: {len(arrays)} ({shown}, ...)")
     return 0
 
 
@@ -610,7 +611,8 @@ def _add_sweep_command(sub) -> None:
                   default=None)
     sp.add_argument("--chunk", type=_count_arg, help="runs per device call")
     sp.add_argument("--inner-batch", type=_count_arg, help="rollouts vmapped together inside each shard")
-    sp.add_argument("--fitted", type=_gain_arg, nargs=2, metavar=("KS", "KD"), help="fitted pair to mark on the gains map")
+    sp.add_argument("--fitted", type=_gain_arg, nargs=2, metavar=("KS", "KD"),
+                    help="fitted pair to mark on the gains map")
     sp.add_argument("--fitted-json", help="JSON file with the fitted ks and kd")
     sp.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help=PROGRESS_HELP)
     from neuromotor.distributed import add_arguments

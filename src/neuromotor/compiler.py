@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import functools
 import os
+import pathlib
 
 import jax
 
@@ -83,15 +84,13 @@ def jit(fun, **kwargs):
 _OFF = ("off", "0", "none", "false", "no", "")
 
 
-def cache_dir() -> "pathlib.Path | None":
+def cache_dir() -> pathlib.Path | None:
     """Folder of the persistent compilation cache for the CLI, or None when disabled.
 
     ``NEUROMOTOR_CACHE_DIR`` (``off`` disables), else ``$XDG_CACHE_HOME/neuromotor/jax``, else
     ``~/.cache/neuromotor/jax``. (A cache folder already given to JAX, by
     ``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``, is left as it is: see
     :func:`enable_compile_cache`.)"""
-    import pathlib
-
     env = os.environ.get("NEUROMOTOR_CACHE_DIR")
     if env is not None:
         return None if env.strip().lower() in _OFF else pathlib.Path(env).expanduser()
@@ -99,7 +98,7 @@ def cache_dir() -> "pathlib.Path | None":
     return pathlib.Path(base) / "neuromotor" / "jax"
 
 
-def enable_compile_cache(min_compile_time_s: float = 0.0) -> "str | None":
+def enable_compile_cache(min_compile_time_s: float = 0.0) -> str | None:
     """Turn on JAX's persistent compilation cache so that a second ``neuromotor simulate`` loads
     its programs instead of compiling them again (JAX keys entries by program, backend, compiler
     options and versions, and writes them atomically, so concurrent runs share it safely).
@@ -144,7 +143,7 @@ def cpu_cores() -> int:
         return os.cpu_count() or 1
 
 
-def use_cpu_cores() -> "int | None":
+def use_cpu_cores() -> int | None:
     """Give JAX one CPU device per core, so that a batch split over the devices runs one share
     per core (:func:`neuromotor.studies.sweep.runner.shard_vmap`). On one device XLA:CPU runs
     a batch's small kernels one after another and splits only the large ones over the cores: a

@@ -55,7 +55,7 @@ class Fields:
     def fail(self, key, msg):
         raise ConfigError(f"{self.source}: field '{self.name(key)}' {msg}")
 
-    def sub(self, key, default=None) -> "Fields":
+    def sub(self, key, default=None) -> Fields:
         """The sub-table ``key`` as its own reader."""
         return Fields(self.get(key, {} if default is None else default), self.name(key), self.source)
 

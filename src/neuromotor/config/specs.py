@@ -101,7 +101,7 @@ class PerturbationSpec(_KeyView):
     shape: str = "half_sine"  # square | half_sine | triangle
 
     @classmethod
-    def of(cls, value) -> "PerturbationSpec":
+    def of(cls, value) -> PerturbationSpec:
         return value if isinstance(value, cls) else cls(**dict(value))
 
     def label(self, magnitude: float | None = None) -> str:
@@ -169,7 +169,7 @@ class BallSpec(_KeyView):
     target: str | None = None  # a body to aim at
 
     @classmethod
-    def of(cls, value) -> "BallSpec | None":
+    def of(cls, value) -> BallSpec | None:
         return value if value is None or isinstance(value, cls) else cls(**dict(value))
 
 
@@ -250,7 +250,7 @@ class SimulationConfig:
     def gains(self) -> GainSetting:
         return GainSetting(self.ks, self.kd)
 
-    def with_gains(self, ks: float | None = None, kd: float | None = None) -> "SimulationConfig":
+    def with_gains(self, ks: float | None = None, kd: float | None = None) -> SimulationConfig:
         """The config at other gains (None keeps a gain)."""
         return dataclasses.replace(self, ks=self.ks if ks is None else ks, kd=self.kd if kd is None else kd)
 

@@ -7,7 +7,8 @@ import csv
 import json
 import math
 import pathlib
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Callable, Sequence
 
 import numpy as np
 

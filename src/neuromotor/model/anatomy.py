@@ -738,7 +738,7 @@ def _label_limbs(labels: _Labels, judge: _SideJudge, tree: _Tree, pos_ref, ends_
                 labels.side[x], labels.side[y] = sides
         else:
             labels.apply_pair(mapping, sides)
-        for member, limb, s in ((a, limb_pair[0], sides[0]), (b, limb_pair[1], sides[1])):
+        for _member, limb, s in ((a, limb_pair[0], sides[0]), (b, limb_pair[1], sides[1])):
             _label_limb(tree, pos_ref, ends_ref, limb, kind, labels.segment)
             end = limb.hand if limb.hand is not None else (limb.groups[limb.upper + 1] or limb.groups[limb.upper])[-1]
             labels.chains[f"{kind}_{s}"] = tuple(limb.chain[:limb.chain.index(end) + 1])

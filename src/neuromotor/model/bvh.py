@@ -21,13 +21,13 @@ Lengths (OFFSETs, End Sites, position channels) are stored in metres: file value
 ``length_scale``. Rotation channels stay in degrees, as in the file. ``units`` is a key of
 :data:`UNIT_SCALES` (m, cm, mm, in, cmu = CMU's 1/0.45 inch, ft, dm), a positive float (metres per
 file unit) or ``"auto"``. Humanoid clips get their unit from the stature their long bones give
-(:func:`neuromotor.model.anatomy.prepare_clip`, which reads files with ``units=1.0``); this module's own
-``"auto"`` rule, used for skeletons that are not humanoid: place the skeleton in its rest pose (all rotations zero, the root at
-the origin, i.e. the root OFFSET is ignored), take the diagonal of the bounding box of all joint and
-End Site positions as its size in file units, and choose among m, cm and mm the scale whose size in
-metres is closest to 1.8 m in log ratio (smallest ``|log(size * scale / 1.8)|``; ties go to the
-larger unit). A skeleton of zero size is taken to be in metres. Inches are never guessed: pass
-``units="in"``.
+(:func:`neuromotor.model.anatomy.prepare_clip`, which reads files with ``units=1.0``); this module's
+own ``"auto"`` rule, used for skeletons that are not humanoid: place the skeleton in its rest pose
+(all rotations zero, the root at the origin, i.e. the root OFFSET is ignored), take the diagonal of
+the bounding box of all joint and End Site positions as its size in file units, and choose among m,
+cm and mm the scale whose size in metres is closest to 1.8 m in log ratio (smallest
+``|log(size * scale / 1.8)|``; ties go to the larger unit). A skeleton of zero size is taken to be in
+metres. Inches are never guessed: pass ``units="in"``.
 
 Conventions (this module only stores data; kinematics live elsewhere)
 ---------------------------------------------------------------------
@@ -48,7 +48,8 @@ import dataclasses
 import math
 import os
 import re
-from typing import Callable, NoReturn
+from typing import NoReturn
+from collections.abc import Callable
 
 import numpy as np
 

@@ -408,7 +408,7 @@ def _mass_targets(groups: dict[tuple[str, str], list[int]], sex: str, total: flo
             if key in groups:
                 target[key] = target.get(key, 0.0) + share
     # Unpaired limb labels (no side found) fall back to an even share of both sides.
-    for key, members in groups.items():
+    for key in groups:
         if key not in target:
             seg, side = key
             target[key] = fractions.get(seg, 0.0) * total * (2.0 if seg not in ("trunk", "head") else 1.0)

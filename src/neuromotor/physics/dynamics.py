@@ -120,7 +120,8 @@ class Reference(eqx.Module):
     local_axes: Float[Array, "S1 C 3 3"]  # axes h_i of each joint in its parent's frame (columns)
     rel_quat: Float[Array, "S1 C 4"]  # quaternion of each joint's desired rotation (rel_rot of its child)
     local_pinv: Float[Array, "S1 C 3 3"]  # P_L resolving a parent-frame error along the axes (control.JointAffine)
-    drive_omega: Float[Array, "S1 B 3"]  # driven joints' rates over the step that ends at t_k (parent frame at its start)
+    # driven joints' rates over the step that ends at t_k (parent frame at its start)
+    drive_omega: Float[Array, "S1 B 3"]
     kkt_residual: Float[Array, " S1"]  # relative residual of the feedforward's solve per step
     landing: Float[Array, " S1"]  # rotation (rad) the discrete inverse leaves per step (0: Eq. 3)
     # The discrete inverse's body velocities u_k ([linear, angular], world; None with Eq. 3):
@@ -332,8 +333,8 @@ def delayed_reflex(sim: SimModel, gains: Gains, inputs: ControllerInputs, state:
     rot, omega = state.rot, state.omega
     rot_p = rot[topo.parent]
     axes = mm(rot_p, inputs.local_axes)
-    angle, rate = joint_errors(rot_p, rot[topo.child], omega[topo.parent], omega[topo.child], inputs.pinv(), inputs.rel_rot,
-                               inputs.rel_omega)
+    angle, rate = joint_errors(rot_p, rot[topo.child], omega[topo.parent], omega[topo.child], inputs.pinv(),
+                               inputs.rel_rot, inputs.rel_omega)
     history = push(history, angle, rate)
     return *reflex_torque(gains, history, sim.cfg.h, axes, inputs), history
 

@@ -86,7 +86,8 @@ def _pulse(s, model, h: float, body_index) -> tuple:
 
 def replace_first(p: ForcePulses, first: ForcePulses) -> ForcePulses:
     """``p`` with pulse 0 replaced by the one pulse ``first`` (the pulse a sweep varies)."""
-    return ForcePulses(**{f.name: np.concatenate([np.asarray(getattr(first, f.name)), np.asarray(getattr(p, f.name))[1:]])
+    return ForcePulses(**{f.name: np.concatenate([np.asarray(getattr(first, f.name)),
+                                                  np.asarray(getattr(p, f.name))[1:]])
                           for f in dataclasses.fields(p)})
 
 
@@ -112,7 +113,8 @@ def pulse_forces(p: ForcePulses, t) -> Float[Array, "P 3"]:
     return (p.magnitude * prof)[:, None] * p.direction
 
 
-def generalized_forces(p: ForcePulses, t, n_bodies: int, pos, rot, com) -> tuple[Float[Array, " 6B"], Float[Array, "B 3"], Float[Array, "P 3"]]:
+def generalized_forces(p: ForcePulses, t, n_bodies: int, pos, rot,
+                       com) -> tuple[Float[Array, " 6B"], Float[Array, "B 3"], Float[Array, "P 3"]]:
     """Generalized force of the pulses (6B), per-body force (B,3), and world points (P,3)."""
     zeros = jnp.zeros((n_bodies, 6), pos.dtype)
     if p.count == 0:

@@ -163,7 +163,8 @@ def batch_split(setup, size: int, repeats: int) -> dict:
     """The parts of a step (as in :func:`single`) and the whole step under ``vmap`` over
     ``size`` states of a rollout: wall microseconds per trajectory-step. In a batch the
     kernel count no longer dominates; this shows where the arithmetic and copies go."""
-    setup = dataclasses.replace(setup, sim=dataclasses.replace(setup.sim, solver=solvers.Solver(setup.sim.solver).batched()))
+    setup = dataclasses.replace(setup, sim=dataclasses.replace(setup.sim,
+                                                               solver=solvers.Solver(setup.sim.solver).batched()))
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     run = compiler.jit(lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg))(m, g, p, ref)
     idx = np.arange(size) % cfg.n_steps
@@ -242,7 +243,7 @@ def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str
     "float32"``; ``..._one_device`` for the unsplit twin)."""
     from neuromotor.studies.sweep.runner import AXIS, batch_mesh, shard_vmap
 
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    m, g, ref, cfg = setup.model, setup.gains, setup.ref, setup.sim
     out = []
     for size in sizes:
         mags = scaled_pulses(setup, np.linspace(0.5, 1.5, size))

@@ -11,7 +11,7 @@ import dataclasses
 import functools
 import importlib.resources
 import pathlib
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -66,7 +66,7 @@ class Setup:
     config: SimulationConfig
     ball: BallSetup | None = None  # a [ball] config: the flying ball and its contacts
     warnings: tuple[str, ...] = ()  # the clip's (see Character.warnings) and the run's, one line each
-    window: "ActingWindow | None" = None  # where a perturbation can act (sweep axes are checked against it)
+    window: ActingWindow | None = None  # where a perturbation can act (sweep axes are checked against it)
 
     @property
     def model(self) -> Model:

@@ -97,7 +97,8 @@ def plot_gains_map(rows: list[dict], path, fitted: tuple[float, float] | None = 
         mid = 0.5 * (lv[1:] + lv[:-1])
         return np.exp(np.concatenate([[2 * lv[0] - mid[0]], mid, [2 * lv[-1] - mid[-1]]]))
 
-    for ax, col, name in zip(axes, ("recovery_time_s", "peak_deviation_deg"), ("recovery time (s)", "peak deviation (deg)")):
+    for ax, col, name in zip(axes, ("recovery_time_s", "peak_deviation_deg"),
+                             ("recovery time (s)", "peak deviation (deg)")):
         z = np.full((len(kd), len(ks)), np.nan)
         bad = np.zeros_like(z, bool)
         late = np.zeros_like(z, bool)

@@ -288,7 +288,8 @@ def matvec(sch: Schedule, paths: Paths, x: Float[Array, "B 3"]) -> Float[Array, 
     per_level = list(enumerate(sch.levels, 1))
     src = np.concatenate([sch.anc_at[lv, 1:d + 1].ravel() for d, lv in per_level]  # row blocks H[k, anc]
                          + [np.repeat(lv, d - 1) for d, lv in per_level])  # column blocks H[anc, k]
-    dst = np.concatenate([np.repeat(lv, d) for d, lv in per_level] + [sch.anc_at[lv, 1:d].ravel() for d, lv in per_level])
+    dst = np.concatenate([np.repeat(lv, d) for d, lv in per_level]
+                         + [sch.anc_at[lv, 1:d].ravel() for d, lv in per_level])
     blocks = jnp.concatenate([b.reshape(-1, 3, 3) for b in (*paths.row, *paths.col)])
     return jnp.tensordot(jnp.asarray(np.eye(len(sch.order))[dst].T, x.dtype), mv(blocks, _take(sch, x, src)), axes=1)
 

@@ -4,7 +4,7 @@ jaxopt (Levenberg-Marquardt, L-BFGS), each stepped one iteration at a time from 
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import equinox as eqx
 import jax

@@ -78,7 +78,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 
