@@ -45,7 +45,8 @@ def _table(rows: list[list[str]], header: list[str]) -> str:
 def json_safe(metrics: dict) -> dict:
     """Metrics as strict JSON: NaN and infinities become null, and ``null_reasons`` says why."""
     why = {"recovery_time_s": "the deviation does not stay below recovery_threshold_deg before the window ends"}
-    out, reasons = {}, {}
+    out: dict = {}
+    reasons: dict[str, str] = {}
     for key, value in metrics.items():
         if isinstance(value, float) and not math.isfinite(value):
             out[key] = None
@@ -61,7 +62,7 @@ def model_json(character) -> dict:
     """The ``inspect --json`` contract."""
     model, clip, anat = character.model, character.clip, character.anatomy
     joints = []
-    cols = {}
+    cols: dict[str, list[str]] = {}
     for name in model.dof_names:
         cols.setdefault(name.rsplit(".", 1)[0], []).append(name)
     for k, joint in enumerate(clip.joints):
@@ -184,7 +185,7 @@ def cmd_idyn(args) -> int:
 
     from neuromotor.errors import UserError
 
-    if not jax.config.jax_enable_x64:  # inverse dynamics is float64 only
+    if not jax.config.jax_enable_x64:  # type: ignore[attr-defined]  # inverse dynamics is float64 only
         raise UserError("JAX runs with x64 off (JAX_ENABLE_X64 is set to false): inverse dynamics is float64; unset it")
     from neuromotor.studies.simulate import save_npz_atomic
 
@@ -342,9 +343,9 @@ def cmd_fit(args) -> int:
     return 0
 
 
-def _truth(values) -> tuple:
+def _truth(values) -> tuple[float | None, float | None, dict[str, float]]:
     """(ks, kd, values) of --write-synthetic: two bare numbers are (ks, kd)."""
-    named = dict(v for v in values if isinstance(v, tuple))
+    named: dict[str, float] = dict(v for v in values if isinstance(v, tuple))
     bare = [v for v in values if not isinstance(v, tuple)]
     if bare and (named or len(bare) != 2):
         from neuromotor.errors import UserError
@@ -701,6 +702,7 @@ def _io_paths(args) -> tuple[list, list, list]:
     if cmd == "bench":
         return [clip, *args.idyn], [args.plot, args.json], []
     if cmd == "demo":
+        assert out is not None  # --output has a default
         d = pathlib.Path(out)
         return [], [d / n for n in ("run.npz", "filmstrip.png", "video.mp4", "deviation.png")], [d]
     if cmd == "experiment":

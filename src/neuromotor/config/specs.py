@@ -67,7 +67,7 @@ class _KeyView(Mapping):
     _optional: ClassVar[tuple[str, ...]] = ()
 
     def _keys(self) -> list[str]:
-        return [f.name for f in dataclasses.fields(self)
+        return [f.name for f in dataclasses.fields(self)  # type: ignore[arg-type]  # mixed into dataclasses
                 if not (f.name in self._optional and getattr(self, f.name) is None)]
 
     def __getitem__(self, key):
@@ -84,7 +84,7 @@ class _KeyView(Mapping):
     def __eq__(self, other):
         return isinstance(other, Mapping) and dict(self) == dict(other)
 
-    __hash__ = None
+    __hash__ = None  # type: ignore[assignment]  # unhashable, as the dict it replaces
 
 
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
@@ -339,7 +339,8 @@ def reflex_grid(base: ReflexSpec, **axes) -> tuple[ReflexSpec, ...]:
     out = [dataclasses.replace(base, max_delay=max([base.max_delay, base.delay, base.long_latency_delay, *delays]))]
     for key, values in axes.items():
         if values is not None:
-            out = [dataclasses.replace(r, **{REFLEX_AXES[key]: float(v)}) for r in out for v in values]
+            out = [dataclasses.replace(r, **{REFLEX_AXES[key]: float(v)})  # type: ignore[arg-type]  # a float field
+                   for r in out for v in values]
     return tuple(out)
 
 

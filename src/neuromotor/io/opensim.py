@@ -95,7 +95,9 @@ def layout(model: Model) -> Layout:
     if len(model.joint_order[model.body_joint[0]]) != 3:
         raise UserError(f"root joint {model.joint_names[model.body_joint[0]]!r} needs 3 rotation channels "
                         "for an OpenSim model (its 6-coordinate joint to ground)")
-    coords, rotational, per_body = [], [], []
+    coords: list[str] = []
+    rotational: list[bool] = []
+    per_body: list[tuple[int, ...]] = []
     for b, k in enumerate(model.body_joint):
         start = len(coords)
         coords += [f"{bodies[b]}_{a}rotation" for a in model.joint_order[k]]
@@ -149,7 +151,7 @@ def euler_angles(rot, order: str) -> np.ndarray:
     the branch with the middle angle in [-pi/2, pi/2], unwrapped along the leading (time) axis."""
     from neuromotor.rotations import matrix_to_euler
 
-    angles = np.asarray(matrix_to_euler(np.asarray(rot, dtype=np.float64), order))
+    angles = np.asarray(matrix_to_euler(np.asarray(rot, dtype=np.float64), order))  # type: ignore[arg-type]  # numpy in: jnp converts it
     return np.unwrap(angles, axis=0) if angles.ndim > 1 else angles
 
 
@@ -401,7 +403,7 @@ def write_idyn_storage(folder, character: Character, arrays: dict) -> dict[str, 
 
     folder, model = pathlib.Path(folder), character.model
     theta = np.asarray(arrays["theta"])[:, list(model.sim_dof_columns)]
-    root_rot = np.asarray(quat_to_matrix(np.asarray(arrays["root_quat"], dtype=np.float64)))
+    root_rot = np.asarray(quat_to_matrix(np.asarray(arrays["root_quat"], dtype=np.float64)))  # type: ignore[arg-type]  # numpy in: jnp converts it
     forces = generalized_forces(model, root_rot, theta, arrays["joint_torque_world"], arrays["root_wrench"])
     return {
         "model": export_osim(character, folder / "model.osim"),
@@ -415,7 +417,7 @@ def root_pose_of_bodies(model: Model, body_pos, body_quat) -> tuple[np.ndarray, 
     """(root joint origin (T, 3), root rotation (T, 3, 3)) from body COM poses (T, B, 3/4)."""
     from neuromotor.rotations import quat_to_matrix
 
-    rot = np.asarray(quat_to_matrix(np.asarray(body_quat, dtype=np.float64)[:, 0]))
+    rot = np.asarray(quat_to_matrix(np.asarray(body_quat, dtype=np.float64)[:, 0]))  # type: ignore[arg-type]  # numpy in: jnp converts it
     origin = np.asarray(body_pos, dtype=np.float64)[:, 0] - rot @ np.asarray(model.com, np.float64)[0]
     return origin, rot
 

@@ -130,6 +130,7 @@ def euler_to_matrix(order: str, angles: np.ndarray) -> np.ndarray:
     for n, letter in enumerate(order.upper()):
         r = _axis_rotation("XYZ".index(letter), angles[..., n])
         out = r if out is None else out @ r
+    assert out is not None  # order names three axes
     return out
 
 
@@ -224,6 +225,7 @@ def _continuous_euler(order: str, R: np.ndarray, start: np.ndarray) -> np.ndarra
             d = float(np.abs(cand - prev).sum())
             if d < best_d:
                 best, best_d = cand, d
+        assert best is not None, "rotation matrices are not finite"
         out[t] = prev = best
     return out
 
@@ -424,7 +426,7 @@ class _Tree:
         in_order = [self.match(x, y) for x, y in zip(ka, kb)]
         if all(m is not None for m in in_order):
             for m in in_order:
-                out.update(m)
+                out.update(m)  # type: ignore[arg-type]  # all() above excludes None
             return out
         # Children listed in another order: greedy by length difference.
         cost = sorted((abs(self.L[x] - self.L[y]) + abs(self.reach[x] - self.reach[y]), x, y)
@@ -579,7 +581,7 @@ def _check_stature(stature: float | None) -> float | None:
 
 def _limb_pairs(tree: _Tree, pairs) -> list:
     """The first two sibling pairs (best matched first) that are disjoint: the limbs."""
-    limbs_pairs = []
+    limbs_pairs: list = []
     for entry in pairs:
         _, a, b, _ = entry
         if any(a == x or b == x or tree.is_below(a, x) or tree.is_below(b, x) or tree.is_below(x, a)
@@ -639,7 +641,7 @@ def _head_chain(tree: _Tree, pos, ends, arm_branch: int, limb_members: set, pair
             break
     if head0 is None:
         return []
-    paired = set()
+    paired: set[int] = set()
     for _, a, b, _ in pairs:
         paired.update((a, b))
     head_chain = [head0]

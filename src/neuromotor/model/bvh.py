@@ -55,6 +55,8 @@ import numpy as np
 
 from neuromotor.errors import UserError
 
+_Fail = Callable[[int | None, str], NoReturn]  # raises a BvhError naming the line
+
 __all__ = [
     "BvhError",
     "BvhJoint",
@@ -100,6 +102,7 @@ def _channel_kinds(channels: tuple[str, ...]) -> list[tuple[str, str]]:
     out = []
     for name in channels:
         m = _CHANNEL_RE.match(name)
+        assert m is not None  # names checked by _parse_channels
         out.append((m.group(1).upper(), m.group(2).lower()))
     return out
 
@@ -498,7 +501,7 @@ def _close_block(block: _Block, nodes: list[_Node], fail: Callable[[int | None, 
             node.channels = ()
 
 
-def _parse_offset(args: list[str], lineno: int, fail) -> tuple[float, float, float]:
+def _parse_offset(args: list[str], lineno: int, fail: _Fail) -> tuple[float, float, float]:
     if len(args) != 3:
         fail(lineno, f"OFFSET needs 3 numbers, got {len(args)}")
     values = []
@@ -512,7 +515,7 @@ def _parse_offset(args: list[str], lineno: int, fail) -> tuple[float, float, flo
     return (values[0], values[1], values[2])
 
 
-def _parse_channels(args: list[str], lineno: int, fail) -> tuple[str, ...]:
+def _parse_channels(args: list[str], lineno: int, fail: _Fail) -> tuple[str, ...]:
     if not args:
         fail(lineno, "CHANNELS without a count")
     try:
@@ -535,7 +538,7 @@ def _last_text_line(lines: list[str]) -> int:
     return 1
 
 
-def _header_value(lines: list[str], index: int, pattern: re.Pattern, expected: str, fail) -> str:
+def _header_value(lines: list[str], index: int, pattern: re.Pattern, expected: str, fail: _Fail) -> str:
     """The value of a MOTION header line (``Frames: N``, ``Frame Time: t``), or a failure
     quoting the line."""
     m = pattern.match(lines[index].strip())
@@ -544,7 +547,7 @@ def _header_value(lines: list[str], index: int, pattern: re.Pattern, expected: s
     return m.group(1).strip()
 
 
-def _parse_frame_count(lines: list[str], index: int, fail) -> int:
+def _parse_frame_count(lines: list[str], index: int, fail: _Fail) -> int:
     value = _header_value(lines, index, _FRAMES_RE, "Frames: N", fail)
     try:
         n_frames = int(value)
@@ -555,7 +558,7 @@ def _parse_frame_count(lines: list[str], index: int, fail) -> int:
     return n_frames
 
 
-def _parse_frame_time(lines: list[str], index: int, fail) -> float:
+def _parse_frame_time(lines: list[str], index: int, fail: _Fail) -> float:
     value = _header_value(lines, index, _FRAME_TIME_RE, "Frame Time: t", fail)
     frame_time = _parse_float(value)
     if frame_time is None or not math.isfinite(frame_time):
@@ -671,7 +674,7 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
 
     lines = _split_lines(text)
     nodes, motion_index = _parse_hierarchy(lines, fail)
-    n_channels = sum(len(n.channels) for n in nodes)
+    n_channels = sum(len(n.channels or ()) for n in nodes)  # () once the block closed
     frame_time, motion, warnings = _parse_motion(lines, motion_index, n_channels, fail, path)
 
     offsets = np.array([n.offset for n in nodes], dtype=np.float64)
@@ -682,7 +685,8 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
     joints = []
     column = 0
     for node, end_site in zip(nodes, end_sites):
-        kinds = _channel_kinds(node.channels)
+        channels = node.channels or ()  # () once the block closed
+        kinds = _channel_kinds(channels)
         for i, (_, kind) in enumerate(kinds):
             if kind == "position":
                 motion[:, column + i] *= scale
@@ -690,12 +694,12 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
             name=node.name,
             parent=node.parent,
             offset=np.array(node.offset, dtype=np.float64) * scale,
-            channels=node.channels,
+            channels=channels,
             channel_start=column,
             end_site=None if end_site is None else end_site * scale,
             line=node.line,
         ))
-        column += len(node.channels)
+        column += len(channels)
     return BvhClip(path=path, joints=tuple(joints), frame_time=frame_time, motion=motion, length_scale=scale,
                    warnings=warnings)
 

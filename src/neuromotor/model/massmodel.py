@@ -126,7 +126,7 @@ class _Geometry:
         self.clip, self.anat = clip, anatomy
         self.seg = anatomy.segment
         self.n = len(clip.joints)
-        self.children = [[] for _ in range(self.n)]
+        self.children: list[list[int]] = [[] for _ in range(self.n)]
         for k, j in enumerate(clip.joints):
             if j.parent >= 0:
                 self.children[j.parent].append(k)
@@ -503,8 +503,9 @@ def _tree_span(clip: BvhClip, offsets, children) -> float:
     best, depth = 0.0, [0.0] * len(clip.joints)
     for j in reversed(range(len(clip.joints))):
         paths = [depth[c] + float(np.linalg.norm(offsets[c])) for c in children[j]]
-        if clip.joints[j].end_site is not None:
-            paths.append(float(np.linalg.norm(clip.joints[j].end_site)))
+        end_site = clip.joints[j].end_site
+        if end_site is not None:
+            paths.append(float(np.linalg.norm(end_site)))
         paths.sort(reverse=True)
         depth[j] = paths[0] if paths else 0.0
         if len(paths) >= 2:
@@ -517,7 +518,7 @@ def plan_generic(clip: BvhClip, offsets: np.ndarray, density: float = 1000.0,
                  rule: GenericShapes = GenericShapes()) -> BodyPlan:
     """Bodies of a non-humanoid skeleton by :class:`GenericShapes` at the given density."""
     joints, n = clip.joints, len(clip.joints)
-    children = [[] for _ in range(n)]
+    children: list[list[int]] = [[] for _ in range(n)]
     for k, j in enumerate(joints):
         if j.parent >= 0:
             children[j.parent].append(k)

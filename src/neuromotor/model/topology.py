@@ -103,7 +103,8 @@ def _levels(body_parent: tuple[int, ...], depth: np.ndarray) -> tuple[np.ndarray
 
 
 def _dof_columns(joint_parent: tuple[int, ...], joint_order: tuple[str, ...]) -> tuple[tuple[int, ...], ...]:
-    out, start = [], 0
+    out: list[tuple[int, ...]] = []
+    start = 0
     for k, order in enumerate(joint_order):
         if joint_parent[k] < 0:
             out.append(())

@@ -190,6 +190,7 @@ def reflex_torque(gains: Gains, history, h: float, axes, inp: ControllerInputs):
     joint's child (``axes``: the world Euler axes h_i as columns) and the multipliers r_i per
     joint and DOF (N m along h_i)."""
     g = inp.gains(gains)
+    assert gains.reflex is not None  # called for gains with a reflex
     r = reflex_multipliers(gains.reflex, history, h, _feedback_magnitude(g, inp.activation), inp.scale, inp.tau,
                            inp.reference_torque, inp.active)
     return mv(axes, r), r

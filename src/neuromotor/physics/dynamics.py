@@ -141,7 +141,7 @@ class Reference(eqx.Module):
         return jnp.concatenate([h * w1[p], h * w1[c], (w1[c] - w1[p]) - (w0[c] - w0[p])], -1)
 
 
-def make_reference(model: Model, traj: Trajectory, t0: float, cfg: SimConfig) -> Reference:
+def make_reference(model: Model, traj: Trajectory, t0: float | Array, cfg: SimConfig) -> Reference:
     """Sample the mocap targets on the simulation grid of ``cfg`` (h, steps), with the feedforward
     of ``cfg.feedforward`` (the discrete inverse of ``cfg``'s step, or Eq. 3) and the joint axes
     of ``cfg.joint_law``."""
@@ -369,6 +369,7 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
     applied, per_body, points = applied_forces(sim, params.pulses, k, state)
     reflex, history = None, None
     if params.gains.reflex is not None:
+        assert data.history is not None  # init_data gives a reflex its history
         torque, reflex, history = delayed_reflex(sim, params.gains, inputs, state, data.history)
         applied = applied.at[:, 3:].add(body_torques(model, torque))
     inertia = world_inertia(model, rot)

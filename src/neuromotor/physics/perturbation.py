@@ -86,7 +86,7 @@ def _pulse(s, model, h: float, body_index) -> tuple:
 
 def replace_first(p: ForcePulses, first: ForcePulses) -> ForcePulses:
     """``p`` with pulse 0 replaced by the one pulse ``first`` (the pulse a sweep varies)."""
-    return ForcePulses(**{f.name: np.concatenate([np.asarray(getattr(first, f.name)),
+    return ForcePulses(**{f.name: np.concatenate([np.asarray(getattr(first, f.name)),  # type: ignore[arg-type]
                                                   np.asarray(getattr(p, f.name))[1:]])
                           for f in dataclasses.fields(p)})
 

@@ -142,12 +142,13 @@ class ActingWindow:
 
 def prepare(config: SimulationConfig, character: Character | None = None,
             traj: Trajectory | None = None) -> Setup:
-    if config.dtype is Precision.FLOAT64 and not jax.config.jax_enable_x64:
+    if config.dtype is Precision.FLOAT64 and not jax.config.jax_enable_x64:  # type: ignore[attr-defined]
         raise ConfigError(f"{config.source}: field 'sim.dtype' is float64 but JAX runs with x64 off "
                           "(JAX_ENABLE_X64 is set to false): unset it, or set [sim] dtype = \"float32\"")
     if character is None:
         character, traj = load_character(config.clip, config.units, config.up_axis, config.stature,
                                          config.mass_options())
+    assert traj is not None, "prepare: a character comes with its trajectory"
     model, clip = character.model, character.clip
     duration = clip.duration - config.start if config.duration is None else config.duration
     if config.start + duration > clip.duration + 1e-9:
@@ -158,13 +159,13 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     if n_steps < 1:
         raise ConfigError(f"{config.source}: sim.duration is shorter than one step")
     index = body_lookup(model, config.source, character)
-    driven = []
+    driven_list = []
     for name in config.driven_joints:
         b = index(name)
         if b == 0:
             raise ConfigError(f"{config.source}: sim.driven_joints: the root is always driven")
-        driven.append(b)
-    driven = tuple(sorted(driven))
+        driven_list.append(b)
+    driven = tuple(sorted(driven_list))
     window = ActingWindow(config.source, config.start, config.start + n_steps * config.h, config.h, clip.duration,
                           (0, *driven), index)
     for i, p in enumerate(config.perturbations):

@@ -66,7 +66,8 @@ def plot_sweep(rows: list[dict], path, title: str = "", xlabel: str | None = Non
                 ax.plot(m[bad], np.zeros(bad.sum()), "x", color="red", ms=7, clip_on=False,
                         transform=ax.get_xaxis_transform(), label="diverged" if ax is axes[0] else None)
     if xlabel is None:
-        xlabel = MAGNITUDE_LABELS.get(rows[0].get("kind") if rows else None, MAGNITUDE_LABELS["force"])
+        xlabel = MAGNITUDE_LABELS.get(rows[0].get("kind") if rows else None,  # type: ignore[arg-type]  # None: default
+                                      MAGNITUDE_LABELS["force"])
     axes[0].set(xlabel=xlabel, ylabel="peak deviation (deg)")
     axes[1].set(xlabel=xlabel, ylabel="recovery time (s)")
     axes[1].set_title("open triangle: not recovered by the window's end; red x: diverged", fontsize=7)

@@ -333,8 +333,8 @@ def solve_reduced(st: Structure, geo: Geometry, red: Reduced, r: Float[Array, "B
 
 def _moments(st: Structure, geo: Geometry, mass, inertia_world):
     """``(C_k, a_k)`` of every body (:func:`branch.pivot_blocks`)."""
-    return branch.pivot_blocks(*branch.subtree_moments(st.anc.T, mass, inertia_world, geo.com, st.unrolled),
-                               geo.pivot)
+    m_sub, s_sub, j_sub = branch.subtree_moments(st.anc.T, mass, inertia_world, geo.com, st.unrolled)
+    return branch.pivot_blocks(m_sub, s_sub, j_sub, geo.pivot)
 
 
 def _stiff_subtrees(st: Structure, g_diag, g_up, g_down):
@@ -412,6 +412,7 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
     rhs = -project_forces(st, geo, mx)
     metric = projection_metric(st, geo, mass, inertia_world, tree)
     if metric.dense is None:
+        assert metric.paths is not None and metric.factor is not None  # the tree form
         w = branch.linear_solve(st.tree, metric.paths, metric.factor, rhs[3:].reshape(-1, 3), symmetric=True)
         u = jnp.concatenate([jnp.zeros(6, c.dtype), w[1:].reshape(-1)])
         return x_p + apply_basis(st, geo, u)
