@@ -26,6 +26,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Iterator
+from typing import Any
 
 TAG = "neuromotor"
 # .NAME.neuromotor-PID-RANDOM.tmp[.EXT]; RANDOM is tempfile's [a-z0-9_]{8}.
@@ -35,7 +36,7 @@ STALE_AFTER_S = 3600.0
 _SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
 _live: set[str] = set()  # absolute paths of this process's temporaries
 _lock = threading.RLock()
-_previous: dict[int, object] = {}
+_previous: dict[int, Any] = {}  # signal number: the handler it had (signal.getsignal)
 _depth = 0  # nesting of atomic writes in the main thread (handlers installed while > 0)
 
 

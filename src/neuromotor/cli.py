@@ -45,7 +45,8 @@ def _table(rows: list[list[str]], header: list[str]) -> str:
 def metrics_json(metrics: dict) -> dict:
     """Metrics as strict JSON: NaN and infinities become null, and ``null_reasons`` says why."""
     why = {"recovery_time_s": "the deviation does not stay below recovery_threshold_deg before the window ends"}
-    out, reasons = {}, {}
+    out: dict = {}
+    reasons: dict[str, str] = {}
     for key, value in metrics.items():
         if isinstance(value, float) and not math.isfinite(value):
             out[key] = None
@@ -61,8 +62,8 @@ def model_json(character) -> dict:
     """The ``inspect --json`` contract."""
     model, clip, anat = character.model, character.clip, character.anatomy
     joints = []
-    cols = {}
-    for i, name in enumerate(model.dof_names):
+    cols: dict[str, list[str]] = {}
+    for name in model.dof_names:
         cols.setdefault(name.rsplit(".", 1)[0], []).append(name)
     for k, joint in enumerate(clip.joints):
         b = model.joint_body[k]
@@ -184,7 +185,7 @@ def cmd_idyn(args) -> int:
 
     from neuromotor.errors import UserError
 
-    if not jax.config.jax_enable_x64:  # inverse dynamics is float64 only
+    if not jax.config.jax_enable_x64:  # type: ignore[attr-defined]  # inverse dynamics is float64 only
         raise UserError("JAX runs with x64 off (JAX_ENABLE_X64 is set to false): inverse dynamics is float64; unset it")
     from neuromotor.studies.simulate import save_npz_atomic
 
@@ -343,9 +344,9 @@ def cmd_fit(args) -> int:
     return 0
 
 
-def _truth(values) -> tuple:
+def _truth(values) -> tuple[float | None, float | None, dict[str, float]]:
     """(ks, kd, values) of --write-synthetic: two bare numbers are (ks, kd)."""
-    named = dict(v for v in values if isinstance(v, tuple))
+    named: dict[str, float] = dict(v for v in values if isinstance(v, tuple))
     bare = [v for v in values if not isinstance(v, tuple)]
     if bare and (named or len(bare) != 2):
         from neuromotor.errors import UserError
@@ -448,7 +449,8 @@ def cmd_info(args) -> int:
             print(f"  {k.ljust(width)}  {v}")
     print()
     arrays = info["arrays"]
-    print(f"arrays: {len(arrays)} ({', '.join(f'{k} {tuple(v)}' for k, v in arrays.items() if k in ('time', 'theta'))}, ...)")
+    shown = ', '.join(f'{k} {tuple(v)}' for k, v in arrays.items() if k in ('time', 'theta'))
+    print(f"arrays: {len(arrays)} ({shown}, ...)")
     return 0
 
 
@@ -611,7 +613,8 @@ def _add_sweep_command(sub) -> None:
                   default=None)
     sp.add_argument("--chunk", type=_count_arg, help="runs per device call")
     sp.add_argument("--inner-batch", type=_count_arg, help="rollouts vmapped together inside each shard")
-    sp.add_argument("--fitted", type=_gain_arg, nargs=2, metavar=("KS", "KD"), help="fitted pair to mark on the gains map")
+    sp.add_argument("--fitted", type=_gain_arg, nargs=2, metavar=("KS", "KD"),
+                    help="fitted pair to mark on the gains map")
     sp.add_argument("--fitted-json", help="JSON file with the fitted ks and kd")
     sp.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help=PROGRESS_HELP)
     from neuromotor.distributed import add_arguments
@@ -700,6 +703,7 @@ def _io_paths(args) -> tuple[list, list, list]:
     if cmd == "bench":
         return [clip, *args.idyn], [args.plot, args.json], []
     if cmd == "demo":
+        assert out is not None  # --output has a default
         d = pathlib.Path(out)
         return [], [d / n for n in ("run.npz", "filmstrip.png", "video.mp4", "deviation.png")], [d]
     if cmd == "experiment":

@@ -28,17 +28,18 @@ from __future__ import annotations
 
 import functools
 import os
+import pathlib
 
 import jax
 
-CPU_COMPILER_OPTIONS: dict[str, object] = {
+CPU_COMPILER_OPTIONS: dict[str, str | bool] = {
     "xla_cpu_experimental_ynn_fusion_type": "",
     "xla_cpu_multi_thread_eigen": False,
     "xla_cpu_use_fusion_emitters": False,
 }
 
 
-def compiler_options() -> dict[str, object]:
+def compiler_options() -> dict[str, str | bool]:
     """The options (empty when ``NEUROMOTOR_XLA_TUNING=0``). Deciding does not touch the JAX
     backend, so wrapping a program at import does not fix the device count early."""
     if os.environ.get("NEUROMOTOR_XLA_TUNING", "1").strip().lower() in ("0", "false", "no", "off"):
@@ -83,15 +84,13 @@ def jit(fun, **kwargs):
 _OFF = ("off", "0", "none", "false", "no", "")
 
 
-def cache_dir() -> "pathlib.Path | None":
+def cache_dir() -> pathlib.Path | None:
     """Folder of the persistent compilation cache for the CLI, or None when disabled.
 
     ``NEUROMOTOR_CACHE_DIR`` (``off`` disables), else ``$XDG_CACHE_HOME/neuromotor/jax``, else
     ``~/.cache/neuromotor/jax``. (A cache folder already given to JAX, by
     ``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``, is left as it is: see
     :func:`enable_compile_cache`.)"""
-    import pathlib
-
     env = os.environ.get("NEUROMOTOR_CACHE_DIR")
     if env is not None:
         return None if env.strip().lower() in _OFF else pathlib.Path(env).expanduser()
@@ -99,7 +98,7 @@ def cache_dir() -> "pathlib.Path | None":
     return pathlib.Path(base) / "neuromotor" / "jax"
 
 
-def enable_compile_cache(min_compile_time_s: float = 0.0) -> "str | None":
+def enable_compile_cache(min_compile_time_s: float = 0.0) -> str | None:
     """Turn on JAX's persistent compilation cache so that a second ``neuromotor simulate`` loads
     its programs instead of compiling them again (JAX keys entries by program, backend, compiler
     options and versions, and writes them atomically, so concurrent runs share it safely).
@@ -113,9 +112,9 @@ def enable_compile_cache(min_compile_time_s: float = 0.0) -> "str | None":
     env = os.environ.get("NEUROMOTOR_CACHE_DIR")
     if env is not None and env.strip().lower() in _OFF:
         return None
-    current = jax.config.jax_compilation_cache_dir or os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    current = jax.config.jax_compilation_cache_dir or os.environ.get("JAX_COMPILATION_CACHE_DIR")  # type: ignore[attr-defined]
     if current:
-        if not jax.config.jax_compilation_cache_dir:
+        if not jax.config.jax_compilation_cache_dir:  # type: ignore[attr-defined]  # a JAX flag
             jax.config.update("jax_compilation_cache_dir", current)
         return str(current)
     path = cache_dir()
@@ -144,7 +143,7 @@ def cpu_cores() -> int:
         return os.cpu_count() or 1
 
 
-def use_cpu_cores() -> "int | None":
+def use_cpu_cores() -> int | None:
     """Give JAX one CPU device per core, so that a batch split over the devices runs one share
     per core (:func:`neuromotor.studies.sweep.runner.shard_vmap`). On one device XLA:CPU runs
     a batch's small kernels one after another and splits only the large ones over the cores: a
@@ -172,7 +171,7 @@ def use_cpu_cores() -> "int | None":
 
         raise UserError(f"NEUROMOTOR_CPU_DEVICES: expected 'auto', 'off' or a device count, got {env!r}")
     flags = os.environ.get("XLA_FLAGS", "")
-    chosen = ("JAX_NUM_CPU_DEVICES" in os.environ or jax.config.jax_num_cpu_devices > 0
+    chosen = ("JAX_NUM_CPU_DEVICES" in os.environ or jax.config.jax_num_cpu_devices > 0  # type: ignore[attr-defined]
               or any(name in flags for name in _LEAVE))
     if count < 2 or chosen or xla_bridge.backends_are_initialized():
         return None

@@ -26,7 +26,7 @@ import socket
 import subprocess
 import sys
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import numpy as np
@@ -96,7 +96,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("several processes (jax.distributed; README: sweeps across processes and hosts)")
     g.add_argument("--local-processes", type=_int_from(1), metavar="N",
                    help="start N processes on this machine (127.0.0.1, one XLA thread each) and wait for them")
-    g.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0 (with --num-processes, --process-id)")
+    g.add_argument("--coordinator", metavar="HOST:PORT",
+                   help="address of process 0 (with --num-processes, --process-id)")
     g.add_argument("--num-processes", type=_int_from(1), metavar="N", help="processes in the job")
     g.add_argument("--process-id", type=_int_from(0), metavar="I", help="this process's rank, 0..N-1")
     g.add_argument("--distributed", action="store_true",

@@ -38,7 +38,7 @@ def vee(m: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
     )
 
 
-def axis_rotation(axis: int, angle: Float[Array, "..."]) -> Float[Array, "... 3 3"]:
+def axis_rotation(axis: int, angle: Float[Array, ...]) -> Float[Array, "... 3 3"]:
     """Rotation by ``angle`` (rad) about coordinate axis 0, 1 or 2."""
     c, s = jnp.cos(angle), jnp.sin(angle)
     o, i = jnp.zeros_like(angle), jnp.ones_like(angle)
@@ -139,12 +139,13 @@ def euler_angles_and_rates(entry, w: Float[Array, "... 3"], order: str,
     return jnp.stack(angles, -1), jnp.stack([u[i] - order_parity(order) * sin2 * t3, u[j], t3], -1)
 
 
-def wrap_angle(x: Float[Array, "..."]) -> Float[Array, "..."]:
+def wrap_angle(x: Float[Array, ...]) -> Float[Array, ...]:
     """Map angles to (-pi, pi]."""
     return x - 2.0 * jnp.pi * jnp.ceil((x - jnp.pi) / (2.0 * jnp.pi))
 
 
-def euler_axes(parent_rot: Float[Array, "... 3 3"], angles: Float[Array, "... 3"], order: str) -> Float[Array, "... 3 3"]:
+def euler_axes(parent_rot: Float[Array, "... 3 3"], angles: Float[Array, "... 3"],
+               order: str) -> Float[Array, "... 3 3"]:
     """World-frame Euler axes h_1, h_2, h_3 (rows) of joints (the rows of H, Eq. 4), batched.
 
     The relative angular velocity of the child is ``sum_i h_i thetadot_i``:
@@ -163,7 +164,7 @@ def euler_axes(parent_rot: Float[Array, "... 3 3"], angles: Float[Array, "... 3"
 # it. Slices, products and sums of components fuse into a few loop kernels, tangents included.
 
 
-def dot(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, "..."]:
+def dot(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, ...]:
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import pathlib
 import tomllib
+from typing import NoReturn
 
 import numpy as np
 
@@ -44,6 +45,8 @@ def _is_number(x) -> bool:
 class Fields:
     """Typed getters over one table that name the field on error and reject unknown keys."""
 
+    used: set[str]  # the keys read so far
+
     def __init__(self, table, where: str, source: str):
         if not isinstance(table, dict):
             raise ConfigError(f"{source}: {where} must be a table")
@@ -52,10 +55,10 @@ class Fields:
     def name(self, key) -> str:
         return f"{self.where}.{key}" if self.where else key
 
-    def fail(self, key, msg):
+    def fail(self, key, msg) -> NoReturn:
         raise ConfigError(f"{self.source}: field '{self.name(key)}' {msg}")
 
-    def sub(self, key, default=None) -> "Fields":
+    def sub(self, key, default=None) -> Fields:
         """The sub-table ``key`` as its own reader."""
         return Fields(self.get(key, {} if default is None else default), self.name(key), self.source)
 

@@ -71,7 +71,7 @@ class _KeyView(Mapping):
     _optional: ClassVar[tuple[str, ...]] = ()
 
     def _keys(self) -> list[str]:
-        return [f.name for f in dataclasses.fields(self)
+        return [f.name for f in dataclasses.fields(self)  # type: ignore[arg-type]  # mixed into dataclasses
                 if not (f.name in self._optional and getattr(self, f.name) is None)]
 
     def __getitem__(self, key):
@@ -88,7 +88,7 @@ class _KeyView(Mapping):
     def __eq__(self, other):
         return isinstance(other, Mapping) and dict(self) == dict(other)
 
-    __hash__ = None
+    __hash__ = None  # type: ignore[assignment]  # unhashable, as the dict it replaces
 
 
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
@@ -105,7 +105,7 @@ class PerturbationSpec(_KeyView):
     shape: str = "half_sine"  # square | half_sine | triangle
 
     @classmethod
-    def of(cls, value) -> "PerturbationSpec":
+    def of(cls, value) -> PerturbationSpec:
         return value if isinstance(value, cls) else cls(**dict(value))
 
     def label(self, magnitude: float | None = None) -> str:
@@ -173,7 +173,7 @@ class BallSpec(_KeyView):
     target: str | None = None  # a body to aim at
 
     @classmethod
-    def of(cls, value) -> "BallSpec | None":
+    def of(cls, value) -> BallSpec | None:
         return value if value is None or isinstance(value, cls) else cls(**dict(value))
 
     @property
@@ -263,7 +263,7 @@ class SimulationConfig:
     def gains(self) -> GainSetting:
         return GainSetting(self.ks, self.kd)
 
-    def with_gains(self, ks: float | None = None, kd: float | None = None) -> "SimulationConfig":
+    def with_gains(self, ks: float | None = None, kd: float | None = None) -> SimulationConfig:
         """The config at other gains (None keeps a gain)."""
         return dataclasses.replace(self, ks=self.ks if ks is None else ks, kd=self.kd if kd is None else kd)
 
@@ -352,7 +352,8 @@ def reflex_grid(base: ReflexSpec, **axes) -> tuple[ReflexSpec, ...]:
     out = [dataclasses.replace(base, max_delay=max([base.max_delay, base.delay, base.long_latency_delay, *delays]))]
     for key, values in axes.items():
         if values is not None:
-            out = [dataclasses.replace(r, **{REFLEX_AXES[key]: float(v)}) for r in out for v in values]
+            out = [dataclasses.replace(r, **{REFLEX_AXES[key]: float(v)})  # type: ignore[arg-type]  # a float field
+                   for r in out for v in values]
     return tuple(out)
 
 

@@ -23,7 +23,7 @@ from neuromotor.errors import UserError
 
 def export_bvh(run_path, out_path) -> pathlib.Path:
     run = read_run(run_path, EXPORT_FIELDS)
-    units = str(run["source_units"])
+    units: str | float = str(run["source_units"])
     try:
         units = float(units)
     except ValueError:

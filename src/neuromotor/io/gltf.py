@@ -157,8 +157,8 @@ def load_gltf_run(run_path) -> GltfRun:
         raise UserError(f"{run_path}: field 'shape_vertices' is empty (the run has no body shapes to export)")
     up = int(d.get("up_axis", 1))
     B = d["body_pos"].shape[1]
-    names = d.get("body_names")
-    names = tuple(str(n) for n in names) if names is not None and names.shape == (B,) else \
+    given = d.get("body_names")
+    names = tuple(str(n) for n in given) if given is not None and given.shape == (B,) else \
         tuple(f"body{b}" for b in range(B))
     ball = d.get("ball_pos")
     return GltfRun(time=d["time"] - d["time"][0], names=names, vertices=np.asarray(d["shape_vertices"], float),
@@ -302,6 +302,7 @@ def _character(doc: _Doc, run: GltfRun, ghost: bool) -> dict:
 
 def _ball(doc: _Doc, run: GltfRun) -> int:
     """The ball's node (a UV sphere at its first position)."""
+    assert run.ball is not None  # called for runs with a ball
     verts, faces = uv_sphere(run.ball_radius)
     prim = {"attributes": {"POSITION": doc.buf.add(verts, FLOAT, ARRAY_BUFFER, bounds=True)},
             "indices": doc.buf.add(faces.reshape(-1), UINT, ELEMENT_ARRAY_BUFFER),

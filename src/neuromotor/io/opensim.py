@@ -96,7 +96,9 @@ def layout(model: Model) -> Layout:
     if len(model.joint_order[model.body_joint[0]]) != 3:
         raise UserError(f"root joint {model.joint_names[model.body_joint[0]]!r} needs 3 rotation channels "
                         "for an OpenSim model (its 6-coordinate joint to ground)")
-    coords, rotational, per_body = [], [], []
+    coords: list[str] = []
+    rotational: list[bool] = []
+    per_body: list[tuple[int, ...]] = []
     for b, k in enumerate(model.body_joint):
         start = len(coords)
         coords += [f"{bodies[b]}_{a}rotation" for a in model.joint_order[k]]
@@ -388,7 +390,7 @@ def write_idyn_storage(folder, character: Character, arrays: dict) -> dict[str, 
 
     folder, model = pathlib.Path(folder), character.model
     theta = np.asarray(arrays["theta"])[:, list(model.sim_dof_columns)]
-    root_rot = np.asarray(quat_to_matrix(np.asarray(arrays["root_quat"], dtype=np.float64)))
+    root_rot = np.asarray(quat_to_matrix(np.asarray(arrays["root_quat"], dtype=np.float64)))  # type: ignore[arg-type]  # numpy in: jnp converts it
     forces = coordinate_forces(model, root_rot, theta, arrays["joint_torque_world"], arrays["root_wrench"])
     return {
         "model": export_osim(character, folder / "model.osim"),
@@ -402,7 +404,7 @@ def root_pose_of_bodies(model: Model, body_pos, body_quat) -> tuple[np.ndarray, 
     """(root joint origin (T, 3), root rotation (T, 3, 3)) from body COM poses (T, B, 3/4)."""
     from neuromotor.rotations import quat_to_matrix
 
-    rot = np.asarray(quat_to_matrix(np.asarray(body_quat, dtype=np.float64)[:, 0]))
+    rot = np.asarray(quat_to_matrix(np.asarray(body_quat, dtype=np.float64)[:, 0]))  # type: ignore[arg-type]  # numpy in: jnp converts it
     origin = np.asarray(body_pos, dtype=np.float64)[:, 0] - rot @ np.asarray(model.com, np.float64)[0]
     return origin, rot
 

@@ -62,7 +62,7 @@ def save_npz_atomic(path, arrays: Mapping[str, np.ndarray]) -> pathlib.Path:
     """Write an .npz through a temporary file in the same folder, then rename."""
     path = pathlib.Path(path)
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
+        np.savez(fh, **arrays)  # type: ignore[arg-type]  # numpy stubs: ** may not fill allow_pickle
     return path
 
 

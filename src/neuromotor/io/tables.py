@@ -7,7 +7,8 @@ import csv
 import json
 import math
 import pathlib
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -21,7 +22,7 @@ INT_COLUMNS = {"run", "diverged_step"}
 def atomic_write(path, write: Callable, mode: str = "w") -> pathlib.Path:
     """Open a temporary file beside ``path`` (text or ``"wb"``), ``write(fh)``, rename it into place."""
     path = pathlib.Path(path)
-    with atomic_path(path) as tmp, open(tmp, mode, **({"newline": ""} if "b" not in mode else {})) as fh:
+    with atomic_path(path) as tmp, open(tmp, mode, newline="" if "b" not in mode else None) as fh:
         write(fh)
     return path
 

@@ -21,13 +21,13 @@ Lengths (OFFSETs, End Sites, position channels) are stored in metres: file value
 ``length_scale``. Rotation channels stay in degrees, as in the file. ``units`` is a key of
 :data:`neuromotor.model.units.UNIT_SCALES` (m, cm, mm, in, cmu = CMU's 1/0.45 inch, ft, dm), a positive float (metres per
 file unit) or ``"auto"``. Humanoid clips get their unit from the stature their long bones give
-(:func:`neuromotor.model.anatomy.prepare_clip`, which reads files with ``units=1.0``); this module's own
-``"auto"`` rule (:func:`neuromotor.model.units.auto_scale`), used for skeletons that are not humanoid: place the skeleton in its rest pose (all rotations zero, the root at
-the origin, i.e. the root OFFSET is ignored), take the diagonal of the bounding box of all joint and
-End Site positions as its size in file units, and choose among m, cm and mm the scale whose size in
-metres is closest to 1.8 m in log ratio (smallest ``|log(size * scale / 1.8)|``; ties go to the
-larger unit). A skeleton of zero size is taken to be in metres. Inches are never guessed: pass
-``units="in"``.
+(:func:`neuromotor.model.anatomy.prepare_clip`, which reads files with ``units=1.0``); this module's
+own ``"auto"`` rule (:func:`neuromotor.model.units.auto_scale`), used for skeletons that are not
+humanoid: place the skeleton in its rest pose (all rotations zero, the root at the origin, i.e. the
+root OFFSET is ignored), take the diagonal of the bounding box of all joint and End Site positions
+as its size in file units, and choose among m, cm and mm the scale whose size in metres is closest
+to 1.8 m in log ratio (smallest ``|log(size * scale / 1.8)|``; ties go to the larger unit). A
+skeleton of zero size is taken to be in metres. Inches are never guessed: pass ``units="in"``.
 
 Conventions (this module only stores data; kinematics live elsewhere)
 ---------------------------------------------------------------------
@@ -48,13 +48,16 @@ import dataclasses
 import math
 import os
 import re
-from typing import Callable, NoReturn
+from typing import NoReturn
+from collections.abc import Callable
 
 import numpy as np
 
 from neuromotor.atomic import atomic_path
 from neuromotor.errors import UserError
 from neuromotor.model.units import auto_scale, resolve_units
+
+_Fail = Callable[[int | None, str], NoReturn]  # raises a BvhError naming the line
 
 __all__ = [
     "BvhError",
@@ -95,6 +98,7 @@ def _channel_kinds(channels: tuple[str, ...]) -> list[tuple[str, str]]:
     out = []
     for name in channels:
         m = _CHANNEL_RE.match(name)
+        assert m is not None  # names checked by _parse_channels
         out.append((m.group(1).upper(), m.group(2).lower()))
     return out
 
@@ -493,7 +497,7 @@ def _close_block(block: _Block, nodes: list[_Node], fail: Callable[[int | None, 
             node.channels = ()
 
 
-def _parse_offset(args: list[str], lineno: int, fail) -> tuple[float, float, float]:
+def _parse_offset(args: list[str], lineno: int, fail: _Fail) -> tuple[float, float, float]:
     if len(args) != 3:
         fail(lineno, f"OFFSET needs 3 numbers, got {len(args)}")
     values = []
@@ -507,7 +511,7 @@ def _parse_offset(args: list[str], lineno: int, fail) -> tuple[float, float, flo
     return (values[0], values[1], values[2])
 
 
-def _parse_channels(args: list[str], lineno: int, fail) -> tuple[str, ...]:
+def _parse_channels(args: list[str], lineno: int, fail: _Fail) -> tuple[str, ...]:
     if not args:
         fail(lineno, "CHANNELS without a count")
     try:
@@ -530,7 +534,7 @@ def _last_text_line(lines: list[str]) -> int:
     return 1
 
 
-def _header_value(lines: list[str], index: int, pattern: re.Pattern, expected: str, fail) -> str:
+def _header_value(lines: list[str], index: int, pattern: re.Pattern, expected: str, fail: _Fail) -> str:
     """The value of a MOTION header line (``Frames: N``, ``Frame Time: t``), or a failure
     quoting the line."""
     m = pattern.match(lines[index].strip())
@@ -539,7 +543,7 @@ def _header_value(lines: list[str], index: int, pattern: re.Pattern, expected: s
     return m.group(1).strip()
 
 
-def _parse_frame_count(lines: list[str], index: int, fail) -> int:
+def _parse_frame_count(lines: list[str], index: int, fail: _Fail) -> int:
     value = _header_value(lines, index, _FRAMES_RE, "Frames: N", fail)
     try:
         n_frames = int(value)
@@ -550,7 +554,7 @@ def _parse_frame_count(lines: list[str], index: int, fail) -> int:
     return n_frames
 
 
-def _parse_frame_time(lines: list[str], index: int, fail) -> float:
+def _parse_frame_time(lines: list[str], index: int, fail: _Fail) -> float:
     value = _header_value(lines, index, _FRAME_TIME_RE, "Frame Time: t", fail)
     frame_time = _parse_float(value)
     if frame_time is None or not math.isfinite(frame_time):
@@ -641,7 +645,7 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
 
     lines = _split_lines(text)
     nodes, motion_index = _parse_hierarchy(lines, fail)
-    n_channels = sum(len(n.channels) for n in nodes)
+    n_channels = sum(len(n.channels or ()) for n in nodes)  # () once the block closed
     frame_time, motion, warnings = _parse_motion(lines, motion_index, n_channels, fail, path)
 
     offsets = np.array([n.offset for n in nodes], dtype=np.float64)
@@ -653,7 +657,8 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
     joints = []
     column = 0
     for node, end_site in zip(nodes, end_sites):
-        kinds = _channel_kinds(node.channels)
+        channels = node.channels or ()  # () once the block closed
+        kinds = _channel_kinds(channels)
         for i, (_, kind) in enumerate(kinds):
             if kind == "position":
                 motion[:, column + i] *= scale
@@ -661,12 +666,12 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
             name=node.name,
             parent=node.parent,
             offset=np.array(node.offset, dtype=np.float64) * scale,
-            channels=node.channels,
+            channels=channels,
             channel_start=column,
             end_site=None if end_site is None else end_site * scale,
             line=node.line,
         ))
-        column += len(node.channels)
+        column += len(channels)
     return BvhClip(path=path, joints=tuple(joints), frame_time=frame_time, motion=motion, length_scale=scale,
                    warnings=warnings)
 

@@ -68,7 +68,7 @@ def facing_from_skeleton(points, edges, up_axis: int = 1) -> np.ndarray:
         return unit(travel, other) if np.linalg.norm(travel) > 0.05 else other
     forward = unit(np.cross(lateral, up), other)
     toes = sum(horizontal(P[:, f] - P[:, parent[f]], up).mean(axis=0) for f in feet)
-    if abs(toes @ forward) > 0.2 * max(np.linalg.norm(toes), 1e-9) and np.linalg.norm(toes) > 0.02:
+    if abs(toes @ forward) > 0.2 * max(float(np.linalg.norm(toes)), 1e-9) and np.linalg.norm(toes) > 0.02:
         return forward if toes @ forward > 0 else -forward
     if abs(travel @ forward) > 0.05:
         return forward if travel @ forward > 0 else -forward

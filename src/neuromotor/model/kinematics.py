@@ -41,7 +41,7 @@ class Spline(eqx.Module):
     coeffs: Float[Array, "4 K D"]  # highest power first, per interval
 
     @classmethod
-    def fit(cls, times: np.ndarray, values: np.ndarray, bc_type: str = "not-a-knot") -> "Spline":
+    def fit(cls, times: np.ndarray, values: np.ndarray, bc_type: str = "not-a-knot") -> Spline:
         cs = CubicSpline(times, values, axis=0, bc_type=bc_type)
         dt = float(times[1] - times[0])
         return cls(jnp.asarray(float(times[0])), jnp.asarray(dt), jnp.asarray(cs.c))

@@ -127,7 +127,7 @@ class _Geometry:
         self.clip, self.anat = clip, anatomy
         self.seg = anatomy.segment
         self.n = len(clip.joints)
-        self.children = [[] for _ in range(self.n)]
+        self.children: list[list[int]] = [[] for _ in range(self.n)]
         for k, j in enumerate(clip.joints):
             if j.parent >= 0:
                 self.children[j.parent].append(k)
@@ -409,7 +409,7 @@ def _mass_targets(groups: dict[tuple[str, str], list[int]], sex: str, total: flo
             if key in groups:
                 target[key] = target.get(key, 0.0) + share
     # Unpaired limb labels (no side found) fall back to an even share of both sides.
-    for key, members in groups.items():
+    for key in groups:
         if key not in target:
             seg, side = key
             target[key] = fractions.get(seg, 0.0) * total * (2.0 if seg not in ("trunk", "head") else 1.0)
@@ -504,8 +504,9 @@ def _tree_span(clip: BvhClip, offsets, children) -> float:
     best, depth = 0.0, [0.0] * len(clip.joints)
     for j in reversed(range(len(clip.joints))):
         paths = [depth[c] + float(np.linalg.norm(offsets[c])) for c in children[j]]
-        if clip.joints[j].end_site is not None:
-            paths.append(float(np.linalg.norm(clip.joints[j].end_site)))
+        end_site = clip.joints[j].end_site
+        if end_site is not None:
+            paths.append(float(np.linalg.norm(end_site)))
         paths.sort(reverse=True)
         depth[j] = paths[0] if paths else 0.0
         if len(paths) >= 2:
@@ -518,7 +519,7 @@ def plan_generic(clip: BvhClip, offsets: np.ndarray, density: float = 1000.0,
                  rule: GenericShapes = GenericShapes()) -> BodyPlan:
     """Bodies of a non-humanoid skeleton by :class:`GenericShapes` at the given density."""
     joints, n = clip.joints, len(clip.joints)
-    children = [[] for _ in range(n)]
+    children: list[list[int]] = [[] for _ in range(n)]
     for k, j in enumerate(joints):
         if j.parent >= 0:
             children[j.parent].append(k)

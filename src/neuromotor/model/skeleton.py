@@ -84,7 +84,7 @@ class Model(eqx.Module):
     com: Float[Array, "B 3"]  # COM in the body (joint) frame
     joint_offset: Float[Array, "J 3"]  # joint origin in its parent joint's frame
     end_site_offset: Float[Array, "E 3"]
-    gravity: Float[Array, "3"]
+    gravity: Float[Array, 3]
 
     @property
     def n_bodies(self) -> int:
@@ -103,7 +103,7 @@ class Model(eqx.Module):
         return tuple(i for i, db in enumerate(self.dof_body) if db == b)
 
     @property
-    def topology(self) -> "Topology":
+    def topology(self) -> Topology:
         """Static index arrays of the joint and body trees (built once per skeleton shape)."""
         return topology_of(self)
 

@@ -103,7 +103,8 @@ def _levels(body_parent: tuple[int, ...], depth: np.ndarray) -> tuple[np.ndarray
 
 
 def _dof_columns(joint_parent: tuple[int, ...], joint_order: tuple[str, ...]) -> tuple[tuple[int, ...], ...]:
-    out, start = [], 0
+    out: list[tuple[int, ...]] = []
+    start = 0
     for k, order in enumerate(joint_order):
         if joint_parent[k] < 0:
             out.append(())
@@ -155,7 +156,8 @@ def _joint_tree(joint_parent, joint_order) -> dict:
 def build(body_parent: tuple[int, ...], dof_body: tuple[int, ...], body_orders: tuple[str, ...],
           joint_parent: tuple[int, ...], joint_order: tuple[str, ...]) -> Topology:
     """The :class:`Topology` of these static tuples (cached: one object per skeleton shape)."""
-    return Topology(body_parent=tuple(body_parent), dof_body=tuple(dof_body), **_body_tree(body_parent, dof_body, body_orders),
+    return Topology(body_parent=tuple(body_parent), dof_body=tuple(dof_body),
+                    **_body_tree(body_parent, dof_body, body_orders),
                     **_joint_tree(joint_parent, joint_order))
 
 

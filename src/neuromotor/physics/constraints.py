@@ -29,7 +29,7 @@ class PoseTargets(eqx.Module):
     """What post-stabilization projects onto: the driven root's pose and the driven joints'
     relative rotations, at one grid time."""
 
-    root_origin: Float[Array, "3"]
+    root_origin: Float[Array, 3]
     root_rot: Float[Array, "3 3"]
     rel_rot: Float[Array, "B 3 3"]  # each body's desired rotation in its parent's frame
 

@@ -118,7 +118,8 @@ def make_gains(
     per_dof = distal_inertia(model, q0, local_axes)
     # One value per joint: the mean over its three axes (a third of the trace for the rotation
     # law's orthonormal axes: the same for every Euler order).
-    inertia = per_joint_to_dofs(model, jnp.repeat(jnp.mean(dofs_to_per_joint(model, per_dof), -1, keepdims=True), 3, -1))
+    inertia = per_joint_to_dofs(model, jnp.repeat(jnp.mean(dofs_to_per_joint(model, per_dof), -1, keepdims=True),
+                                                  3, -1))
     rms = jnp.sqrt(jnp.mean(activation**2, axis=0))
     # A DOF that carries no load at all still gets feedback at a tiny reference torque.
     rms = jnp.maximum(rms, 1e-6 * jnp.max(rms))
@@ -183,12 +184,13 @@ def _feedback_magnitude(gains: Gains, activation):
     return jnp.maximum(gains.signal_dependence * activation, gains.floor)
 
 
-def reflex_torque(gains: Gains, history, h: float, axes, inp: "ControllerInputs"):
+def reflex_torque(gains: Gains, history, h: float, axes, inp: ControllerInputs):
     """The delayed reflex (:mod:`neuromotor.physics.reflex`), signal-dependent and scaled like
     the muscle feedback: ``(rho, r)``, the world torque ``rho_j = sum_i h_i r_i`` on each
     joint's child (``axes``: the world Euler axes h_i as columns) and the multipliers r_i per
     joint and DOF (N m along h_i)."""
     g = inp.gains(gains)
+    assert gains.reflex is not None  # called for gains with a reflex
     r = reflex_multipliers(gains.reflex, history, h, _feedback_magnitude(g, inp.activation), inp.scale, inp.tau,
                            inp.reference_torque, inp.active)
     return mv(axes, r), r

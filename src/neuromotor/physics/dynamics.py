@@ -120,7 +120,8 @@ class Reference(eqx.Module):
     local_axes: Float[Array, "S1 C 3 3"]  # axes h_i of each joint in its parent's frame (columns)
     rel_quat: Float[Array, "S1 C 4"]  # quaternion of each joint's desired rotation (rel_rot of its child)
     local_pinv: Float[Array, "S1 C 3 3"]  # P_L resolving a parent-frame error along the axes (control.JointAffine)
-    drive_omega: Float[Array, "S1 B 3"]  # driven joints' rates over the step that ends at t_k (parent frame at its start)
+    # driven joints' rates over the step that ends at t_k (parent frame at its start)
+    drive_omega: Float[Array, "S1 B 3"]
     kkt_residual: Float[Array, " S1"]  # relative residual of the feedforward's solve per step
     landing: Float[Array, " S1"]  # rotation (rad) the discrete inverse leaves per step (0: Eq. 3)
     # The discrete inverse's body velocities u_k ([linear, angular], world; None with Eq. 3):
@@ -140,7 +141,7 @@ class Reference(eqx.Module):
         return jnp.concatenate([h * w1[p], h * w1[c], (w1[c] - w1[p]) - (w0[c] - w0[p])], -1)
 
 
-def make_reference(model: Model, traj: Trajectory, t0: float, cfg: SimConfig) -> Reference:
+def make_reference(model: Model, traj: Trajectory, t0: float | Array, cfg: SimConfig) -> Reference:
     """Sample the mocap targets on the simulation grid of ``cfg`` (h, steps), with the feedforward
     of ``cfg.feedforward`` (the discrete inverse of ``cfg``'s step, or Eq. 3) and the joint axes
     of ``cfg.joint_law``."""
@@ -332,8 +333,8 @@ def delayed_reflex(sim: SimModel, gains: Gains, inputs: ControllerInputs, state:
     rot, omega = state.rot, state.omega
     rot_p = rot[topo.parent]
     axes = mm(rot_p, inputs.local_axes)
-    angle, rate = joint_errors(rot_p, rot[topo.child], omega[topo.parent], omega[topo.child], inputs.pinv(), inputs.rel_rot,
-                               inputs.rel_omega)
+    angle, rate = joint_errors(rot_p, rot[topo.child], omega[topo.parent], omega[topo.child], inputs.pinv(),
+                               inputs.rel_rot, inputs.rel_omega)
     history = push(history, angle, rate)
     return *reflex_torque(gains, history, sim.cfg.h, axes, inputs), history
 
@@ -368,6 +369,7 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
     applied, per_body, points = applied_forces(sim, params.pulses, k, state)
     reflex, history = None, None
     if params.gains.reflex is not None:
+        assert data.history is not None  # init_data gives a reflex its history
         torque, reflex, history = delayed_reflex(sim, params.gains, inputs, state, data.history)
         applied = applied.at[:, 3:].add(body_torques(model, torque))
     inertia = world_inertia(model, rot)

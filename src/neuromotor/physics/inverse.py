@@ -127,7 +127,7 @@ def inverse_dynamics(model: Model, traj: Trajectory, times: Float[Array, " T"],
     return InverseDynamics(times, tau, lam, axes, res)
 
 
-def idyn_arrays(model: Model, traj: Trajectory, times: np.ndarray) -> dict[str, np.ndarray]:
+def idyn_arrays(model: Model, traj: Trajectory, times: np.ndarray | Array) -> dict[str, np.ndarray]:
     """Everything ``neuromotor idyn`` writes (see the README's file contract)."""
     times = jnp.asarray(times)
     sol = inverse_dynamics(model, traj, times)

@@ -86,7 +86,8 @@ def _pulse(s, model, h: float, body_index) -> tuple:
 
 def replace_first(p: ForcePulses, first: ForcePulses) -> ForcePulses:
     """``p`` with pulse 0 replaced by the one pulse ``first`` (the pulse a sweep varies)."""
-    return ForcePulses(**{f.name: np.concatenate([np.asarray(getattr(first, f.name)), np.asarray(getattr(p, f.name))[1:]])
+    return ForcePulses(**{f.name: np.concatenate([np.asarray(getattr(first, f.name)),  # type: ignore[arg-type]
+                                                  np.asarray(getattr(p, f.name))[1:]])
                           for f in dataclasses.fields(p)})
 
 
@@ -112,7 +113,8 @@ def pulse_forces(p: ForcePulses, t) -> Float[Array, "P 3"]:
     return (p.magnitude * prof)[:, None] * p.direction
 
 
-def pulse_wrenches(p: ForcePulses, t, n_bodies: int, pos, rot, com) -> tuple[Float[Array, " 6B"], Float[Array, "B 3"], Float[Array, "P 3"]]:
+def pulse_wrenches(p: ForcePulses, t, n_bodies: int, pos, rot,
+                   com) -> tuple[Float[Array, " 6B"], Float[Array, "B 3"], Float[Array, "P 3"]]:
     """The pulses' wrenches at time t: as a generalized force (6B: each body's force and torque
     about its COM), the force on each body (B, 3), and the pulses' world points (P, 3)."""
     zeros = jnp.zeros((n_bodies, 6), pos.dtype)

@@ -41,7 +41,7 @@ def _runs(idx: np.ndarray) -> list[tuple[int, int, int]]:
                 out[-1] = [start, n + 1, 0]
                 continue
         out.append([i, 1, 1])
-    return [tuple(r) for r in out]
+    return [(a, b, c) for a, b, c in out]
 
 
 def _piece(x, start: int, n: int, step: int, axis: int):

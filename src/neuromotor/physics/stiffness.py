@@ -199,7 +199,9 @@ def reference_drift(model: Model, gains: Gains, inputs: ControllerInputs, quat, 
     r_p = quat_to_matrix(quat[topo.parent])
     t_ff = mv(r_p, mv(inputs.local_axes, gains.feedforward * inputs.tau * inputs.active))
     d = inputs.drift
-    return -(mv(jac[..., 0:3] + skew(t_ff), d[..., 0:3]) + mv(jac[..., 3:6], d[..., 3:6]) + mv(jac[..., 6:9], d[..., 6:9]))
+    assert d is not None  # reference_inputs sets it
+    return -(mv(jac[..., 0:3] + skew(t_ff), d[..., 0:3]) + mv(jac[..., 3:6], d[..., 3:6])
+             + mv(jac[..., 6:9], d[..., 6:9]))
 
 
 def gyro_blocks(model: Model, rot, omega):

@@ -138,7 +138,7 @@ def joint_levers(model: Model, rot) -> tuple[Float[Array, "C 3"], Float[Array, "
     return r_parent, r_child
 
 
-def root_lever(model: Model, rot) -> Float[Array, "3"]:
+def root_lever(model: Model, rot) -> Float[Array, 3]:
     """World vector from the root COM to the root joint's origin."""
     return -mv(rot[0], model.com[0])
 
@@ -208,7 +208,7 @@ def joint_angles_and_rates(model: Model, quat, omega, reference: Float[Array, " 
     w_rel = quat_rotate(quat_conj(q_p), static.take(omega, topo.child) - static.take(omega, topo.parent))
     ref = None if reference is None else dofs_to_per_joint(model, reference)
     theta, rates = jnp.zeros((2, model.n_bodies - 1, 3), quat.dtype)
-    for order, bodies, rows in topo.groups:  # usually one order per skeleton
+    for order, _bodies, rows in topo.groups:  # usually one order per skeleton
         whole = len(rows) == model.n_bodies - 1
         pick = (lambda x: x) if whole else (lambda x: static.take(x, rows))
         ang, rate = euler_angles_and_rates(quat_entries(pick(rel)), pick(w_rel), order,
@@ -276,7 +276,7 @@ def mass_blocks(model: Model, inertia: Float[Array, "B 3 3"]) -> Float[Array, "B
     return jnp.concatenate([jnp.concatenate([lin, z], -1), jnp.concatenate([z, inertia], -1)], -2)
 
 
-def embed_angular(x: Float[Array, "..."], axes: tuple[int, ...] = (-2, -1)) -> Float[Array, "..."]:
+def embed_angular(x: Float[Array, ...], axes: tuple[int, ...] = (-2, -1)) -> Float[Array, ...]:
     """Angular coordinates placed in the ``[linear, angular]`` layout of a body: every axis in
     ``axes`` (size 3) gets 3 zeros in front (3x3 blocks become 6x6, (..., 3) rows become 6)."""
     pad = [(0, 0)] * x.ndim

@@ -89,6 +89,7 @@ def ball_from_spec(spec, model: Model, traj, target: int | None = None) -> Ball:
                          restitution=spec["restitution"], friction=spec["friction"], launch=spec["launch"])
     direction = spec.get("direction")
     if _aims(spec):
+        assert target is not None, "a [ball] table that names a target needs its body index"
         direction = aim_ball(model, traj, spec["position"], spec["speed"], target, spec["launch"])
     return make_ball(spec["radius"], spec["mass"], spec["position"], speed=spec["speed"], direction=direction,
                      restitution=spec["restitution"], friction=spec["friction"], launch=spec["launch"])

@@ -86,9 +86,9 @@ def _setup(clip, seconds: float, solver: str, load=None):
     (units, up_axis, stature, options), as the command line's clip options give them."""
     character, traj = load_character(clip, **(load or {}))
     config = SimulationConfig(clip=None if clip is None else str(clip), duration=seconds,
-                              perturbations=[dict(DEFAULT_HIT, start=min(0.3, seconds / 2))])
+                              perturbations=[dict(DEFAULT_HIT, start=min(0.3, seconds / 2))])  # type: ignore[list-item]
     setup = prepare(config, character, traj)
-    return dataclasses.replace(setup, sim=dataclasses.replace(setup.sim, solver=solver))
+    return dataclasses.replace(setup, sim=dataclasses.replace(setup.sim, solver=solvers.Solver(solver)))
 
 
 def _stages(setup) -> dict:
@@ -105,8 +105,10 @@ def _stages(setup) -> dict:
 
     # Stand-ins for the K, D terms (the solve's cost does not depend on their values).
     if solver.tree_blocks:
-        stiff = StiffBlocks(jnp.zeros((n, 3)), jnp.broadcast_to(0.01 * jnp.eye(3), (n, 3, 3)),
-                            *[jnp.full((n - 1, 3, 3), 1e-3)] * 2, jnp.zeros((n, 3, 3)), *[jnp.zeros((n - 1, 3, 3))] * 2)
+        k_off, d_off = jnp.full((n - 1, 3, 3), 1e-3), jnp.zeros((n - 1, 3, 3))
+        stiff: StiffBlocks | DenseStiffness = StiffBlocks(
+            jnp.zeros((n, 3)), jnp.broadcast_to(0.01 * jnp.eye(3), (n, 3, 3)), k_off, k_off, jnp.zeros((n, 3, 3)),
+            d_off, d_off)
     else:
         stiff = DenseStiffness(jnp.zeros(6 * n), jnp.full((6 * n, 6 * n), 1e-3), jnp.zeros((6 * n, 6 * n)))
     nc = constraint_count(m, cfg.driven, cfg.free_root)
@@ -163,7 +165,8 @@ def batch_split(setup, size: int, repeats: int) -> dict:
     """The parts of a step (as in :func:`single`) and the whole step under ``vmap`` over
     ``size`` states of a rollout: wall microseconds per trajectory-step. In a batch the
     kernel count no longer dominates; this shows where the arithmetic and copies go."""
-    setup = dataclasses.replace(setup, sim=dataclasses.replace(setup.sim, solver=solvers.Solver(setup.sim.solver).batched()))
+    setup = dataclasses.replace(setup, sim=dataclasses.replace(setup.sim,
+                                                               solver=solvers.Solver(setup.sim.solver).batched()))
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
     run = compiler.jit(lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg))(m, g, p, ref)
     idx = np.arange(size) % cfg.n_steps
@@ -177,7 +180,7 @@ def batch_split(setup, size: int, repeats: int) -> dict:
         return out.state, out.info
 
     bodies = dict(_stages(setup), step=whole)
-    out = {"batch": size}
+    out: dict[str, float] = {"batch": size}
     for name, body in bodies.items():
         c, _ = _compile(lambda ks, states, ref: _reduce(jax.vmap(body, in_axes=(0, 0, None))(ks, states, ref)),
                         ks, states, ref)
@@ -242,7 +245,7 @@ def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str
     "float32"``; ``..._one_device`` for the unsplit twin)."""
     from neuromotor.studies.sweep.runner import AXIS, batch_mesh, shard_vmap
 
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    m, g, ref, cfg = setup.model, setup.gains, setup.ref, setup.sim
     out = []
     for size in sizes:
         mags = scaled_pulses(setup, np.linspace(0.5, 1.5, size))

@@ -147,7 +147,7 @@ def timed_rounds(progs: dict[str, Callable], rounds: int) -> dict[str, np.ndarra
     names = list(progs)
     for name in names:
         jax.block_until_ready(progs[name]())
-    times = {name: [] for name in names}
+    times: dict[str, list[float]] = {name: [] for name in names}
     for r in range(rounds):
         for name in names if r % 2 == 0 else names[::-1]:
             t = time.perf_counter()

@@ -94,7 +94,7 @@ CLIP_STEP = {"bandai_kick_22joint_6ch": 1.0 / 360.0}
 def clip_config(path, duration: float = 3.0) -> SimulationConfig:
     """The chest push on a clip, at the step the clip needs."""
     h = CLIP_STEP.get(pathlib.Path(path).stem, 1.0 / 120.0)
-    return SimulationConfig(clip=str(path), h=h, duration=duration, perturbations=[dict(CHEST_PUSH)],
+    return SimulationConfig(clip=str(path), h=h, duration=duration, perturbations=[dict(CHEST_PUSH)],  # type: ignore[list-item]  # specs made in __post_init__
                             source=pathlib.Path(path).stem)
 
 

@@ -85,7 +85,8 @@ def joint_quats(model_or_topology, quat: Float[Array, "... B 4"]) -> Float[Array
     return quat_mul(quat_conj(quat[..., topo.parent, :]), quat[..., topo.child, :])
 
 
-def joint_rates(model_or_topology, quat: Float[Array, "... B 4"], omega: Float[Array, "... B 3"]) -> Float[Array, "... C 3"]:
+def joint_rates(model_or_topology, quat: Float[Array, "... B 4"],
+                omega: Float[Array, "... B 3"]) -> Float[Array, "... C 3"]:
     """Each joint's relative angular velocity R_child^T (w_child - w_parent) (rad/s, in the
     child's frame, like :func:`rotation_vector`) from body quaternions and world angular velocities."""
     topo = _topology(model_or_topology)
@@ -106,7 +107,7 @@ def dof_selection(model, dofs) -> tuple[np.ndarray, np.ndarray]:
     return joint_rows(topo, bodies), mask
 
 
-def selected_deviation_deg(local_a, local_b, rows, mask) -> Float[Array, "..."]:
+def selected_deviation_deg(local_a, local_b, rows, mask) -> Float[Array, ...]:
     """d(t) (deg) over a selection of joints and axes (:func:`dof_selection`):
     ``sqrt(sum_j sum_axes mask (phi_j . e)^2 / R)``, phi_j the rotation vector between the two
     runs' local rotations of joint j. Whole joints give the geodesic RMS exactly; one axis per
@@ -137,7 +138,7 @@ def dof_joints(model_or_topology, dofs) -> tuple[int, ...]:
     return tuple(sorted({int(topo.dof_body[int(i)]) for i in dofs}))
 
 
-def geodesic_angle(q_a: Float[Array, "... 4"], q_b: Float[Array, "... 4"]) -> Float[Array, "..."]:
+def geodesic_angle(q_a: Float[Array, "... 4"], q_b: Float[Array, "... 4"]) -> Float[Array, ...]:
     """Angle (rad, in [0, pi]) of the rotation q_a^* q_b: ``2 atan2(|v|, |w|)`` of the relative
     quaternion (accurate at small and large angles, the same for q and -q). Its derivative at
     zero angle is taken as 0 (safe norm), so fits that start from identical runs stay finite."""
@@ -152,7 +153,7 @@ def rotation_vector(q_d: Float[Array, "... 4"], q: Float[Array, "... 4"]) -> Flo
     return quat_log(quat_mul(quat_conj(q_d), q))
 
 
-def rms_joint_angle_deg(local_a, local_b, rows=None) -> Float[Array, "..."]:
+def rms_joint_angle_deg(local_a, local_b, rows=None) -> Float[Array, ...]:
     """RMS over joints (the last axis but one; ``rows`` picks some) of the geodesic angle
     between two sets of local joint quaternions, degrees."""
     ang = geodesic_angle(local_a, local_b)

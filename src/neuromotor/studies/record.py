@@ -266,6 +266,7 @@ def _ball_record(setup: Setup) -> dict | None:
     cfg = setup.config
     if setup.ball is not None:
         b = setup.ball.ball
+        assert cfg.ball is not None  # the setup has a ball
         ball = {"config": dict(cfg.ball)}
         ball.update({f.name: _floats(getattr(b, f.name)) for f in dataclasses.fields(b)})
         return ball

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+from typing import Any
 
 import numpy as np
 
@@ -71,6 +72,7 @@ def compare_paths(cfg: SimulationConfig, character=None, traj=None) -> PathCompa
                                             "overshoot_deg", "final_error_deg", "unperturbed_rms_error_deg")},
                        "time_to_peak_s": m["time_of_peak_s"] - start, "peak_reflex_Nm": reflex,
                        "diverged": bool(m["diverged"])}
+    assert time is not None  # path_configs gives three configs
     return PathComparison(time, curves, table, start, configs)
 
 
@@ -116,6 +118,7 @@ def stability_grid(cfg: SimulationConfig, gains, delays, *, setup=None, chunk: i
     the config's ``[reflex]`` (default :class:`ReflexSpec`), muscle feedback at ``cfg``'s gains;
     one classified row per cell, gain outermost."""
     cfg = cfg if cfg.reflex is not None else dataclasses.replace(cfg, reflex=ReflexSpec())
+    assert cfg.reflex is not None
     spec = SweepSpec([cfg.perturbations[0].magnitude], [cfg.gains], chunk=chunk, inner_batch=inner_batch,
                      reflexes=reflex_grid(cfg.reflex, reflex_gain=list(gains), reflex_delay=list(delays)))
     result = simulate_grid(cfg, spec, setup or prepare(cfg), progress=progress)
@@ -160,17 +163,21 @@ def stability_from_config(path, output, figure=None, *, bound_deg: float = STABL
     from neuromotor.viz.reflex_plots import plot_stability_map
 
     cfg, spec = load_sweep_config(path)
+    out_dir = output or spec.output
+    if not out_dir:
+        raise ConfigError(f"{cfg.source}: field 'sweep.output' is needed when no output folder is given")
     rx = spec.reflexes or ()
     one_setting = len(spec.runs(cfg.perturbations[0])) == len(rx)  # one gain setting, one magnitude
     if len({r.gain for r in rx}) < 2 or len({r.delay for r in rx}) < 2 or not one_setting:
         raise ConfigError(f"{cfg.source}: field 'sweep': the stability map needs reflex_gain and reflex_delay lists "
                           "of two or more values each, one gain setting and one magnitude")
     setup = prepare(cfg)
-    sizes = dict(chunk=spec.chunk, inner_batch=inner_batch or spec.inner_batch, bound_deg=bound_deg, progress=progress)
+    sizes: dict[str, Any] = dict(chunk=spec.chunk, inner_batch=inner_batch or spec.inner_batch, bound_deg=bound_deg,
+                                 progress=progress)
     result = simulate_grid(cfg, spec, setup, inner_batch=sizes["inner_batch"], progress=progress)
     rows = [dict(r, feedback="delayed") for r in classified(result.rows, bound_deg)]
     implicit = implicit_reference(cfg, sorted({r.gain for r in rx}), **sizes)
-    out = pathlib.Path(output or spec.output)
+    out = pathlib.Path(out_dir)
     boundary = stability_boundary(rows)
     columns = (*with_reflex_columns(COLUMNS), "feedback", "stability")
     files = {"csv": tables.write_csv(rows + implicit, out / "stability.csv", columns),
@@ -178,6 +185,7 @@ def stability_from_config(path, output, figure=None, *, bound_deg: float = STABL
                  {"bound_deg": bound_deg, "muscle_ks": cfg.ks, "muscle_kd": cfg.kd, "boundary": boundary,
                   "implicit_unstable_gains": [r["reflex_gain"] for r in implicit if r["stability"] != "stable"]}))}
     hit = cfg.perturbations[0]
+    assert cfg.reflex is not None  # the config's reflex axes need a [reflex] table (config.parse)
     title = (f"{hit.label()} on {hit.body} at {hit.start:g} s; muscle feedback ks={cfg.ks:g}, "
              f"kd={cfg.kd:g} beside the delayed path (rate weight {cfg.reflex.rate_weight:g} s)")
     for key, target in (("plot", out / "stability.png"), ("figure", figure)):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -46,7 +46,7 @@ class Setup:
     config: SimulationConfig
     ball: BallSetup | None = None  # a [ball] config: the flying ball and its contacts
     warnings: tuple[str, ...] = ()  # the clip's (see Character.warnings) and the run's, one line each
-    window: "ActingWindow | None" = None  # where a perturbation can act (sweep axes are checked against it)
+    window: ActingWindow | None = None  # where a perturbation can act (sweep axes are checked against it)
 
     @property
     def model(self) -> Model:
@@ -122,12 +122,13 @@ class ActingWindow:
 
 def prepare(config: SimulationConfig, character: Character | None = None,
             traj: Trajectory | None = None) -> Setup:
-    if config.dtype is Precision.FLOAT64 and not jax.config.jax_enable_x64:
+    if config.dtype is Precision.FLOAT64 and not jax.config.jax_enable_x64:  # type: ignore[attr-defined]
         raise ConfigError(f"{config.source}: field 'sim.dtype' is float64 but JAX runs with x64 off "
                           "(JAX_ENABLE_X64 is set to false): unset it, or set [sim] dtype = \"float32\"")
     if character is None:
         character, traj = load_character(config.clip, config.units, config.up_axis, config.stature,
                                          config.mass_options())
+    assert traj is not None, "prepare: a character comes with its trajectory"
     model, clip = character.model, character.clip
     duration = clip.duration - config.start if config.duration is None else config.duration
     if config.start + duration > clip.duration + 1e-9:
@@ -138,13 +139,13 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     if n_steps < 1:
         raise ConfigError(f"{config.source}: sim.duration is shorter than one step")
     index = body_lookup(model, config.source, character)
-    driven = []
+    driven_list = []
     for name in config.driven_joints:
         b = index(name)
         if b == 0:
             raise ConfigError(f"{config.source}: sim.driven_joints: the root is always driven")
-        driven.append(b)
-    driven = tuple(sorted(driven))
+        driven_list.append(b)
+    driven = tuple(sorted(driven_list))
     window = ActingWindow(config.source, config.start, config.start + n_steps * config.h, config.h, clip.duration,
                           (0, *driven), index)
     for i, p in enumerate(config.perturbations):

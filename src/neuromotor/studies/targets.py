@@ -58,11 +58,15 @@ from __future__ import annotations
 import csv
 import dataclasses
 import pathlib
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from neuromotor.atomic import atomic_path
 from neuromotor.config import ConfigError
+
+if TYPE_CHECKING:
+    from neuromotor.model.bvh import BvhClip
 
 FEATURES = {
     "peak_deviation_deg": "largest deviation d(t) (deg)",
@@ -87,7 +91,7 @@ class TargetTable:
     source: str
     sd: np.ndarray | None = None  # corridor: standard deviation over subjects, same shape as values
     radians: bool = False  # angles already in radians whatever the config's angle_unit (BVH)
-    bvh: object | None = None  # BVH trial: the parsed file (file units), until match_trial puts it on the model
+    bvh: BvhClip | None = None  # BVH trial: the parsed file (file units), until match_trial puts it on the model
     not_fitted: str = ""  # BVH trial: the channels match_trial left out, one line for the fit's summary
     converted: str = ""  # BVH trial: the joints match_trial read in another Euler order, one line
 
@@ -166,11 +170,11 @@ def _read_csv(path, quantity) -> TargetTable:
     header = [h.strip() for h in rows[0]]
     if "time" not in header:
         _fail(src, "time", f"column is missing (header: {header})")
-    body = rows[1:]
-    if not body:
+    data = rows[1:]
+    if not data:
         raise ConfigError(f"{src}: CSV target has a header but no rows")
     try:
-        arr = np.array([[float(x) for x in r] for r in body], np.float64)
+        arr = np.array([[float(x) for x in r] for r in data], np.float64)
     except ValueError as e:
         raise ConfigError(f"{src}: non-numeric entry in CSV target: {e}") from None
     if arr.shape[1] != len(header):
@@ -321,7 +325,7 @@ def match_trial(table: TargetTable, character, h: float) -> TargetTable:
         elif len(t.rotation_order) == 3 and len(cj.rotation_order) == 3:
             reordered.append(f"{name} {t.rotation_order}->{cj.rotation_order}")
             rot = np.asarray(euler_to_matrix(raw, t.rotation_order))
-            ang = np.unwrap(np.asarray(matrix_to_euler(rot, cj.rotation_order, ref)), axis=0)
+            ang = np.unwrap(np.asarray(matrix_to_euler(rot, cj.rotation_order, ref)), axis=0)  # type: ignore[arg-type]  # numpy in: jnp converts it
         else:
             raise ConfigError(f"{where}: joint {name} rotates by {t.rotation_order} in the trial, "
                               f"{cj.rotation_order} in the clip")

@@ -62,7 +62,7 @@ def plot_fit(cal, ev_start, ev_fit, path, res=None, max_columns: int = 4) -> pat
     for c in range(n_cases):
         for j, col in enumerate(cols):
             ax = axes[c, j]
-            if not feats:
+            if tgt is not None:  # trajectory targets
                 ax.plot(t, scale * tgt[c, :, col], "k.", ms=3, label="target")
             ax.plot(t, scale * ev_fit.curves[c, :, col], "C0-", lw=1.6, label="fitted")
             ax.plot(t, scale * ev_start.curves[c, :, col], "C3--", lw=1.2, label="start")

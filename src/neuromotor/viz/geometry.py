@@ -11,6 +11,8 @@ import numpy as np
 
 from neuromotor.model.facing import unit
 
+_NO_OFFSET = np.zeros(3)  # default offset, shared: never written to
+
 
 def poly(points, faces, nverts):
     import pyvista as pv
@@ -192,7 +194,7 @@ class FigureGeometry:
         if len(scene.capsule_edges):
             self.capsules = SkeletonGeometry(scene.capsule_edges, scene.capsule_radii, scene.P.shape[1])
 
-    def update(self, k, which, offset=np.zeros(3)):
+    def update(self, k, which, offset=_NO_OFFSET):
         s = self.scene
         if self.bodies is not None:
             pos, rot = s.body_pose(k, which)

@@ -108,7 +108,9 @@ def _shape_part(d, order) -> dict:
     f = np.asarray(d["shape_faces"], int)
     owner = np.asarray(d["shape_body"], int)
     B = d["body_pos"].shape[1]
-    verts, index, ranges = [], [], []
+    verts: list[np.ndarray] = []
+    index: list[np.ndarray] = []
+    ranges: list[list[int]] = []
     for b in range(B):
         ids = np.flatnonzero(owner == b)
         faces = f[(owner[f] == b).all(axis=1)]   # a face spanning bodies has no one frame: left out

@@ -118,7 +118,7 @@ def plot_stability_map(rows: list[dict], path, *, criterion: str = "", paper: tu
         if y0:
             ax.axhline(0.5, color="white", lw=3)
         x = None if paper is None else _gain_position(gains, paper[0])
-        if x is not None:
+        if x is not None and paper is not None:
             delays = np.array(sorted({r["reflex_delay"] for r in rows}))
             y = 0.0 if y0 else float(np.interp(paper[1], delays, np.arange(len(delays))))
             ax.plot([x], [y], "*", color="white", mec="black", ms=17, clip_on=False, label=paper_label)

@@ -17,6 +17,8 @@ from neuromotor.viz.geometry import quat_matrices
 from neuromotor.viz.style import (DETAIL_RADIUS_M, FORCE_SCALE_N_PER_M, FORCE_VISIBLE_FRACTION, GROUND_COLORS,
                                   GROUND_TILE_M)
 
+_NO_OFFSET = np.zeros(3)  # default offset, shared: never written to
+
 
 def _on(mag):
     """Samples where a magnitude exceeds ``FORCE_VISIBLE_FRACTION`` of its peak."""
@@ -260,7 +262,7 @@ class Scene:
         lo = hi - 1
         return np.where(np.abs(t[lo] - times) <= np.abs(t[hi] - times), lo, hi)
 
-    def extent_points(self, k, which, offset=np.zeros(3)):
+    def extent_points(self, k, which, offset=_NO_OFFSET):
         """Points whose screen footprint must fit (up to ``pad``): the skeleton, the body shapes
         and the force arrow. (A ball is drawn but does not steer the framing: it may fly in from
         far away.)"""

@@ -66,7 +66,8 @@ def plot_sweep(rows: list[dict], path, title: str = "", xlabel: str | None = Non
                 ax.plot(m[bad], np.zeros(bad.sum()), "x", color="red", ms=7, clip_on=False,
                         transform=ax.get_xaxis_transform(), label="diverged" if ax is axes[0] else None)
     if xlabel is None:
-        xlabel = MAGNITUDE_LABELS.get(rows[0].get("kind") if rows else None, MAGNITUDE_LABELS["force"])
+        xlabel = MAGNITUDE_LABELS.get(rows[0].get("kind") if rows else None,  # type: ignore[arg-type]  # None: default
+                                      MAGNITUDE_LABELS["force"])
     axes[0].set(xlabel=xlabel, ylabel="peak deviation (deg)")
     axes[1].set(xlabel=xlabel, ylabel="recovery time (s)")
     axes[1].set_title("open triangle: not recovered by the window's end; red x: diverged", fontsize=7)
@@ -97,7 +98,8 @@ def plot_gains_map(rows: list[dict], path, fitted: tuple[float, float] | None = 
         mid = 0.5 * (lv[1:] + lv[:-1])
         return np.exp(np.concatenate([[2 * lv[0] - mid[0]], mid, [2 * lv[-1] - mid[-1]]]))
 
-    for ax, col, name in zip(axes, ("recovery_time_s", "peak_deviation_deg"), ("recovery time (s)", "peak deviation (deg)")):
+    for ax, col, name in zip(axes, ("recovery_time_s", "peak_deviation_deg"),
+                             ("recovery time (s)", "peak deviation (deg)")):
         z = np.full((len(kd), len(ks)), np.nan)
         bad = np.zeros_like(z, bool)
         late = np.zeros_like(z, bool)

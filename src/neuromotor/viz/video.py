@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -65,11 +66,11 @@ def _side_shift(scene: Scene, ks, gap=0.35):
 def _camera_track(scene: Scene, ks, shift, fps, aspect):
     """Focal point per frame (the pair's centre smoothed over about a second, at one height) and
     one parallel scale for the whole video."""
-    centres = []
+    boxes = []
     for k in ks:
         pts = np.concatenate([scene.extent_points(k, "perturbed"), scene.extent_points(k, "original") - shift])
-        centres.append(scene.box_centre(pts))
-    centres = np.asarray(centres)
+        boxes.append(scene.box_centre(pts))
+    centres = np.asarray(boxes)
     win = max(1, int(round(fps)))   # ~1 s box filter
     pad = np.pad(centres, ((win // 2, win // 2), (0, 0)), mode="edge")
     kernel = np.ones(win) / win
@@ -96,12 +97,12 @@ class _Actors:
     orig: FigureGeometry
     ghost: FigureGeometry | None
     arrow: ArrowGeometry
-    arrow_actor: object
-    ball: object
+    arrow_actor: Any  # pyvista objects
+    ball: Any  # pyvista objects
     ball_dirs: np.ndarray | None
-    ball_actor: object
-    clock: object
-    ftext: object
+    ball_actor: Any  # pyvista objects
+    clock: Any  # pyvista objects
+    ftext: Any  # pyvista objects
 
 
 def _add_actors(pl, scene: Scene, ghost: bool) -> _Actors:

@@ -64,7 +64,9 @@ def fit_capsules(character: Character) -> Capsules:
     ends = {k: np.asarray(model.end_site_offset[i]) for i, k in enumerate(model.end_site_joint)}
     body, caps = [], []
     for b, k in enumerate(model.body_joint):
-        verts = np.asarray(character.shapes[b].vertices, np.float64)
+        shape = character.shapes[b]
+        assert shape is not None, f"body {model.body_names[b]} has no polyhedron"
+        verts = np.asarray(shape.vertices, np.float64)
         mine = _body_capsules(model.body_names[b], verts, _bones(model, k, offsets, ends))
         body += [b] * len(mine)
         caps += mine

@@ -329,7 +329,7 @@ def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: Conta
     constraint forces of the contact-free solve."""
     model, h, k, state = sim.model, sim.cfg.h, data.k, data.state
     solver = solvers.get(sim.cfg.solver)
-    eq = equations_of_motion(sim, params, data, solver)
+    eq = equations_of_motion(sim, params, data, solver)  # type: ignore[arg-type]  # ContactData has Data's fields
     free = ball_free_motion(model, scene.ball, h, sim.ref.time[k], k, data.ball)
     frame = contact_frame(model, scene, state, data.ball)
     resp = responses(solver, eq, frame, scene.ball, free, state.v)

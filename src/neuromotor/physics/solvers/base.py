@@ -47,7 +47,7 @@ class Solver(str, enum.Enum):
     def __str__(self) -> str:
         return self.value
 
-    def batched(self) -> "Solver":
+    def batched(self) -> Solver:
         """The solver for many trajectories under ``vmap``: the null-space method's batched twin."""
         return Solver.BRANCH if self is Solver.NULLSPACE else self
 

@@ -32,10 +32,12 @@ and its parent (G = h D + h^2 K, angular blocks on the tree, as in ``stiffness.S
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+
 import numpy as np
 from jaxtyping import Array, Float
 
@@ -74,7 +76,7 @@ def _children(parent: np.ndarray, level: np.ndarray, level_up: np.ndarray):
 
 def _preorder(parent) -> np.ndarray:
     """Position of each body in a depth-first pre-order walk of the tree (children in index order)."""
-    children = [[] for _ in parent]
+    children: list[list[int]] = [[] for _ in parent]
     for b, p in enumerate(parent):
         if p >= 0:
             children[p].append(b)
@@ -152,7 +154,8 @@ def _level_paths(sch: Schedule, c_blocks, first, pivot, stiff) -> Paths:
             inner, up, down = map(at, stiff)
             row = row - inner - jnp.asarray(np.arange(d) < d - 1, up.dtype)[:, None, None] * up
             col = col - inner - down
-        rows.append(row), cols.append(col)
+        rows.append(row)
+        cols.append(col)
     return Paths(tuple(rows), tuple(cols))
 
 
@@ -225,7 +228,9 @@ def factor(sch: Schedule, paths: Paths) -> Factor:
         rk, ck = rows[d - 1], cols[d - 1]
         p_inv = inv3(rk[:, d - 1])
         x = mm(p_inv[:, None], rk[:, : d - 1])
-        pinv.append(p_inv), xs.append(x), used.append(ck)
+        pinv.append(p_inv)
+        xs.append(x)
+        used.append(ck)
         if d == 1:
             break
         # prod[k, a, b] = U[k, a] X[k, b] for ancestor slots a, b of k
@@ -245,7 +250,7 @@ def solve(sch: Schedule, fac: Factor, rhs: Float[Array, "B 3"]) -> Float[Array, 
     parent's own share applied, the rest carried up); back: each body's ancestors' u gathered
     from its parent's (one take per level)."""
     r = _by_level(sch, rhs)
-    z = [None] * sch.t_max
+    z: list[Any] = [None] * sch.t_max
     carry = None  # (w_d, d - 1, 3): pending H_ak z_k for the strict ancestors of level d
     for i, d in enumerate(range(sch.t_max, 0, -1)):  # forward: leaves first
         z[d - 1] = mv(fac.pinv[i], r[d - 1])
@@ -288,7 +293,8 @@ def matvec(sch: Schedule, paths: Paths, x: Float[Array, "B 3"]) -> Float[Array, 
     per_level = list(enumerate(sch.levels, 1))
     src = np.concatenate([sch.anc_at[lv, 1:d + 1].ravel() for d, lv in per_level]  # row blocks H[k, anc]
                          + [np.repeat(lv, d - 1) for d, lv in per_level])  # column blocks H[anc, k]
-    dst = np.concatenate([np.repeat(lv, d) for d, lv in per_level] + [sch.anc_at[lv, 1:d].ravel() for d, lv in per_level])
+    dst = np.concatenate([np.repeat(lv, d) for d, lv in per_level]
+                         + [sch.anc_at[lv, 1:d].ravel() for d, lv in per_level])
     blocks = jnp.concatenate([b.reshape(-1, 3, 3) for b in (*paths.row, *paths.col)])
     return jnp.tensordot(jnp.asarray(np.eye(len(sch.order))[dst].T, x.dtype), mv(blocks, _take(sch, x, src)), axes=1)
 

@@ -116,11 +116,11 @@ class Geometry(eqx.Module):
 
     com: Float[Array, "B 3"]  # c_i - c_0
     pivot: Float[Array, "B 3"]  # p_k - c_0: 0 for the root, the joint point for the others
-    r0: Float[Array, "3"]  # root COM -> root joint origin (the driven root's lever)
+    r0: Float[Array, 3]  # root COM -> root joint origin (the driven root's lever)
 
 
 def geometry(st: Structure, r_parent: Float[Array, "C 3"], r_child: Float[Array, "C 3"],
-             r0: Float[Array, "3"]) -> Geometry:
+             r0: Float[Array, 3]) -> Geometry:
     """COMs and pivots by chaining levers from the root: c_i = c_parent + r_parent - r_child."""
     zero = jnp.zeros((1, 3), r_parent.dtype)
     step = jnp.concatenate([zero, r_parent - r_child], 0)
@@ -252,7 +252,7 @@ def _split(st: Structure, h: Float[Array, "N N"], rhs: Float[Array, " N"], u_kno
     return _assemble(st, u_free, u_known)
 
 
-def known_velocities(st: Structure, r0: Float[Array, "3"], b: Float[Array, " nc"]) -> Float[Array, " K"]:
+def known_velocities(st: Structure, r0: Float[Array, 3], b: Float[Array, " nc"]) -> Float[Array, " K"]:
     """Known entries of u from the driven root's and driven joints' rows of b (``J v = b``)."""
     parts = []
     m0 = 0 if st.free_root else 6
@@ -333,8 +333,8 @@ def solve_reduced(st: Structure, geo: Geometry, red: Reduced, r: Float[Array, "B
 
 def _moments(st: Structure, geo: Geometry, mass, inertia_world):
     """``(C_k, a_k)`` of every body (:func:`branch.pivot_blocks`)."""
-    return branch.pivot_blocks(*branch.subtree_moments(st.anc.T, mass, inertia_world, geo.com, st.unrolled),
-                               geo.pivot)
+    m_sub, s_sub, j_sub = branch.subtree_moments(st.anc.T, mass, inertia_world, geo.com, st.unrolled)
+    return branch.pivot_blocks(m_sub, s_sub, j_sub, geo.pivot)
 
 
 def _stiff_subtrees(st: Structure, g_diag, g_up, g_down):
@@ -412,6 +412,7 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
     rhs = -project_forces(st, geo, mx)
     metric = projection_metric(st, geo, mass, inertia_world, tree)
     if metric.dense is None:
+        assert metric.paths is not None and metric.factor is not None  # the tree form
         w = branch.linear_solve(st.tree, metric.paths, metric.factor, rhs[3:].reshape(-1, 3), symmetric=True)
         u = jnp.concatenate([jnp.zeros(6, c.dtype), w[1:].reshape(-1)])
         return x_p + apply_basis(st, geo, u)
@@ -443,7 +444,8 @@ def kkt_residual(st: Structure, geo: Geometry, r_parent, r_child, f: Float[Array
         drv = np.array(st.driven)
         par = np.array([parent[d - 1] for d in st.driven])
         mu = lam[m0 + 3 * (n - 1):].reshape(-1, 3)
-        jt = jt + put(drv, jnp.concatenate([jnp.zeros_like(mu), mu], -1)) - put(par, jnp.concatenate([jnp.zeros_like(mu), mu], -1))
+        jt = (jt + put(drv, jnp.concatenate([jnp.zeros_like(mu), mu], -1))
+              - put(par, jnp.concatenate([jnp.zeros_like(mu), mu], -1)))
         rows.append((v[drv, 3:] - v[par, 3:]).reshape(-1))
     return (f - jt).reshape(-1), jnp.concatenate(rows) - b
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import pathlib
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,12 +21,15 @@ from neuromotor.studies.fit.problem import FitProblem, make_problem
 from neuromotor.studies.fit.result import FitError, FitResult
 from neuromotor.studies.fit.surrogate import exact_peak_acceleration
 
+if TYPE_CHECKING:
+    from neuromotor.studies.simulate import Setup
+
 
 @dataclasses.dataclass
 class Calibration:
     """A calibration ready to run: problem, target, weights, start and solver settings."""
 
-    setup: object  # neuromotor.studies.simulate.Setup
+    setup: Setup
     problem: FitProblem
     target: np.ndarray  # (m,) flat, as y(x)
     weights: np.ndarray  # (m,)

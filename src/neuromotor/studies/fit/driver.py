@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 import time as _time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

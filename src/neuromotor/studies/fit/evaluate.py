@@ -6,7 +6,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import time as _time
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -65,7 +65,7 @@ class ResponseEvaluator:
             self._cache.popitem(last=False)
         return ev
 
-    def with_problem(self, problem: FitProblem) -> "ResponseEvaluator":
+    def with_problem(self, problem: FitProblem) -> ResponseEvaluator:
         """A fresh cache over another problem of the same shapes (same compiled code)."""
         return ResponseEvaluator(problem, self.jacobian, self._size)
 

@@ -31,10 +31,11 @@ def with_values(gains: Gains, names: tuple[str, ...], values) -> Gains:
     """``gains`` with the named parameters set to ``values`` (traceable: fit, grad, vmap)."""
     for name, v in zip(names, values):
         if name in ("ks", "kd"):
-            gains = dataclasses.replace(gains, **{name: jnp.asarray(v, gains.ks.dtype)})
+            gains = dataclasses.replace(gains, **{name: jnp.asarray(v, gains.ks.dtype)})  # type: ignore[arg-type]
             continue
         path, leaf = _REFLEX[name]
         rx = gains.reflex
+        assert rx is not None  # a reflex parameter names a reflex
         part = dataclasses.replace(getattr(rx, path), **{leaf: jnp.asarray(v, gains.ks.dtype)})
         gains = dataclasses.replace(gains, reflex=dataclasses.replace(rx, **{path: part}))
     return gains

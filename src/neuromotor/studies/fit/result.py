@@ -13,7 +13,7 @@ class FitError(RuntimeError):
     """The fit failed (no convergence, diverged rollout, non-finite iterate); carries the result.
     Not a user error: ``neuromotor fit`` reports it with its own exit status (3)."""""
 
-    def __init__(self, message: str, result: "FitResult | None" = None):
+    def __init__(self, message: str, result: FitResult | None = None):
         super().__init__(message)
         self.result = result
 

@@ -4,7 +4,8 @@ jaxopt (Levenberg-Marquardt, L-BFGS), each stepped one iteration at a time from 
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -30,14 +31,16 @@ class GaussNewtonLineSearch(optx.AbstractGaussNewton):
     verbose: Callable
 
     def __init__(self, rtol: float, atol: float):
-        plain = optx.GaussNewton(rtol=rtol, atol=atol)
+        plain: optx.GaussNewton = optx.GaussNewton(rtol=rtol, atol=atol)
         self.rtol, self.atol, self.norm, self.verbose = rtol, atol, plain.norm, plain.verbose
         self.descent = optx.NewtonDescent()
         self.search = optx.BacktrackingArmijo()
 
 
 def _optimistix_loop(solver, fn, y0, f_struct, opts: SolverOptions, on_iter):
-    args, options, tags = None, {}, frozenset()
+    args = None
+    options: dict[str, Any] = {}
+    tags: frozenset[object] = frozenset()
     state = solver.init(fn, y0, args, options, f_struct, None, tags)
     dyn0, static = eqx.partition(state, eqx.is_array)
 
@@ -68,7 +71,7 @@ def _optimistix_loop(solver, fn, y0, f_struct, opts: SolverOptions, on_iter):
         message = "maximum number of steps reached"
     else:
         try:
-            message = str(optx.RESULTS[res])
+            message = str(optx.RESULTS[res])  # type: ignore[misc]  # an equinox Enumeration
         except Exception:  # the message lookup is an optimistix internal
             message = "optimistix reported a failure"
     return np.asarray(y), k, converged, message
@@ -100,7 +103,7 @@ def run_solver(name: str, residual: Callable, x0, m: int, opts: SolverOptions, o
     objective = lambda x: 0.5 * jnp.sum(residual(x) ** 2)
     if name in ("optimistix_lm", "optimistix_gn", "optimistix_bfgs"):
         if name == "optimistix_bfgs":
-            solver = optx.BFGS(rtol=opts.rtol, atol=opts.atol)
+            solver: optx.AbstractMinimiser | optx.AbstractLeastSquaresSolver = optx.BFGS(rtol=opts.rtol, atol=opts.atol)
             fn = lambda y, args: (objective(y), None)
             f_struct = jax.ShapeDtypeStruct((), jnp.float64)
         else:

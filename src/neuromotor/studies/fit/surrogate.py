@@ -3,6 +3,8 @@ counterparts. Every function is pure JAX and differentiable in the gains through
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,6 +12,9 @@ from jaxtyping import Array, Float
 
 from neuromotor.config.specs import Surrogate
 from neuromotor.studies import metrics as mx
+
+if TYPE_CHECKING:
+    from neuromotor.studies.fit.problem import ResponseSpec
 
 
 def deviation_deg(theta, theta_ref, dofs=None) -> Float[Array, " T"]:
@@ -97,7 +102,7 @@ def soft_recovery(time, dev, start, threshold, width: float):
     return jnp.sum(gate * (1.0 - never_again)) * dt
 
 
-def response_features(time, dev, start, spec: Surrogate, acc=None) -> dict:
+def response_features(time, dev, start, spec: Surrogate | ResponseSpec, acc=None) -> dict:
     """Smooth peak deviation, time to peak, recovery time and overshoot of a deviation signal
     (``spec``: a :class:`Surrogate` or a :class:`~neuromotor.studies.fit.problem.ResponseSpec`),
     and (given the acceleration signal ``acc`` of :func:`acceleration_deg`) its peak angular

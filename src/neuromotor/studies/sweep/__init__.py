@@ -78,7 +78,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 
@@ -125,8 +125,8 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
             raise
         except ValueError as e:
             raise ConfigError(f"{cfg.source}: field 'sweep.magnitudes': {e}") from None
-        sweeper = BallSweeper(model, setup.ref, setup.sim, setup.ball, setup.pulses, **sizes)
-        return run_ball_sweep(sweeper, setup, spec.magnitudes, spec.gains, balls=balls, keep_curves=keep_curves,
+        ball_sweeper = BallSweeper(model, setup.ref, setup.sim, setup.ball, setup.pulses, **sizes)
+        return run_ball_sweep(ball_sweeper, setup, spec.magnitudes, spec.gains, balls=balls, keep_curves=keep_curves,
                               progress=progress)
     index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'", setup.character)  # names or segment keywords
     hit = cfg.perturbations[0]
@@ -156,7 +156,7 @@ def write_outputs(cfg, spec: SweepSpec, result: SweepResult, out: pathlib.Path, 
     both vary, one reflex setting) and reflex_map.png (reflex gain and delay both vary, one
     gain setting and magnitude: :func:`neuromotor.viz.reflex_plots.plot_stability_map`)."""
     rows = [dict(r, dtype=str(cfg.dtype)) for r in result.rows]
-    columns = BALL_COLUMNS if spec.kind == "ball" else COLUMNS
+    columns: tuple[str, ...] = BALL_COLUMNS if spec.kind == "ball" else COLUMNS
     columns = with_reflex_columns(columns) if cfg.reflex is not None else columns
     files = {"csv": write_csv(rows, out / "sweep.csv", (*columns, "dtype"))}
     if len(spec.magnitudes) > 1:

@@ -4,7 +4,7 @@ against the same gains with the ball never launched."""
 from __future__ import annotations
 
 import functools
-from typing import Sequence
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax

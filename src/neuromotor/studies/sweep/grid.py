@@ -4,7 +4,8 @@ it) and force pulses per run, and the shared unperturbed twin of each distinct c
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
