@@ -179,7 +179,10 @@ class BallSpec(_KeyView):
     @property
     def launch_speed(self) -> float:
         """m/s: ``speed``, or the norm of ``velocity``."""
-        return float(self.speed) if self.velocity is None else float(sum(v * v for v in self.velocity) ** 0.5)
+        if self.velocity is not None:
+            return float(sum(v * v for v in self.velocity) ** 0.5)
+        assert self.speed is not None  # the parser requires velocity or speed
+        return float(self.speed)
 
     def label(self, speed: float | None = None) -> str:
         """How figures name it: "1 kg ball at 14 m/s"."""

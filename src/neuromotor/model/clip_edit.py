@@ -88,6 +88,7 @@ def _continuous_euler(order: str, R: np.ndarray, start: np.ndarray) -> np.ndarra
             d = float(np.abs(cand - prev).sum())
             if d < best_d:
                 best, best_d = cand, d
+        assert best is not None, "Euler angles are NaN"  # a finite candidate is always nearer than inf
         out[t] = prev = best
     return out
 

@@ -170,6 +170,7 @@ class _Tree:
         in_order = [self.match(x, y) for x, y in zip(ka, kb)]
         if all(m is not None for m in in_order):
             for m in in_order:
+                assert m is not None  # checked above
                 out.update(m)
             return out
         # Children listed in another order: greedy by length difference.
@@ -317,7 +318,7 @@ def _frame_rows(n_frames: int) -> np.ndarray:
 
 def _limb_pairs(tree: _Tree, pairs) -> list:
     """The first two sibling pairs (best matched first) that are disjoint: the limbs."""
-    limbs_pairs = []
+    limbs_pairs: list = []
     for entry in pairs:
         _, a, b, _ = entry
         if any(a == x or b == x or tree.is_below(a, x) or tree.is_below(b, x) or tree.is_below(x, a)
@@ -361,7 +362,7 @@ def _head_chain(tree: _Tree, pos, ends, arm_branch: int, limb_members: set, pair
             break
     if head0 is None:
         return []
-    paired = set()
+    paired: set[int] = set()
     for _, a, b, _ in pairs:
         paired.update((a, b))
     head_chain = [head0]
@@ -460,7 +461,7 @@ def _label_limbs(labels: _Labels, judge: _SideJudge, tree: _Tree, pos_ref, ends_
                 labels.side[x], labels.side[y] = sides
         else:
             labels.apply_pair(mapping, sides)
-        for member, limb, s in ((a, limb_pair[0], sides[0]), (b, limb_pair[1], sides[1])):
+        for limb, s in ((limb_pair[0], sides[0]), (limb_pair[1], sides[1])):
             _label_limb(tree, pos_ref, ends_ref, limb, kind, labels.segment)
             end = limb.hand if limb.hand is not None else (limb.groups[limb.upper + 1] or limb.groups[limb.upper])[-1]
             labels.chains[f"{kind}_{s}"] = tuple(limb.chain[:limb.chain.index(end) + 1])
