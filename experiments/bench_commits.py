@@ -67,7 +67,7 @@ def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | N
     dy = _module(pkg, "physics.dynamics", "dynamics")
     compiler = importlib.import_module(f"{pkg}.compiler")
     setup = bench._setup(None, seconds, solver)
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
     if jacobians is not None:
         cfg = dataclasses.replace(cfg, jacobians=jacobians)
     scales = jnp.linspace(0.5, 1.5, batch)
@@ -95,7 +95,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=15, help="timed calls of each version")
     ap.add_argument("--solver", default="nullspace", help="solver of the working tree")
     ap.add_argument("--rev-solver", default="nullspace", help="solver of REV (commits before 10bfa6f have no 'branch')")
-    ap.add_argument("--jacobians", default=None, help="SimConfig.jacobians of the working tree (closed_form, jacfwd)")
+    ap.add_argument("--jacobians", default=None, help="StepOptions.jacobians of the working tree (closed_form, jacfwd)")
     ap.add_argument("--seconds", type=float, default=1.0, help="simulated seconds per rollout (neuromotor bench's batches: 0.25)")
     ap.add_argument("--gain-jacobian", action="store_true", help="time jacfwd over (ks, kd) instead of the rollout")
     ap.add_argument("--rates", action="store_true", help="return the joint rates beside the angles")

@@ -51,21 +51,21 @@ def main(argv=None):
     setup = prepare(simulation_config(data, "<bench>"))
     model, bs = setup.model, setup.ball
     nopulse = _zero(setup.pulses)
-    dense = dataclasses.replace(setup.sim, solver="dense")
+    dense = dataclasses.replace(setup.options, solver="dense")
     # Same dtypes and weak types as the thrown ball, so all contact cases share one compile.
     resting = eqx.tree_at(lambda b: (b.position, b.speed, b.launch), bs.ball,
                           (bs.ball.position.at[:].set(jnp.array([2.0, float(bs.ball.radius), 0.0])),
                            jnp.zeros_like(bs.ball.speed), jnp.zeros_like(bs.ball.launch)))
     cases = {
         "dynamics step, null-space solver (no ball)": lambda: simulate_jit(model, setup.gains, nopulse, setup.ref,
-                                                                           setup.sim),
+                                                                           setup.options),
         "dynamics step, dense solver (no ball)": lambda: simulate_jit(model, setup.gains, nopulse, setup.ref, dense),
         "contact step, no active contact": lambda: ct.contact_rollout_jit(
-            model, setup.gains, nopulse, setup.ref, setup.sim, ct.never_launched(bs.ball), bs.capsules, bs.settings),
+            model, setup.gains, nopulse, setup.ref, setup.options, ct.never_launched(bs.ball), bs.capsules, bs.settings),
         "contact step, active contact every step": lambda: ct.contact_rollout_jit(
-            model, setup.gains, nopulse, setup.ref, setup.sim, resting, bs.capsules, bs.settings),
+            model, setup.gains, nopulse, setup.ref, setup.options, resting, bs.capsules, bs.settings),
         "contact step, ball hits the chest": lambda: ct.contact_rollout_jit(
-            model, setup.gains, nopulse, setup.ref, setup.sim, bs.ball, bs.capsules, bs.settings),
+            model, setup.gains, nopulse, setup.ref, setup.options, bs.ball, bs.capsules, bs.settings),
         "contact step, ball hits the chest, dense": lambda: ct.contact_rollout_jit(
             model, setup.gains, nopulse, setup.ref, dense, bs.ball, bs.capsules, bs.settings),
     }

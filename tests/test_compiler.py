@@ -29,9 +29,9 @@ def test_tuned_rollout_equals_default_build(short_hit):
     s = short_hit
     args = (s.model, s.gains, s.pulses, s.ref)
     # The module-level program (what `neuromotor simulate` runs) against XLA's default build.
-    tuned = simulate_jit.lower(*args, s.sim).compile()
+    tuned = simulate_jit.lower(*args, s.options).compile()
     # XLA's defaults restored explicitly: the suite's XLA_FLAGS (conftest) turn the emitters off.
-    default = jax.jit(lambda m, g, p, ref: rollout(m, g, p, ref, s.sim)).lower(*args).compile(
+    default = jax.jit(lambda m, g, p, ref: rollout(m, g, p, ref, s.options)).lower(*args).compile(
         compiler_options={"xla_cpu_use_fusion_emitters": True})
     # The options took effect: no small dot is handed to the YNNPACK library.
     assert "__ynn_fusion" not in tuned.as_text()

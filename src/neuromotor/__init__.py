@@ -65,7 +65,7 @@ _API = {
     "State": "neuromotor.physics.system",
     "Solver": "neuromotor.physics.solvers",
     "Precision": "neuromotor.physics.precision",
-    "SimConfig": "neuromotor.physics.dynamics",
+    "StepOptions": "neuromotor.physics.dynamics",
     "Feedforward": "neuromotor.physics.options",
     "JointLaw": "neuromotor.physics.options",
     "Reference": "neuromotor.physics.dynamics",

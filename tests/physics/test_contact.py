@@ -18,7 +18,7 @@ import pytest
 from neuromotor.physics import contact as ct
 from neuromotor.studies import ball as sb
 from neuromotor.config import ConfigError, SimulationConfig, simulation_config
-from neuromotor.physics.dynamics import SimConfig, SimulationDiverged
+from neuromotor.physics.dynamics import StepOptions, SimulationDiverged
 from neuromotor.rotations import quat_to_matrix, rotation_error
 from neuromotor.studies.simulate import body_lookup, load_character, prepare, run, run_arrays
 
@@ -65,7 +65,7 @@ BATCH = {  # name -> ball; all share one compiled, vmapped rollout on the tiny m
 @pytest.fixture(scope="module")
 def batch(tiny):
     setup, caps = tiny
-    out = ct.batched_contact_rollout(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim,
+    out = ct.batched_contact_rollout(setup.model, setup.gains, setup.pulses, setup.ref, setup.options,
                               _stack(list(BATCH.values())), caps, ct.ContactSettings())
     return {name: jax.tree_util.tree_map(lambda x, i=i: x[i], out) for i, name in enumerate(BATCH)}
 
@@ -170,7 +170,7 @@ def free_body(tiny):
     """Zero gravity, free-floating root: ball (0.5 kg, 6 m/s) hits the post below the arm."""
     setup, caps = tiny
     model = eqx.tree_at(lambda m: m.gravity, setup.model, jnp.zeros(3))
-    cfg = SimConfig(h=H, n_steps=40, free_root=True)
+    cfg = StepOptions(h=H, n_steps=40, free_root=True)
     ball = ct.make_ball(0.1, 0.5, (-1.0, 1.15, 0.05), velocity=(6.0, 0.0, 0.0), restitution=0.5, friction=0.4)
     settings = ct.ContactSettings(ground=False)
 
@@ -386,7 +386,7 @@ def test_tree_stiff_blocks_equal_dense_jacobians(tiny):
 
     setup, _ = tiny
     model, ref, k = setup.model, setup.ref, 10
-    inputs = reference_inputs(SimModel(model, ref, setup.sim), setup.gains, k)
+    inputs = reference_inputs(SimModel(model, ref, setup.options), setup.gains, k)
     rng = np.random.default_rng(0)
     from neuromotor.rotations import quat_exp, quat_mul
 
@@ -409,7 +409,7 @@ def test_contact_step_is_the_same_with_every_solver(tiny, batch, solver):
     import dataclasses
 
     setup, caps = tiny
-    cfg = dataclasses.replace(setup.sim, solver=solver)
+    cfg = dataclasses.replace(setup.options, solver=solver)
     out = ct.contact_rollout_jit(setup.model, setup.gains, setup.pulses, setup.ref, cfg, BATCH["hit"], caps,
                                  ct.ContactSettings())
     ref = batch["hit"]
@@ -426,7 +426,7 @@ def test_without_contact_the_character_follows_the_plain_step(tiny, batch):
     from neuromotor.studies.simulate import simulate_jit
 
     setup, _ = tiny
-    plain = simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim)
+    plain = simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, setup.options)
     out = batch["drop"]  # falls on the ground 3 m away from the post
     np.testing.assert_allclose(np.asarray(out.run.states.pos), np.asarray(plain.states.pos), atol=1e-10)
     np.testing.assert_allclose(np.asarray(out.run.states.omega), np.asarray(plain.states.omega), atol=1e-8)

@@ -224,10 +224,10 @@ class SimulationConfig:
     duration: float | None = None  # None: to the clip's end
     implicit: bool = True
     driven_joints: list[str] = dataclasses.field(default_factory=list)
-    stabilization_steps: int = 2  # Newton steps of post-stabilization (SimConfig.stabilization_steps)
+    stabilization_steps: int = 2  # Newton steps of post-stabilization (StepOptions.stabilization_steps)
     dtype: Precision = Precision.FLOAT64  # float64, or float32 for sweeps (docs/float32.md)
-    feedforward: Feedforward = Feedforward.DISCRETE  # SimConfig.feedforward: discrete | continuous (Eq. 3)
-    joint_law: JointLaw = JointLaw.ROTATION  # SimConfig.joint_law: rotation | euler (per Euler DOF)
+    feedforward: Feedforward = Feedforward.DISCRETE  # StepOptions.feedforward: discrete | continuous (Eq. 3)
+    joint_law: JointLaw = JointLaw.ROTATION  # StepOptions.joint_law: rotation | euler (per Euler DOF)
     metric: str = "geodesic"  # the deviation d(t): geodesic joint angles, or "euler" (per-DOF; studies.metrics)
     ks: float = DEFAULT_KS
     kd: float = DEFAULT_KD

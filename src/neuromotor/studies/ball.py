@@ -138,9 +138,9 @@ def ball_rollouts(setup, base_pulses, check: bool = True) -> tuple[ContactRollou
     """Perturbed (the ball flies) and unperturbed (the ball never launched, ``base_pulses``:
     the config's pulses switched off) contact rollouts, with the same compiled function."""
     bs, model = setup.ball, setup.model
-    pert = contact_rollout_jit(model, setup.gains, setup.pulses, setup.ref, setup.sim, bs.ball, bs.capsules,
+    pert = contact_rollout_jit(model, setup.gains, setup.pulses, setup.ref, setup.options, bs.ball, bs.capsules,
                                bs.settings)
-    base = contact_rollout_jit(model, setup.gains, base_pulses, setup.ref, setup.sim, never_launched(bs.ball),
+    base = contact_rollout_jit(model, setup.gains, base_pulses, setup.ref, setup.options, never_launched(bs.ball),
                                bs.capsules, bs.settings)
     if check:
         check_contact_rollout(model, base)
@@ -176,7 +176,7 @@ def ball_arrays(setup, result) -> dict[str, np.ndarray]:
         "ball_vel": np.asarray(out.ball.vel),
         "ball_radius": np.asarray(float(bs.ball.radius)),
         "contact_impulse": impulse,
-        "contact_force": impulse / setup.sim.h,
+        "contact_force": impulse / setup.options.h,
         "contact_normal_impulse": np.asarray(c.normal_impulse),
         "contact_point": points,
         "contact_gap": np.asarray(c.gap),
@@ -196,7 +196,7 @@ def sweep_ball_speed(setup, speeds) -> dict[str, np.ndarray]:
     speeds = jnp.asarray(speeds, jnp.float64)
     balls = jax.vmap(lambda s: eqx.tree_at(lambda b: b.speed, bs.ball, s))(speeds)
     balls = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), balls, never_launched(bs.ball))
-    batch = batched_contact_rollout(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim, balls,
+    batch = batched_contact_rollout(setup.model, setup.gains, setup.pulses, setup.ref, setup.options, balls,
                                     bs.capsules, bs.settings)
     if setup.config.metric == "euler":
         theta = batch.run.theta

@@ -310,7 +310,7 @@ def provenance(setup: Setup) -> dict:
     options, ball, delayed reflex)."""
     from neuromotor import __version__
 
-    cfg, sim = setup.config, setup.sim
+    cfg, sim = setup.config, setup.options
     return {
         "neuromotor_version": __version__,
         "jax_version": jax.__version__,

@@ -25,7 +25,7 @@ from neuromotor.studies import metrics as mx
 from neuromotor.config import ConfigError, SimulationConfig
 from neuromotor.config.specs import onset
 from neuromotor.physics.control import Gains, make_gains
-from neuromotor.physics.dynamics import (Feedforward, Reference, Rollout, SimConfig, check_rollout, make_reference,
+from neuromotor.physics.dynamics import (Feedforward, Reference, Rollout, StepOptions, check_rollout, make_reference,
                                         rollout)
 from neuromotor.model.kinematics import Trajectory, trajectory_from_clip
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
@@ -61,7 +61,7 @@ class Setup:
     traj: Trajectory
     ref: Reference
     gains: Gains
-    sim: SimConfig
+    options: StepOptions
     pulses: ForcePulses
     config: SimulationConfig
     ball: BallSetup | None = None  # a [ball] config: the flying ball and its contacts
@@ -172,7 +172,7 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     if config.ball is not None and float(config.ball.get("launch", 0.0)) >= window.t1 - 1e-9:
         raise ConfigError(f"{config.source}: field 'ball.launch' = {float(config.ball['launch']):g} s is at "
                           f"or after the end of {window.text}")
-    sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit,
+    sim = StepOptions(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit,
                     stabilization_steps=config.stabilization_steps, dtype=config.dtype,
                     feedforward=config.feedforward, joint_law=config.joint_law)
     ref = make_reference(model, traj, config.start, sim)
@@ -213,8 +213,8 @@ def run(setup: Setup, check: bool = True) -> RunResult:
         pert, base = ball_rollouts(setup, _zero(setup.pulses), check)
         return RunResult(pert.run, base.run, run_metrics(setup, pert.run, base.run) | ball_metrics(pert), pert)
     model = setup.model
-    pert = simulate_jit(model, setup.gains, setup.pulses, setup.ref, setup.sim)
-    base = simulate_jit(model, setup.gains, _zero(setup.pulses), setup.ref, setup.sim)
+    pert = simulate_jit(model, setup.gains, setup.pulses, setup.ref, setup.options)
+    base = simulate_jit(model, setup.gains, _zero(setup.pulses), setup.ref, setup.options)
     if check:
         check_rollout(model, base)
         check_rollout(model, pert)

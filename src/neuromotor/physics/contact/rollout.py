@@ -14,7 +14,7 @@ from neuromotor.physics.contact.detection import ContactSettings
 from neuromotor.physics.contact.shapes import Capsules
 from neuromotor.physics.contact.step import ContactInfo, ContactScene, contact_step, initial_contact_data
 from neuromotor.physics.control import Gains
-from neuromotor.physics.dynamics import (Params, Reference, Rollout, SimConfig, SimModel, SimulationDiverged,
+from neuromotor.physics.dynamics import (Params, Reference, Rollout, StepOptions, SimModel, SimulationDiverged,
                                          init_data, rollout_of, scan_steps)
 from neuromotor.physics.perturbation import ForcePulses, no_pulses
 from neuromotor.physics.precision import cast
@@ -29,7 +29,7 @@ class ContactRollout(eqx.Module):
 
 
 def contact_rollout(model: Model, gains: Gains, pulses: ForcePulses | None, ref: Reference,
-                    cfg: SimConfig, ball: Ball, caps: Capsules, settings: ContactSettings) -> ContactRollout:
+                    cfg: StepOptions, ball: Ball, caps: Capsules, settings: ContactSettings) -> ContactRollout:
     """``cfg.n_steps`` steps of :func:`~neuromotor.physics.contact.step.contact_step` in one ``lax.scan``."""
     sim = SimModel(model, ref, cfg)
     params = Params(gains, no_pulses() if pulses is None else pulses)

@@ -121,7 +121,7 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
             raise
         except ValueError as e:
             raise ConfigError(f"{cfg.source}: field 'sweep.magnitudes': {e}") from None
-        sweeper = BallSweeper(model, setup.ref, setup.sim, setup.ball, setup.pulses, **sizes)
+        sweeper = BallSweeper(model, setup.ref, setup.options, setup.ball, setup.pulses, **sizes)
         return run_ball_sweep(sweeper, setup, spec.magnitudes, spec.gains, balls=balls, keep_curves=keep_curves,
                               progress=progress)
     index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'", setup.character)  # names or segment keywords
@@ -131,7 +131,7 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
         setup.window.check(dataclasses.replace(hit, body=b), f"sweep.bodies[{i}]", "perturbation[0].start")
     for i, t in enumerate(spec.starts or []):
         setup.window.check(dataclasses.replace(hit, start=float(t)), "perturbation[0].body", f"sweep.starts[{i}]")
-    sweeper = Sweeper(model, setup.ref, setup.sim, **sizes)
+    sweeper = Sweeper(model, setup.ref, setup.options, **sizes)
     return run_sweep(sweeper, setup.gains, setup.pulses, spec.runs(hit, cfg.perturbations[1:]), index, model.body_names,
                      keep_curves=keep_curves, progress=progress)
 

@@ -19,7 +19,7 @@ from neuromotor.config.specs import GainSetting
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import contact as ct
 from neuromotor.physics.control import Gains
-from neuromotor.physics.dynamics import Reference, SimConfig
+from neuromotor.physics.dynamics import Reference, StepOptions
 from neuromotor.physics.perturbation import ForcePulses
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.gains import apply_gains
@@ -51,7 +51,7 @@ class BallSweeper(Sweeper):
     """:class:`Sweeper` of contact rollouts: runs are (gains, ball) pairs, the capsules, contact
     settings and (empty) force pulses are shared by all of them."""
 
-    def __init__(self, model: Model, ref: Reference, sim: SimConfig, ball_setup,
+    def __init__(self, model: Model, ref: Reference, sim: StepOptions, ball_setup,
                  pulses: ForcePulses, **kw):
         self.capsules, self.settings, self.pulses = ball_setup.capsules, ball_setup.settings, pulses
         super().__init__(model, ref, sim, **kw)
@@ -65,7 +65,7 @@ class BallSweeper(Sweeper):
 
     def _one(self, shared, run: BallBatch) -> BallRunOut:
         model = eqx.combine(shared[0], self.model_static)
-        r = ct.contact_rollout(model, run.gains, self.pulses, shared[1], self.sim, run.ball, self.capsules,
+        r = ct.contact_rollout(model, run.gains, self.pulses, shared[1], self.options, run.ball, self.capsules,
                                self.settings)
         bodies = ct.candidate_bodies(self.capsules, self.settings)
         on_char = bodies >= 0  # not the ground
