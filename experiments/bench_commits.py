@@ -67,11 +67,14 @@ def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | N
     dy = _module(pkg, "physics.dynamics", "dynamics")
     compiler = importlib.import_module(f"{pkg}.compiler")
     setup = bench._setup(None, seconds, solver)
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
+    # The step's options: Setup.options (issue 36), Setup.sim before it.
+    options = getattr(setup, "options", None) or getattr(setup, "sim")
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, options
     if jacobians is not None:
         cfg = dataclasses.replace(cfg, jacobians=jacobians)
     scales = jnp.linspace(0.5, 1.5, batch)
-    set_gains = _module(pkg, "studies.gains").set_gains
+    gains_mod = _module(pkg, "studies.gains")  # gains_for (issue 36), set_gains before it
+    set_gains = getattr(gains_mod, "set_gains", None) or (lambda g, ks, kd: gains_mod.gains_for(g, ks=ks, kd=kd))
 
     def many(scales, g, ref):
         def one(s, g):

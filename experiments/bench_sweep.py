@@ -79,14 +79,14 @@ def main(argv=None) -> int:
         batch = batch_of(args.loop_runs)
         t0 = time.perf_counter()
         p0 = dataclasses.replace(setup.pulses, magnitude=batch.pulses.magnitude[0])
-        jax.block_until_ready(simulate_jit(setup.model, setup.gains, p0, setup.ref, setup.options).theta)
+        jax.block_until_ready(simulate_jit(setup.sim_model, dataclasses.replace(setup.params, pulses=p0)).theta)
         t1 = time.perf_counter()
         per_run = math.inf
         for _ in range(args.repeat):
             t2 = time.perf_counter()
             for i in range(args.loop_runs):
                 p = dataclasses.replace(setup.pulses, magnitude=batch.pulses.magnitude[i])
-                jax.block_until_ready(simulate_jit(setup.model, setup.gains, p, setup.ref, setup.options).theta)
+                jax.block_until_ready(simulate_jit(setup.sim_model, dataclasses.replace(setup.params, pulses=p)).theta)
             per_run = min(per_run, (time.perf_counter() - t2) / args.loop_runs)
         print(f"{'loop':<6} {args.loop_runs:>6} {t1 - t0 - per_run:>10.1f} {per_run * args.loop_runs:>9.3f} "
               f"{sim_s / per_run:>15.2f} {1e3 * per_run:>11.1f}", flush=True)

@@ -86,7 +86,7 @@ _API = {
     "run": "neuromotor.studies.simulate",
     "Setup": "neuromotor.studies.simulate",
     "RunResult": "neuromotor.studies.simulate",
-    "set_gains": "neuromotor.studies.gains",
+    "gains_for": "neuromotor.studies.gains",
     "recovery_metrics": "neuromotor.studies.metrics",
     "load_calibration": "neuromotor.studies.fit",
     "calibrate": "neuromotor.studies.fit",

@@ -55,13 +55,14 @@ def test_one_step_from_the_capture_lands_on_the_next_capture_state(case):
     solver = case.pop("solver", "nullspace")
     cfg = SimulationConfig(start=0.4, duration=0.25, **case)
     setup = prepare(cfg)
-    setup.options = dataclasses.replace(setup.options, solver=solver)
-    setup.ref = dy.make_reference(setup.model, setup.traj, cfg.start, setup.options)
+    options = dataclasses.replace(setup.options, solver=solver)
+    ref = dy.make_reference(setup.model, setup.traj, cfg.start, options)
+    setup = dataclasses.replace(setup, options=options, ref=ref)
     ref = setup.ref
     assert float(jnp.max(ref.landing)) < 1e-13 and float(jnp.max(ref.kkt_residual)) < 1e-12
     pos, quat = capture_poses(setup)
     sim = dy.SimModel(setup.model, ref, setup.options)
-    params = dy.Params(setup.gains, _zero(setup.pulses))
+    params = dy.dy.Params(setup.gains, _zero(setup.pulses))
     u = ref.velocity
     n = setup.options.n_steps
 
@@ -121,7 +122,7 @@ def _write(tmp_path, name, text):
 
 def _replay_error(path, **kw):
     setup = prepare(SimulationConfig(clip=path, **kw))
-    base = simulate_jit(setup.model, setup.gains, _zero(setup.pulses), setup.ref, setup.options)
+    base = simulate_jit(setup.sim_model, dy.Params(setup.gains, _zero(setup.pulses)))
     assert int(base.diverged_step) < 0
     return joint_geodesic_deg(setup.model, base.states.quat, setup.ref.rel_quat[: base.time.shape[0]]), setup
 
@@ -166,8 +167,8 @@ def test_push_response_does_not_depend_on_the_euler_order(tmp_path):
         for path in (str(default_clip_path()), other):
             setup = prepare(SimulationConfig(clip=path, start=0.3, duration=1.2, joint_law=law,
                                              perturbations=[dict(PUSH)]))
-            pert = simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, setup.options)
-            base = simulate_jit(setup.model, setup.gains, _zero(setup.pulses), setup.ref, setup.options)
+            pert = simulate_jit(setup.sim_model, setup.params)
+            base = simulate_jit(setup.sim_model, dy.Params(setup.gains, _zero(setup.pulses)))
             topo = setup.model.topology
             rel = lambda q: quat_mul(quat_conj(q[:, topo.parent]), q[:, topo.child])
             curves[law, path] = joint_geodesic_deg(setup.model, pert.states.quat, rel(base.states.quat))

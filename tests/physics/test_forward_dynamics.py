@@ -11,7 +11,7 @@ from conftest import CLIPS
 from neuromotor.studies import metrics as mx
 from neuromotor.config import DEFAULT_HIT, ConfigError, SimulationConfig, simulation_config
 from neuromotor.physics.control import dof_errors
-from neuromotor.physics.dynamics import SimulationDiverged, check_rollout, rollout
+from neuromotor.physics.dynamics import Params, SimModel, SimulationDiverged, check_rollout, rollout
 from neuromotor.rotations import euler_to_matrix, matrix_to_euler
 from neuromotor.studies.simulate import load_character, prepare, run, simulate_jit
 
@@ -51,7 +51,7 @@ def test_one_newton_step_of_post_stabilization(bank, hit_setup, hit_result):
     cfg = SimulationConfig(duration=2.0, perturbations=[hit()], stabilization_steps=1)
     one = prepare(cfg, *bank)
     assert one.options.stabilization_steps == 1 and hit_setup.options.stabilization_steps == 2
-    r1 = check_rollout(one.model, simulate_jit(one.model, one.gains, one.pulses, one.ref, one.options))
+    r1 = check_rollout(one.model, simulate_jit(one.sim_model, one.params))
     r2 = hit_result.perturbed
     v1 = np.asarray(r1.violation)
     # Drift after the position update is ~1e-4 m; one Newton step squares it away.
@@ -65,7 +65,7 @@ def test_one_newton_step_of_post_stabilization(bank, hit_setup, hit_result):
 def test_unperturbed_replay_tracks_whole_clip(name):
     character, traj = load_character(CLIPS[name])
     setup = prepare(SimulationConfig(), character, traj)  # whole clip, h = 1/120, default gains
-    r = check_rollout(setup.model, simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, setup.options))
+    r = check_rollout(setup.model, simulate_jit(setup.sim_model, setup.params))
     err = mx.rms_error_deg(r.theta, setup.ref.theta)
     assert err < 2.0, err
     # Over the first 3 s (issue 14's replay bounds, the window tests/studies/test_every_clip.py uses for the
@@ -111,8 +111,8 @@ def test_larger_pulses_give_larger_peaks(hit_setup):
         return r.theta
 
     thetas = jax.jit(jax.vmap(peak))(mags)  # one vmapped call over magnitudes
-    base = simulate_jit(s.model, s.gains, dataclasses.replace(s.pulses, magnitude=s.pulses.magnitude * 0),
-                        s.ref, s.options).theta
+    base = simulate_jit(s.sim_model, Params(s.gains, dataclasses.replace(s.pulses, magnitude=s.pulses.magnitude * 0)))
+    base = base.theta
     peaks = [float(mx.deviation(t, base).max()) for t in thetas]
     assert peaks[0] < peaks[1] < peaks[2], peaks
 
@@ -120,9 +120,9 @@ def test_larger_pulses_give_larger_peaks(hit_setup):
 def test_linearly_implicit_survives_where_explicit_diverges(bank):
     character, traj = bank
     setup = prepare(SimulationConfig(h=1.0 / 30.0, duration=2.0), character, traj)
-    implicit = simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, setup.options)
+    implicit = simulate_jit(setup.sim_model, setup.params)
     explicit_cfg = dataclasses.replace(setup.options, implicit=False)
-    explicit = simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, explicit_cfg)
+    explicit = simulate_jit(SimModel(setup.model, setup.ref, explicit_cfg), setup.params)
     assert int(implicit.diverged_step) == -1
     assert mx.rms_error_deg(implicit.theta, setup.ref.theta) < 5.0
     assert int(explicit.diverged_step) >= 0

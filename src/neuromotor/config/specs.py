@@ -176,7 +176,7 @@ class BallSpec(_KeyView):
 @dataclasses.dataclass(frozen=True)
 class GainSetting:
     """One controller: the paper's model ("neuromotor") or the high-gain PD tracker ("pd") at
-    the gains (ks, kd). The one way gains are set: :func:`neuromotor.studies.gains.apply_gains`."""
+    the gains (ks, kd). The one way gains are set: :func:`neuromotor.studies.gains.gains_for`."""
 
     ks: float
     kd: float
@@ -251,7 +251,8 @@ class SimulationConfig:
         return GainSetting(self.ks, self.kd)
 
     def with_gains(self, ks: float | None = None, kd: float | None = None) -> "SimulationConfig":
-        """The config at other gains (None keeps a gain)."""
+        """The config at other gains (None keeps a gain): numbers only; ``prepare`` puts them on the
+        controller through :func:`neuromotor.studies.gains.gains_for`."""
         return dataclasses.replace(self, ks=self.ks if ks is None else ks, kd=self.kd if kd is None else kd)
 
     def mass_options(self):

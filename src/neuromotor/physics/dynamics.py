@@ -30,8 +30,11 @@ Eq. 2, KKT assembly and solve (by the chosen :class:`Solver`), integration, post
 Every solver gives the same step (tests check agreement to round-off) and records the relative
 residual of the whole of Eq. 2 and the constraint violation left after post-stabilization.
 
-The rollout is one ``lax.scan`` of :func:`step`; divergence is recorded in the carry (first bad
-step and body) and raised on the host by :func:`check_rollout`. Joint angles and rates are
+The rollout, ``simulate(sim, params) -> Rollout``, is one ``lax.scan`` of :func:`step`: the one
+way to run (the studies, fits, sweeps and experiments call it; the contact rollout scans its
+own step the same way; :func:`rollout` is a thin convenience for users over the separate
+pieces). Divergence is recorded in the carry (first bad step and body) and raised on the host
+by :func:`check_rollout`. Joint angles and rates are
 computed after the scan for all states at once.
 """
 
@@ -511,9 +514,10 @@ def simulate(sim: SimModel, params: Params) -> Rollout:
     return rollout_of(sim, data0, *scan_steps(sim, params, data0))
 
 
-def rollout(model: Model, gains: Gains, pulses: ForcePulses | None, ref: Reference, cfg: StepOptions) -> Rollout:
-    """Simulate ``cfg.n_steps`` steps from the reference's initial state (see :func:`simulate`)."""
-    return simulate(SimModel(model, ref, cfg), Params(gains, no_pulses() if pulses is None else pulses))
+def rollout(model: Model, gains: Gains, pulses: ForcePulses | None, ref: Reference, options: StepOptions) -> Rollout:
+    """A convenience for users: ``simulate(SimModel(model, ref, options), Params(gains, pulses))``
+    (``pulses`` None: none). The package itself calls :func:`simulate`, the one way to run."""
+    return simulate(SimModel(model, ref, options), Params(gains, no_pulses() if pulses is None else pulses))
 
 
 def check_rollout(model: Model, run: Rollout) -> Rollout:

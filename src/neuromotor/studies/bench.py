@@ -130,7 +130,7 @@ def single(setup, repeats: int) -> tuple[dict, object]:
     """One trajectory: speed, compile time and the split of a step; and the compiled rollout
     (a zero-argument callable, for the interleaved comparison with MuJoCo)."""
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
-    run_fn = lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg)
+    run_fn = lambda m, g, p, ref: dy.simulate(dy.SimModel(m, ref, cfg), dy.Params(g, p))
     comp, compile_s = _compile(run_fn, m, g, p, ref)
     run = comp(m, g, p, ref)
     total = _best(lambda: comp(m, g, p, ref), repeats)
@@ -163,9 +163,10 @@ def batch_split(setup, size: int, repeats: int) -> dict:
     """The parts of a step (as in :func:`single`) and the whole step under ``vmap`` over
     ``size`` states of a rollout: wall microseconds per trajectory-step. In a batch the
     kernel count no longer dominates; this shows where the arithmetic and copies go."""
-    setup = dataclasses.replace(setup, options=dataclasses.replace(setup.options, solver=solvers.Solver(setup.options.solver).batched()))
+    batched = dataclasses.replace(setup.options, solver=solvers.Solver(setup.options.solver).batched())
+    setup = dataclasses.replace(setup, options=batched)
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
-    run = compiler.jit(lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg))(m, g, p, ref)
+    run = compiler.jit(lambda m, g, p, ref: dy.simulate(dy.SimModel(m, ref, cfg), dy.Params(g, p)))(m, g, p, ref)
     idx = np.arange(size) % cfg.n_steps
     states = jax.tree_util.tree_map(lambda x: x[idx], run.states)
     ks = jnp.asarray(idx)
@@ -198,7 +199,7 @@ def _interleaved(runs: dict, repeats: int) -> dict[str, float]:
 def compiler_options_ab(setup, repeats: int) -> dict:
     """The rollout compiled with :data:`compiler.CPU_COMPILER_OPTIONS` and with XLA's defaults."""
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
-    fn = lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg)
+    fn = lambda m, g, p, ref: dy.simulate(dy.SimModel(m, ref, cfg), dy.Params(g, p))
     progs = {"tuned": jax.jit(fn).lower(m, g, p, ref).compile(compiler_options=dict(compiler.CPU_COMPILER_OPTIONS)),
              "default": jax.jit(fn).lower(m, g, p, ref).compile()}
     diff = float(jnp.max(jnp.abs(progs["tuned"](m, g, p, ref).theta - progs["default"](m, g, p, ref).theta)))
@@ -215,7 +216,8 @@ def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
     progs = {}
     for n in steps:
         c = dataclasses.replace(cfg, stabilization_steps=n)
-        progs[n] = compiler.jit(lambda m, g, p, ref, c=c: dy.rollout(m, g, p, ref, c)).lower(m, g, p, ref).compile()
+        run_n = lambda m, g, p, ref, c=c: dy.simulate(dy.SimModel(m, ref, c), dy.Params(g, p))
+        progs[n] = compiler.jit(run_n).lower(m, g, p, ref).compile()
     runs = {n: progs[n](m, g, p, ref) for n in steps}
     best = _interleaved({k: (lambda c=c: c(m, g, p, ref)) for k, c in progs.items()}, repeats)
     last = runs[steps[-1]]
@@ -248,7 +250,8 @@ def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str
         mags = scaled_pulses(setup, np.linspace(0.5, 1.5, size))
         cfg = dataclasses.replace(setup.options, solver=solvers.Solver(setup.options.solver).batched() if size > 1
                                   else setup.options.solver, dtype=dtype)
-        one = lambda pulses, shared, cfg=cfg: dy.rollout(m, shared[0], pulses, shared[1], cfg).theta
+        one = lambda pulses, shared, cfg=cfg: dy.simulate(dy.SimModel(m, shared[1], cfg),
+                                                          dy.Params(shared[0], pulses)).theta
         meshes = {"": batch_mesh(size, cfg) if size > 1 else None}
         if meshes[""] is not None:
             meshes["_one_device"] = None
@@ -276,12 +279,12 @@ def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str
 def gain_jacobian(setup, repeats: int, programs: dict | None = None) -> dict:
     """jacfwd over (ks, kd) through the rollout, against the rollout alone. ``programs`` (a dict)
     receives both compiled programs as zero-argument callables (``jacfwd``, ``jacfwd_rollout``)."""
-    from neuromotor.studies.gains import set_gains
+    from neuromotor.studies.gains import gains_for
 
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
 
     def theta(x, g, ref):
-        return dy.rollout(m, set_gains(g, x[0], x[1]), p, ref, cfg).theta
+        return dy.simulate(dy.SimModel(m, ref, cfg), dy.Params(gains_for(g, ks=x[0], kd=x[1]), p)).theta
 
     x = jnp.stack([g.ks, g.kd])
     fwd, c1 = _compile(theta, x, g, ref)

@@ -17,9 +17,10 @@ from neuromotor.config.specs import FEATURE_NAMES, TARGET_KINDS as KINDS, Surrog
 from neuromotor.errors import ConfigError
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.control import Gains
-from neuromotor.physics.dynamics import Reference, Rollout, StepOptions, rollout
+from neuromotor.physics.dynamics import Params, Reference, Rollout, SimModel, StepOptions, simulate
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
 from neuromotor.studies.fit import parameters as fp
+from neuromotor.studies.gains import gains_for
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.fit.surrogate import (acceleration_deg, deviation_deg, joint_acceleration_deg,
                                               response_features)
@@ -79,12 +80,13 @@ class FitProblem(eqx.Module):
 
     def gains_at(self, x: Float[Array, " p"]) -> Gains:
         """The controller with the fitted parameters at exp(x), the others as in ``gains``."""
-        return fp.with_values(self.gains, self.names, jnp.exp(x))
+        return gains_for(self.gains, **dict(zip(self.names, jnp.exp(x))))
 
     def rollouts(self, x: Float[Array, " p"]) -> Rollout:
         """Every case's rollout at parameters exp(x), one vmap over the case axis."""
         gains = self.gains_at(x)
-        return jax.vmap(lambda p: rollout(self.model, gains, p, self.ref, self.options))(self.pulses)
+        sim = SimModel(self.model, self.ref, self.options)
+        return jax.vmap(lambda p: simulate(sim, Params(gains, p)))(self.pulses)
 
     def outputs(self, x: Float[Array, " p"]) -> tuple[Float[Array, " m"], Float[Array, "C T c"], Int[Array, " R"]]:
         """Model output y (flat), the curves to plot per case, and each run's diverged step.

@@ -87,7 +87,7 @@ from neuromotor.config.specs import CONTROLLERS, GainSetting, SweepSpec
 from neuromotor.errors import ConfigError
 from neuromotor.io import tables
 from neuromotor.io.tables import read_csv
-from neuromotor.studies.gains import apply_gains as gains_for
+from neuromotor.studies.gains import gains_for
 from neuromotor.studies.sweep.ball import BallBatch, BallRunOut, BallSweeper, run_ball_sweep
 from neuromotor.studies.sweep.grid import (
     BALL_COLUMNS, COLUMNS, METRIC_KEYS, REFLEX_COLUMNS, RunBatch, RunOut, build_batch, gain_keys, with_reflex_columns,
