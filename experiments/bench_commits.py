@@ -68,7 +68,7 @@ def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | N
     compiler = importlib.import_module(f"{pkg}.compiler")
     setup = bench._setup(None, seconds, solver)
     # The step's options: Setup.options (issue 36), Setup.sim before it.
-    options = getattr(setup, "options", None) or getattr(setup, "sim")
+    options = setup.options if hasattr(setup, "options") else setup.sim  # Setup.sim before issue 36
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, options
     if jacobians is not None:
         cfg = dataclasses.replace(cfg, jacobians=jacobians)

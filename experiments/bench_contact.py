@@ -34,8 +34,8 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from neuromotor.physics import contact as ct  # noqa: E402
 from neuromotor.config import simulation_config  # noqa: E402
+from neuromotor.physics import contact as ct  # noqa: E402
 from neuromotor.physics.dynamics import Params, SimModel  # noqa: E402
 from neuromotor.studies.simulate import _zero, prepare, simulate_jit  # noqa: E402
 

@@ -27,7 +27,7 @@ RULES = [
     (re.compile(r"\bSimConfig\b"), "StepOptions"),
     (re.compile(r"\bsim\.cfg\b"), "sim.options"),
     (re.compile(rf"\b({HOLDERS})\.sim\b(?!\w)"), r"\1.options"),
-    (re.compile(r"^    (sim|cfg): (SimConfig|StepOptions)\b", re.M), r"    options: StepOptions"),  # class fields
+    (re.compile(r"^    (sim|cfg): (SimConfig|StepOptions)\b", re.MULTILINE), r"    options: StepOptions"),  # class fields
     (re.compile(r"(replace\(\w+), sim="), r"\1, options="),
 ]
 SKIP = {pathlib.Path(__file__).resolve()}
