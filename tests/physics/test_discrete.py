@@ -62,7 +62,7 @@ def test_one_step_from_the_capture_lands_on_the_next_capture_state(case):
     assert float(jnp.max(ref.landing)) < 1e-13 and float(jnp.max(ref.kkt_residual)) < 1e-12
     pos, quat = capture_poses(setup)
     sim = dy.SimModel(setup.model, ref, setup.options)
-    params = dy.dy.Params(setup.gains, _zero(setup.pulses))
+    params = dy.Params(setup.gains, _zero(setup.pulses))
     u = ref.velocity
     n = setup.options.n_steps
 
