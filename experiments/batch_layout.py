@@ -49,7 +49,7 @@ def main(argv=None) -> int:
     from neuromotor.studies import bench
 
     setup = bench._setup(None, 0.25, "branch")
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
     scales = jnp.linspace(0.5, 1.5, args.batch)
     params_of = lambda s: dy.Params(g, eqx.tree_at(lambda q: q.magnitude, p, p.magnitude * s))
 
@@ -59,16 +59,16 @@ def main(argv=None) -> int:
 
     def system_metric_step(sim, params, data):
         """dy.step with each Newton step ``dx_p + S w``, ``(S^T A S) w = -S^T A dx_p`` from Eq. 2's factor."""
-        solver = solvers.get(sim.cfg.solver)
+        solver = solvers.get(sim.options.solver)
         eq = dy.equations_of_motion(sim, params, data, solver)
         v_new, aux = solver.solve(eq.system, eq.r, eq.b)
         lam, residual = solver.multipliers(eq.system, eq.r, eq.b, v_new, aux)
         st, red, targets = eq.system.st, eq.system.reduced, sim.ref.pose_targets(data.k + 1)
-        pos, quat = retract(data.state.pos, data.state.quat, sim.cfg.h * v_new)
-        for i in range(sim.cfg.stabilization_steps + 1):
+        pos, quat = retract(data.state.pos, data.state.quat, sim.options.h * v_new)
+        for i in range(sim.options.stabilization_steps + 1):
             rot = quat_to_matrix(quat)
-            c = cs.full_constraint_error(m, sim.cfg.driven, pos, rot, targets, sim.cfg.free_root)
-            if i == sim.cfg.stabilization_steps:  # the last error is the violation left
+            c = cs.full_constraint_error(m, sim.options.driven, pos, rot, targets, sim.options.free_root)
+            if i == sim.options.stabilization_steps:  # the last error is the violation left
                 break
             geo = ns.geometry(st, *joint_levers(m, rot), root_lever(m, rot))
             x_p = ns.particular_correction(st, geo, c)
@@ -76,7 +76,7 @@ def main(argv=None) -> int:
             w = branch.linear_solve(st.tree, red.paths, red.factor, rhs[3:].reshape(-1, 3))
             pos, quat = retract(pos, quat, x_p + ns.apply_basis(st, geo, jnp.concatenate([jnp.zeros(6, c.dtype),
                                                                                           w[1:].reshape(-1)])))
-        info = dy.StepInfo(residual, jnp.max(jnp.abs(c)), eq.force, eq.points, lam / sim.cfg.h, eq.reflex)
+        info = dy.StepInfo(residual, jnp.max(jnp.abs(c)), eq.force, eq.points, lam / sim.options.h, eq.reflex)
         return dy.Data(data.k + 1, dy.State(pos, quat, v_new[:, :3], v_new[:, 3:]), info, eq.history)
 
     def system_metric(scales, ref):

@@ -67,11 +67,14 @@ def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | N
     dy = _module(pkg, "physics.dynamics", "dynamics")
     compiler = importlib.import_module(f"{pkg}.compiler")
     setup = bench._setup(None, seconds, solver)
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    # The step's options: Setup.options (issue 36), Setup.sim before it.
+    options = setup.options if hasattr(setup, "options") else setup.sim  # Setup.sim before issue 36
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, options
     if jacobians is not None:
         cfg = dataclasses.replace(cfg, jacobians=jacobians)
     scales = jnp.linspace(0.5, 1.5, batch)
-    set_gains = _module(pkg, "studies.gains").set_gains
+    gains_mod = _module(pkg, "studies.gains")  # gains_for (issue 36), set_gains before it
+    set_gains = getattr(gains_mod, "set_gains", None) or (lambda g, ks, kd: gains_mod.gains_for(g, ks=ks, kd=kd))
 
     def many(scales, g, ref):
         def one(s, g):
@@ -95,7 +98,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=15, help="timed calls of each version")
     ap.add_argument("--solver", default="nullspace", help="solver of the working tree")
     ap.add_argument("--rev-solver", default="nullspace", help="solver of REV (commits before 10bfa6f have no 'branch')")
-    ap.add_argument("--jacobians", default=None, help="SimConfig.jacobians of the working tree (closed_form, jacfwd)")
+    ap.add_argument("--jacobians", default=None, help="StepOptions.jacobians of the working tree (closed_form, jacfwd)")
     ap.add_argument("--seconds", type=float, default=1.0, help="simulated seconds per rollout (neuromotor bench's batches: 0.25)")
     ap.add_argument("--gain-jacobian", action="store_true", help="time jacfwd over (ks, kd) instead of the rollout")
     ap.add_argument("--rates", action="store_true", help="return the joint rates beside the angles")

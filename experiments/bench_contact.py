@@ -34,8 +34,9 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from neuromotor.physics import contact as ct  # noqa: E402
 from neuromotor.config import simulation_config  # noqa: E402
+from neuromotor.physics import contact as ct  # noqa: E402
+from neuromotor.physics.dynamics import Params, SimModel  # noqa: E402
 from neuromotor.studies.simulate import _zero, prepare, simulate_jit  # noqa: E402
 
 
@@ -51,23 +52,20 @@ def main(argv=None):
     setup = prepare(simulation_config(data, "<bench>"))
     model, bs = setup.model, setup.ball
     nopulse = _zero(setup.pulses)
-    dense = dataclasses.replace(setup.sim, solver="dense")
+    dense = dataclasses.replace(setup.options, solver="dense")
     # Same dtypes and weak types as the thrown ball, so all contact cases share one compile.
     resting = eqx.tree_at(lambda b: (b.position, b.speed, b.launch), bs.ball,
                           (bs.ball.position.at[:].set(jnp.array([2.0, float(bs.ball.radius), 0.0])),
                            jnp.zeros_like(bs.ball.speed), jnp.zeros_like(bs.ball.launch)))
+    sim, sim_dense, params = setup.sim_model, SimModel(model, setup.ref, dense), Params(setup.gains, nopulse)
     cases = {
-        "dynamics step, null-space solver (no ball)": lambda: simulate_jit(model, setup.gains, nopulse, setup.ref,
-                                                                           setup.sim),
-        "dynamics step, dense solver (no ball)": lambda: simulate_jit(model, setup.gains, nopulse, setup.ref, dense),
-        "contact step, no active contact": lambda: ct.contact_rollout_jit(
-            model, setup.gains, nopulse, setup.ref, setup.sim, ct.never_launched(bs.ball), bs.capsules, bs.settings),
-        "contact step, active contact every step": lambda: ct.contact_rollout_jit(
-            model, setup.gains, nopulse, setup.ref, setup.sim, resting, bs.capsules, bs.settings),
-        "contact step, ball hits the chest": lambda: ct.contact_rollout_jit(
-            model, setup.gains, nopulse, setup.ref, setup.sim, bs.ball, bs.capsules, bs.settings),
-        "contact step, ball hits the chest, dense": lambda: ct.contact_rollout_jit(
-            model, setup.gains, nopulse, setup.ref, dense, bs.ball, bs.capsules, bs.settings),
+        "dynamics step, null-space solver (no ball)": lambda: simulate_jit(sim, params),
+        "dynamics step, dense solver (no ball)": lambda: simulate_jit(sim_dense, params),
+        "contact step, no active contact": lambda: ct.simulate_contact_jit(sim, params,
+                                                                           bs.scene(ct.never_launched(bs.ball))),
+        "contact step, active contact every step": lambda: ct.simulate_contact_jit(sim, params, bs.scene(resting)),
+        "contact step, ball hits the chest": lambda: ct.simulate_contact_jit(sim, params, bs.scene()),
+        "contact step, ball hits the chest, dense": lambda: ct.simulate_contact_jit(sim_dense, params, bs.scene()),
     }
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, "
           f"jax {jax.__version__} on {jax.default_backend()}, float64")

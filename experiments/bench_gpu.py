@@ -27,7 +27,7 @@ def main(argv=None) -> int:
     out = {"jax": jax.__version__, "device": str(jax.devices()[0].device_kind)}
     setup = bench._setup(None, 1.0, "nullspace")
     bsetup = bench._setup(None, 0.25, "nullspace")
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
     comp, compile_s = bench._compile(lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg), m, g, p, ref)
     programs = {"rollout": lambda: comp(m, g, p, ref)}
     out["single"] = {"us_per_step": bench._best(programs["rollout"], 5) / cfg.n_steps * 1e6, "compile_s": compile_s}
@@ -42,11 +42,11 @@ def main(argv=None) -> int:
         if why:
             print(f"MJX: skipped ({why})")
         else:
-            mj, data = bench.mujoco_start(setup.character, setup.sim.h, setup.ref.theta[0])
+            mj, data = bench.mujoco_start(setup.character, setup.options.h, setup.ref.theta[0])
             ours = {"rollout": programs["rollout"], "batch": programs[f"batch{args.mjx}"],
                     "batch_float32": programs[f"batch{args.mjx}_float32"]}
             out["mjx"] = bench_mjx.compare(mj, data, ours, steps=cfg.n_steps, batch=args.mjx,
-                                           batch_steps=bsetup.sim.n_steps, rounds=5)
+                                           batch_steps=bsetup.options.n_steps, rounds=5)
             bench_mjx.log_figures(out["mjx"])
     if args.json:
         with open(args.json, "w") as f:

@@ -42,23 +42,23 @@ def main(argv=None) -> int:
 
     hit = dict(DEFAULT_HIT, start=0.05)
     setup = prepare(SimulationConfig(duration=args.duration, perturbations=[hit]))
-    sim_s = setup.sim.n_steps * setup.sim.h
+    sim_s = setup.options.n_steps * setup.options.h
     devices = jax.devices()
     print(f"# {len(devices)} x {devices[0].platform} device(s), {os.cpu_count()} CPU cores, float64; "
-          f"19-joint clip, {setup.sim.n_steps} steps of {setup.sim.h:.5f} s ({sim_s:.3f} s simulated per run)")
+          f"19-joint clip, {setup.options.n_steps} steps of {setup.options.h:.5f} s ({sim_s:.3f} s simulated per run)")
     index = body_lookup(setup.model)
 
     def batch_of(n):
         mags = list(np.linspace(50.0, 400.0, n))
         runs = SweepSpec(mags, [GainSetting(400.0, 20.0)]).runs(hit)
-        return build_batch(setup.gains, setup.pulses, runs, index, setup.sim.h, setup.model)
+        return build_batch(setup.gains, setup.pulses, runs, index, setup.options.h, setup.model)
 
     print(f"{'mode':<6} {'batch':>6} {'compile s':>10} {'wall s':>9} {'sim s / wall s':>15} {'ms per run':>11}")
     results = {}
     for mode in [m for m in args.modes if m != "loop"]:
         for n in args.sizes:
             per_dev = -(-n // len(devices))
-            sweeper = Sweeper(setup.model, setup.ref, setup.sim, chunk=n,
+            sweeper = Sweeper(setup.model, setup.ref, setup.options, chunk=n,
                               inner_batch=per_dev if mode == "vmap" else 1)
             batch = sweeper.pad(batch_of(n), 0, n)
             t0 = time.perf_counter()
@@ -79,14 +79,14 @@ def main(argv=None) -> int:
         batch = batch_of(args.loop_runs)
         t0 = time.perf_counter()
         p0 = dataclasses.replace(setup.pulses, magnitude=batch.pulses.magnitude[0])
-        jax.block_until_ready(simulate_jit(setup.model, setup.gains, p0, setup.ref, setup.sim).theta)
+        jax.block_until_ready(simulate_jit(setup.sim_model, dataclasses.replace(setup.params, pulses=p0)).theta)
         t1 = time.perf_counter()
         per_run = math.inf
         for _ in range(args.repeat):
             t2 = time.perf_counter()
             for i in range(args.loop_runs):
                 p = dataclasses.replace(setup.pulses, magnitude=batch.pulses.magnitude[i])
-                jax.block_until_ready(simulate_jit(setup.model, setup.gains, p, setup.ref, setup.sim).theta)
+                jax.block_until_ready(simulate_jit(setup.sim_model, dataclasses.replace(setup.params, pulses=p)).theta)
             per_run = min(per_run, (time.perf_counter() - t2) / args.loop_runs)
         print(f"{'loop':<6} {args.loop_runs:>6} {t1 - t0 - per_run:>10.1f} {per_run * args.loop_runs:>9.3f} "
               f"{sim_s / per_run:>15.2f} {1e3 * per_run:>11.1f}", flush=True)

@@ -28,7 +28,7 @@ def main() -> None:
     args = ap.parse_args()
     jax.config.update("jax_enable_compilation_cache", False)
     setup = bench._setup(args.clip, 1.0, "nullspace")
-    m, traj, g, p, ref, cfg = setup.model, setup.traj, setup.gains, setup.pulses, setup.ref, setup.sim
+    m, traj, g, p, ref, cfg = setup.model, setup.traj, setup.gains, setup.pulses, setup.ref, setup.options
     t0 = jnp.asarray(float(ref.time[0]))
     times = ref.time
     programs = {

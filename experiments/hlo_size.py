@@ -21,7 +21,7 @@ def _size(pkg: str) -> str:
     dy = bc._module(pkg, "physics.dynamics", "dynamics")
     compiler = importlib.import_module(f"{pkg}.compiler")
     s = bench._setup(None, 1.0, "nullspace")
-    f = lambda g, ref: dy.rollout(s.model, g, s.pulses, ref, s.sim).theta
+    f = lambda g, ref: dy.rollout(s.model, g, s.pulses, ref, s.options).theta
     txt = compiler.jit(f).lower(s.gains, s.ref).compile().as_text()
     ops = collections.Counter(re.findall(r"= \S+ (\w[\w-]*)\(", txt))
     return (f"{sum(ops.values())} instructions, {txt.count(' fusion(')} fusions, "

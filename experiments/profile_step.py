@@ -81,7 +81,7 @@ def main(argv=None) -> int:
 
     size, solver = args.batch, args.solver or ("nullspace" if args.batch == 1 else "branch")
     setup = bench._setup(None, 1.0 if size == 1 else 0.25, solver)
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
     mags = jnp.linspace(0.5, 1.5, size)[:, None] * p.magnitude[None]
 
     def many(mags, g, ref):

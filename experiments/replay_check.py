@@ -69,7 +69,7 @@ def main(argv=None) -> int:
                     push = f"{dev.max():.3f} | {later / dev.max():.3f}"
                 else:
                     push = "- | -"
-                print(f"| {pathlib.Path(path).stem} | {h:.5f} | {setup.sim.n_steps} | {ff} / {law} | "
+                print(f"| {pathlib.Path(path).stem} | {h:.5f} | {setup.options.n_steps} | {ff} / {law} | "
                       f"{err.max():.2e} ({model.body_names[worst[1] + 1]}) | {np.sqrt(np.mean(err**2)):.2e} | "
                       f"{push} | {seconds:.0f} |", flush=True)
     return 0

@@ -27,10 +27,10 @@ def programs(seconds: float):
 
     def theta(x):
         g = dataclasses.replace(s.gains, ks=jnp.exp(x[0]), kd=jnp.exp(x[1]))
-        return dynamics.rollout(s.model, g, s.pulses, s.ref, s.sim).theta
+        return dynamics.rollout(s.model, g, s.pulses, s.ref, s.options).theta
 
     def sweep(mags):
-        one = lambda m: dynamics.rollout(s.model, s.gains, dataclasses.replace(s.pulses, magnitude=m), s.ref, s.sim)
+        one = lambda m: dynamics.rollout(s.model, s.gains, dataclasses.replace(s.pulses, magnitude=m), s.ref, s.options)
         return jax.vmap(lambda m: one(m).theta)(mags)
 
     x = jnp.log(jnp.array([400.0, 20.0]))

@@ -65,8 +65,8 @@ def main(argv=None) -> int:
     prob = cal.problem
     n_runs = prob.pulses.magnitude.shape[0]
     s = prob.spec
-    print(f"config {args.config}: {prob.model.n_dofs} DOFs, {n_runs} rollout(s) of {prob.sim.n_steps} steps "
-          f"(h = {prob.sim.h:.6g} s), window {s.i1 - s.i0} samples, {cal.target.size} residuals")
+    print(f"config {args.config}: {prob.model.n_dofs} DOFs, {n_runs} rollout(s) of {prob.options.n_steps} steps "
+          f"(h = {prob.options.h:.6g} s), window {s.i1 - s.i0} samples, {cal.target.size} residuals")
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
           f"JAX backend {jax.default_backend()}, float64 = {jax.config.jax_enable_x64}")
 
@@ -85,8 +85,8 @@ def main(argv=None) -> int:
     t_jac = statistics.median(p[1] for p in pairs)
     ratio = statistics.median(p[1] / p[0] for p in pairs)
     figures = {
-        "config": args.config, "n_dofs": prob.model.n_dofs, "rollouts": n_runs, "steps": prob.sim.n_steps,
-        "h": prob.sim.h, "residuals": int(cal.target.size), "setup_s": t_setup,
+        "config": args.config, "n_dofs": prob.model.n_dofs, "rollouts": n_runs, "steps": prob.options.n_steps,
+        "h": prob.options.h, "residuals": int(cal.target.size), "setup_s": t_setup,
         "compile_forward_s": c_fwd, "compile_jacfwd_s": c_jac,
         "forward_s": t_fwd, "jacfwd_s": t_jac, "jacfwd_over_forward": ratio,
     }

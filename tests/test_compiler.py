@@ -7,7 +7,7 @@ import pytest
 from conftest import CLIPS
 from neuromotor import compiler
 from neuromotor.config import DEFAULT_HIT, SimulationConfig
-from neuromotor.physics.dynamics import rollout
+from neuromotor.physics.dynamics import simulate
 from neuromotor.studies.simulate import load_character, prepare, simulate_jit
 
 
@@ -27,12 +27,11 @@ def test_options_are_cpu_debug_options_and_can_be_switched_off(monkeypatch):
 
 def test_tuned_rollout_equals_default_build(short_hit):
     s = short_hit
-    args = (s.model, s.gains, s.pulses, s.ref)
+    args = (s.sim_model, s.params)
     # The module-level program (what `neuromotor simulate` runs) against XLA's default build.
-    tuned = simulate_jit.lower(*args, s.sim).compile()
+    tuned = simulate_jit.lower(*args).compile()
     # XLA's defaults restored explicitly: the suite's XLA_FLAGS (conftest) turn the emitters off.
-    default = jax.jit(lambda m, g, p, ref: rollout(m, g, p, ref, s.sim)).lower(*args).compile(
-        compiler_options={"xla_cpu_use_fusion_emitters": True})
+    default = jax.jit(simulate).lower(*args).compile(compiler_options={"xla_cpu_use_fusion_emitters": True})
     # The options took effect: no small dot is handed to the YNNPACK library.
     assert "__ynn_fusion" not in tuned.as_text()
     a, b = tuned(*args), default(*args)

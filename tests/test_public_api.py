@@ -45,7 +45,7 @@ def test_step_by_step_equals_the_rollout():
     """Three calls of ``neuromotor.step`` from ``init_data`` reproduce the scanned rollout's states."""
     cfg = neuromotor.SimulationConfig(duration=0.05, perturbations=[dict(neuromotor.DEFAULT_HIT, start=0.0)])
     setup = neuromotor.prepare(cfg)
-    sim = neuromotor.SimModel(setup.model, setup.ref, setup.sim)
+    sim = neuromotor.SimModel(setup.model, setup.ref, setup.options)
     params = neuromotor.Params(setup.gains, setup.pulses)
     run = neuromotor.simulate(sim, params)
     data = neuromotor.init_data(sim, params)

@@ -244,7 +244,7 @@ def cmd_simulate(args) -> int:
     setup = prepare(cfg, character, traj)
     for line in setup.warnings:
         print(f"neuromotor simulate: warning: {line}", file=sys.stderr)
-    stage(f"simulating {setup.sim.n_steps} steps of {setup.sim.h * 1000:.2f} ms, perturbed and unperturbed "
+    stage(f"simulating {setup.options.n_steps} steps of {setup.options.h * 1000:.2f} ms, perturbed and unperturbed "
           "(compiling on first use)")
     result = run(setup)
     stage(f"writing {args.output}")

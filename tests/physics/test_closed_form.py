@@ -133,7 +133,7 @@ def test_passive_pendulum_small_angle_period(tmp_path):
     h = 1.0 / 240.0
     setup = prepare(SimulationConfig(clip=str(path), units="m", h=h, duration=3.0))
     run = check_rollout(setup.model, jax.jit(rollout, static_argnames="cfg")(
-        setup.model, _passive(setup.gains), setup.pulses, setup.ref, setup.sim))
+        setup.model, _passive(setup.gains), setup.pulses, setup.ref, setup.options))
     model = setup.model
     b = model.joint_body[model.joint_names.index("L1")]
     m, d = float(model.mass[b]), float(jnp.linalg.norm(model.com[b]))
@@ -184,7 +184,7 @@ def test_free_floating_chain_conserves_momentum(tmp_path):
                 magnitude=impulse, start=0.5)
     setup = prepare(SimulationConfig(clip=str(path), units="m", duration=1.0, perturbations=[kick]))
     model = eqx.tree_at(lambda m: m.gravity, setup.model, jnp.zeros(3))
-    sim = dataclasses.replace(setup.sim, free_root=True)
+    sim = dataclasses.replace(setup.options, free_root=True)
     run = check_rollout(model, jax.jit(rollout, static_argnames="cfg")(
         model, setup.gains, setup.pulses, setup.ref, sim))  # muscles on: internal torques only
     lin, ang = _momenta(model, run.states)

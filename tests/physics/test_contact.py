@@ -18,7 +18,7 @@ import pytest
 from neuromotor.physics import contact as ct
 from neuromotor.studies import ball as sb
 from neuromotor.config import ConfigError, SimulationConfig, simulation_config
-from neuromotor.physics.dynamics import SimConfig, SimulationDiverged
+from neuromotor.physics.dynamics import Params, SimModel, SimulationDiverged, StepOptions
 from neuromotor.rotations import quat_to_matrix, rotation_error
 from neuromotor.studies.record import run_arrays
 from neuromotor.studies.simulate import body_lookup, load_character, prepare, run
@@ -66,8 +66,8 @@ BATCH = {  # name -> ball; all share one compiled, vmapped rollout on the tiny m
 @pytest.fixture(scope="module")
 def batch(tiny):
     setup, caps = tiny
-    out = ct.batched_contact_rollout(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim,
-                              _stack(list(BATCH.values())), caps, ct.ContactSettings())
+    out = ct.batched_simulate_contact(setup.sim_model, setup.params,
+                                      ct.ContactScene(_stack(list(BATCH.values())), caps, ct.ContactSettings()))
     return {name: jax.tree_util.tree_map(lambda x, i=i: x[i], out) for i, name in enumerate(BATCH)}
 
 
@@ -171,14 +171,15 @@ def free_body(tiny):
     """Zero gravity, free-floating root: ball (0.5 kg, 6 m/s) hits the post below the arm."""
     setup, caps = tiny
     model = eqx.tree_at(lambda m: m.gravity, setup.model, jnp.zeros(3))
-    cfg = SimConfig(h=H, n_steps=40, free_root=True)
+    cfg = StepOptions(h=H, n_steps=40, free_root=True)
     ball = ct.make_ball(0.1, 0.5, (-1.0, 1.15, 0.05), velocity=(6.0, 0.0, 0.0), restitution=0.5, friction=0.4)
     settings = ct.ContactSettings(ground=False)
 
     def outputs(x):
         b = eqx.tree_at(lambda b: b.speed, ball, x[0])
         g = eqx.tree_at(lambda g: (g.ks, g.kd), setup.gains, (x[1], x[2]))
-        out = ct.contact_rollout(model, g, setup.pulses, setup.ref, cfg, b, caps, settings)
+        out = ct.simulate_contact(SimModel(model, setup.ref, cfg), Params(g, setup.pulses),
+                                  ct.ContactScene(b, caps, settings))
         y = jnp.concatenate([out.ball.vel[-1], out.run.states.vel[-1, 0], out.run.states.omega[-1, 1]])
         return y, out
 
@@ -387,7 +388,7 @@ def test_tree_stiff_blocks_equal_dense_jacobians(tiny):
 
     setup, _ = tiny
     model, ref, k = setup.model, setup.ref, 10
-    inputs = reference_inputs(SimModel(model, ref, setup.sim), setup.gains, k)
+    inputs = reference_inputs(SimModel(model, ref, setup.options), setup.gains, k)
     rng = np.random.default_rng(0)
     from neuromotor.rotations import quat_exp, quat_mul
 
@@ -410,9 +411,9 @@ def test_contact_step_is_the_same_with_every_solver(tiny, batch, solver):
     import dataclasses
 
     setup, caps = tiny
-    cfg = dataclasses.replace(setup.sim, solver=solver)
-    out = ct.contact_rollout_jit(setup.model, setup.gains, setup.pulses, setup.ref, cfg, BATCH["hit"], caps,
-                                 ct.ContactSettings())
+    cfg = dataclasses.replace(setup.options, solver=solver)
+    out = ct.simulate_contact_jit(SimModel(setup.model, setup.ref, cfg), setup.params,
+                                  ct.ContactScene(BATCH["hit"], caps, ct.ContactSettings()))
     ref = batch["hit"]
     assert np.asarray(ref.contact.normal_impulse).max() > 0.01
     for got, want in ((out.run.states.pos, ref.run.states.pos), (out.run.states.omega, ref.run.states.omega),
@@ -427,7 +428,7 @@ def test_without_contact_the_character_follows_the_plain_step(tiny, batch):
     from neuromotor.studies.simulate import simulate_jit
 
     setup, _ = tiny
-    plain = simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim)
+    plain = simulate_jit(setup.sim_model, setup.params)
     out = batch["drop"]  # falls on the ground 3 m away from the post
     np.testing.assert_allclose(np.asarray(out.run.states.pos), np.asarray(plain.states.pos), atol=1e-10)
     np.testing.assert_allclose(np.asarray(out.run.states.omega), np.asarray(plain.states.omega), atol=1e-8)

@@ -55,15 +55,16 @@ def test_one_step_from_the_capture_lands_on_the_next_capture_state(case):
     solver = case.pop("solver", "nullspace")
     cfg = SimulationConfig(start=0.4, duration=0.25, **case)
     setup = prepare(cfg)
-    setup.sim = dataclasses.replace(setup.sim, solver=solver)
-    setup.ref = dy.make_reference(setup.model, setup.traj, cfg.start, setup.sim)
+    options = dataclasses.replace(setup.options, solver=solver)
+    ref = dy.make_reference(setup.model, setup.traj, cfg.start, options)
+    setup = dataclasses.replace(setup, options=options, ref=ref)
     ref = setup.ref
     assert float(jnp.max(ref.landing)) < 1e-13 and float(jnp.max(ref.kkt_residual)) < 1e-12
     pos, quat = capture_poses(setup)
-    sim = dy.SimModel(setup.model, ref, setup.sim)
+    sim = dy.SimModel(setup.model, ref, setup.options)
     params = dy.Params(setup.gains, _zero(setup.pulses))
     u = ref.velocity
-    n = setup.sim.n_steps
+    n = setup.options.n_steps
 
     def one(k):
         state = State(pos[k], quat[k], u[k, :, :3], u[k, :, 3:])
@@ -80,8 +81,8 @@ def test_one_step_from_the_capture_lands_on_the_next_capture_state(case):
     if solver != "nullspace":
         return
     # The continuous feedforward (Eq. 3) misses by O(h): the test can tell the two apart.
-    cont = dy.make_reference(setup.model, setup.traj, cfg.start, dataclasses.replace(setup.sim, feedforward="continuous"))
-    sim_c = dy.SimModel(setup.model, cont, setup.sim)
+    cont = dy.make_reference(setup.model, setup.traj, cfg.start, dataclasses.replace(setup.options, feedforward="continuous"))
+    sim_c = dy.SimModel(setup.model, cont, setup.options)
     off = jax.jit(jax.vmap(lambda k: dy.step(sim_c, params, dy.data_at(sim_c, params, k, State(
         pos[k], quat[k], u[k, :, :3], u[k, :, 3:]))).state.omega))(jnp.arange(n))
     assert float(jnp.max(jnp.abs(off - u[1:, :, 3:]))) > 1e-4 * scale
@@ -101,7 +102,7 @@ def test_discrete_inverse_tends_to_eq3_at_first_order():
     errs, rel = [], []
     for h in (1 / 120, 1 / 240, 1 / 480):
         n = int(round(0.25 / h))
-        cfg = dy.SimConfig(h=h, n_steps=n)
+        cfg = dy.StepOptions(h=h, n_steps=n)
         d = dy.make_reference(setup.model, setup.traj, 0.5, cfg)
         c = dy.make_reference(setup.model, setup.traj, 0.5, dataclasses.replace(cfg, feedforward="continuous"))
         idx = np.arange(1, 29) * int(round(1 / 120 / h))  # common times 0.5 + k / 120
@@ -121,7 +122,7 @@ def _write(tmp_path, name, text):
 
 def _replay_error(path, **kw):
     setup = prepare(SimulationConfig(clip=path, **kw))
-    base = simulate_jit(setup.model, setup.gains, _zero(setup.pulses), setup.ref, setup.sim)
+    base = simulate_jit(setup.sim_model, dy.Params(setup.gains, _zero(setup.pulses)))
     assert int(base.diverged_step) < 0
     return joint_geodesic_deg(setup.model, base.states.quat, setup.ref.rel_quat[: base.time.shape[0]]), setup
 
@@ -166,8 +167,8 @@ def test_push_response_does_not_depend_on_the_euler_order(tmp_path):
         for path in (str(default_clip_path()), other):
             setup = prepare(SimulationConfig(clip=path, start=0.3, duration=1.2, joint_law=law,
                                              perturbations=[dict(PUSH)]))
-            pert = simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim)
-            base = simulate_jit(setup.model, setup.gains, _zero(setup.pulses), setup.ref, setup.sim)
+            pert = simulate_jit(setup.sim_model, setup.params)
+            base = simulate_jit(setup.sim_model, dy.Params(setup.gains, _zero(setup.pulses)))
             topo = setup.model.topology
             rel = lambda q: quat_mul(quat_conj(q[:, topo.parent]), q[:, topo.child])
             curves[law, path] = joint_geodesic_deg(setup.model, pert.states.quat, rel(base.states.quat))

@@ -76,7 +76,7 @@ def test_per_joint_jacobians_equal_dense_jacfwd(hit_setup):
     m, ref = s.model, s.ref
     state = dataclasses.replace(ref.init, omega=ref.init.omega + 0.5)  # spinning bodies: gyroscopic K and D too
     rot, omega = state.rot, state.omega
-    inputs = reference_inputs(SimModel(m, ref, dataclasses.replace(s.sim, driven=())), s.gains, 3)
+    inputs = reference_inputs(SimModel(m, ref, dataclasses.replace(s.options, driven=())), s.gains, 3)
     dense_k = jax.jit(lambda: stiff_jacobians(m, s.gains, inputs, rot, omega))()
     k, kmat, dmat = dense_k.k, dense_k.kmat, dense_k.dmat
     sb = jax.jit(lambda: stiff_blocks(m, s.gains, inputs, state))()
@@ -106,7 +106,7 @@ def test_batched_form_of_the_blocks_differentiates_like_the_merged_form(hit_setu
     and forward derivatives through it, and under vmap, equal the merged form's."""
     s = hit_setup
     m, ref = s.model, s.ref
-    inputs = reference_inputs(SimModel(m, ref, dataclasses.replace(s.sim, driven=())), s.gains, 3)
+    inputs = reference_inputs(SimModel(m, ref, dataclasses.replace(s.options, driven=())), s.gains, 3)
     weights = jax.random.normal(jax.random.PRNGKey(1), (m.n_bodies, 3))
 
     def score(omega, unrolled):
@@ -129,9 +129,9 @@ def test_batched_form_of_the_blocks_differentiates_like_the_merged_form(hit_setu
 def test_fast_rollout_equals_dense_rollout_with_a_hit(hit_setup, solver):
     s = hit_setup
     run = jax.jit(rollout, static_argnames="cfg")
-    tree = run(s.model, s.gains, s.pulses, s.ref, dataclasses.replace(s.sim, solver=solver))
-    dense = run(s.model, s.gains, s.pulses, s.ref, dataclasses.replace(s.sim, solver="dense"))
-    base = run(s.model, s.gains, dataclasses.replace(s.pulses, magnitude=0 * s.pulses.magnitude), s.ref, s.sim)
+    tree = run(s.model, s.gains, s.pulses, s.ref, dataclasses.replace(s.options, solver=solver))
+    dense = run(s.model, s.gains, s.pulses, s.ref, dataclasses.replace(s.options, solver="dense"))
+    base = run(s.model, s.gains, dataclasses.replace(s.pulses, magnitude=0 * s.pulses.magnitude), s.ref, s.options)
     # The hit matters (so agreement is not trivial) ...
     assert float(jnp.abs(tree.theta - base.theta).max()) > np.deg2rad(1.0)
     # ... and both paths agree to round-off over the whole rollout.
@@ -150,7 +150,7 @@ def test_fast_step_equals_dense_step_with_constraint_forces(hit_setup, driven_fr
     """One step from perturbed states: new state and every constraint force lambda."""
     s = hit_setup
     driven, free_root = driven_free
-    cfg = dataclasses.replace(s.sim, driven=driven, free_root=free_root)
+    cfg = dataclasses.replace(s.options, driven=driven, free_root=free_root)
     run = jax.jit(rollout, static_argnames="cfg")(s.model, s.gains, s.pulses, s.ref, cfg)
     states = jax.tree_util.tree_map(lambda x: x[8:20:4], run.states)  # during the hit
     ks = jnp.arange(8, 20, 4)

@@ -71,7 +71,7 @@ def hit_setup():
 @pytest.mark.parametrize("solver", list(Solver), ids=str)
 def test_a_float32_step_holds_no_float64_value(hit_setup, solver):
     s = hit_setup
-    sim = dy.SimModel(s.model, s.ref, dataclasses.replace(s.sim, solver=solver))
+    sim = dy.SimModel(s.model, s.ref, dataclasses.replace(s.options, solver=solver))
     sim, params = cast((sim, dy.Params(s.gains, s.pulses)), Precision.FLOAT32)
     data = dy.init_data(sim, params)
     assert {leaf.dtype for leaf in jax.tree_util.tree_leaves(data.state)} == {jnp.dtype(jnp.float32)}
@@ -82,7 +82,7 @@ def test_a_float32_step_holds_no_float64_value(hit_setup, solver):
 def test_a_float32_rollout_casts_its_float64_inputs_once(hit_setup):
     """The rollout takes the float64 pytrees prepare() builds; only the entry casts see float64."""
     s = hit_setup
-    sim = dy.SimModel(s.model, s.ref, dataclasses.replace(s.sim, n_steps=2))
+    sim = dy.SimModel(s.model, s.ref, dataclasses.replace(s.options, n_steps=2))
     closed = jax.make_jaxpr(dy.simulate)(sim, dy.Params(s.gains, s.pulses))
     leaks = [x for x in _float64_values(closed.jaxpr) if not x.startswith("convert_element_type")]
     assert not leaks, leaks[:10]
@@ -92,7 +92,7 @@ def test_a_float32_rollout_casts_its_float64_inputs_once(hit_setup):
 def test_a_float32_contact_step_holds_no_float64_value():
     cfg = dataclasses.replace(load_simulation_config(REPO_CONFIGS / "ball_hit.toml"), dtype="float32")
     s = prepare(cfg)
-    sim, params, scene = cast((dy.SimModel(s.model, s.ref, s.sim), dy.Params(s.gains, s.pulses),
+    sim, params, scene = cast((dy.SimModel(s.model, s.ref, s.options), dy.Params(s.gains, s.pulses),
                                ContactScene(s.ball.ball, s.ball.capsules, s.ball.settings)), "float32")
     data = initial_contact_data(sim.model, scene, dy.init_data(sim, params))
     _no_float64(jax.make_jaxpr(lambda a, b, c, d: contact_step(a, b, c, d))(sim, params, scene, data))
@@ -149,7 +149,7 @@ def _sweep(dtype: str, out: pathlib.Path) -> list[dict]:
     cfg = SimulationConfig(perturbations=[HIT], dtype=dtype, **WINDOW)
     s = prepare(cfg, character, traj)
     spec = sw.SweepSpec(MAGS, [sw.GainSetting(*g) for g in GAINS])
-    sweeper = sw.Sweeper(s.model, s.ref, s.sim, chunk=8)
+    sweeper = sw.Sweeper(s.model, s.ref, s.options, chunk=8)
     result = sw.run_sweep(sweeper, s.gains, s.pulses, spec.runs(HIT), body_lookup(s.model), s.model.body_names,
                           progress=False)
     return sw.read_csv(sw.write_outputs(cfg, spec, result, out, dtype)["csv"])

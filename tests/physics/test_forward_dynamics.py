@@ -11,7 +11,7 @@ from conftest import CLIPS
 from neuromotor.studies import metrics as mx
 from neuromotor.config import DEFAULT_HIT, ConfigError, SimulationConfig, simulation_config
 from neuromotor.physics.control import dof_errors
-from neuromotor.physics.dynamics import SimulationDiverged, check_rollout, rollout
+from neuromotor.physics.dynamics import Params, SimModel, SimulationDiverged, check_rollout, rollout
 from neuromotor.rotations import euler_to_matrix, matrix_to_euler
 from neuromotor.studies.simulate import load_character, prepare, run, simulate_jit
 
@@ -50,8 +50,8 @@ def test_one_newton_step_of_post_stabilization(bank, hit_setup, hit_result):
     (each step projects again), and the motion matches two steps far below a degree."""
     cfg = SimulationConfig(duration=2.0, perturbations=[hit()], stabilization_steps=1)
     one = prepare(cfg, *bank)
-    assert one.sim.stabilization_steps == 1 and hit_setup.sim.stabilization_steps == 2
-    r1 = check_rollout(one.model, simulate_jit(one.model, one.gains, one.pulses, one.ref, one.sim))
+    assert one.options.stabilization_steps == 1 and hit_setup.options.stabilization_steps == 2
+    r1 = check_rollout(one.model, simulate_jit(one.sim_model, one.params))
     r2 = hit_result.perturbed
     v1 = np.asarray(r1.violation)
     # Drift after the position update is ~1e-4 m; one Newton step squares it away.
@@ -65,12 +65,12 @@ def test_one_newton_step_of_post_stabilization(bank, hit_setup, hit_result):
 def test_unperturbed_replay_tracks_whole_clip(name):
     character, traj = load_character(CLIPS[name])
     setup = prepare(SimulationConfig(), character, traj)  # whole clip, h = 1/120, default gains
-    r = check_rollout(setup.model, simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim))
+    r = check_rollout(setup.model, simulate_jit(setup.sim_model, setup.params))
     err = mx.rms_error_deg(r.theta, setup.ref.theta)
     assert err < 2.0, err
     # Over the first 3 s (issue 14's replay bounds, the window tests/studies/test_every_clip.py uses for the
     # other clips): under 1 deg RMS and every DOF under 3 deg RMS.
-    k = int(round(3.0 / setup.sim.h)) + 1
+    k = int(round(3.0 / setup.options.h)) + 1
     diff = np.degrees(np.angle(np.exp(1j * (np.asarray(r.theta)[:k] - np.asarray(setup.ref.theta)[:k]))))
     assert np.sqrt(np.mean(diff**2)) < 1.0 and np.sqrt(np.mean(diff**2, axis=0)).max() < 3.0
     # The root is exactly on the mocap path (its 6 rows are constraints).
@@ -107,12 +107,12 @@ def test_larger_pulses_give_larger_peaks(hit_setup):
 
     def peak(mag):
         p = dataclasses.replace(s.pulses, magnitude=s.pulses.magnitude.at[0].set(mag))
-        r = rollout(s.model, s.gains, p, s.ref, s.sim)
+        r = rollout(s.model, s.gains, p, s.ref, s.options)
         return r.theta
 
     thetas = jax.jit(jax.vmap(peak))(mags)  # one vmapped call over magnitudes
-    base = simulate_jit(s.model, s.gains, dataclasses.replace(s.pulses, magnitude=s.pulses.magnitude * 0),
-                        s.ref, s.sim).theta
+    base = simulate_jit(s.sim_model, Params(s.gains, dataclasses.replace(s.pulses, magnitude=s.pulses.magnitude * 0)))
+    base = base.theta
     peaks = [float(mx.deviation(t, base).max()) for t in thetas]
     assert peaks[0] < peaks[1] < peaks[2], peaks
 
@@ -120,9 +120,9 @@ def test_larger_pulses_give_larger_peaks(hit_setup):
 def test_linearly_implicit_survives_where_explicit_diverges(bank):
     character, traj = bank
     setup = prepare(SimulationConfig(h=1.0 / 30.0, duration=2.0), character, traj)
-    implicit = simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim)
-    explicit_cfg = dataclasses.replace(setup.sim, implicit=False)
-    explicit = simulate_jit(setup.model, setup.gains, setup.pulses, setup.ref, explicit_cfg)
+    implicit = simulate_jit(setup.sim_model, setup.params)
+    explicit_cfg = dataclasses.replace(setup.options, implicit=False)
+    explicit = simulate_jit(SimModel(setup.model, setup.ref, explicit_cfg), setup.params)
     assert int(implicit.diverged_step) == -1
     assert mx.rms_error_deg(implicit.theta, setup.ref.theta) < 5.0
     assert int(explicit.diverged_step) >= 0
@@ -136,7 +136,7 @@ def test_gains_gradient_matches_central_differences(bank):
 
     def loss(log_gains):
         g = dataclasses.replace(setup.gains, ks=jnp.exp(log_gains[0]), kd=jnp.exp(log_gains[1]))
-        r = rollout(setup.model, g, setup.pulses, setup.ref, setup.sim)
+        r = rollout(setup.model, g, setup.pulses, setup.ref, setup.options)
         dev = mx.deviation(r.theta, setup.ref.theta)
         return mx.soft_peak(dev)
 

@@ -33,7 +33,7 @@ def hit():
     character, traj = load_character(CLIPS["mocapbank"])
     setup = prepare(SimulationConfig(duration=0.2, perturbations=[dict(DEFAULT_HIT, magnitude=400.0, start=0.02)]),
                     character, traj)
-    run = jax.jit(rollout, static_argnames="cfg")(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim)
+    run = jax.jit(rollout, static_argnames="cfg")(setup.model, setup.gains, setup.pulses, setup.ref, setup.options)
     return setup, run
 
 
@@ -47,7 +47,7 @@ def test_closed_form_blocks_equal_jacfwd_blocks(hit, when):
     state = jax.tree_util.tree_map(lambda x: x[k], run.states)
     if when == "hit":
         state = dataclasses.replace(state, omega=state.omega + 0.7)
-    sim = SimModel(m, setup.ref, setup.sim)
+    sim = SimModel(m, setup.ref, setup.options)
     inputs = reference_inputs(sim, setup.gains, k)
     blocks = {j: jax.jit(lambda j=j: stiff_blocks(m, setup.gains, inputs, state, j))() for j in Jacobians}
     closed, ref = blocks[Jacobians.CLOSED_FORM], blocks[Jacobians.JACFWD]
@@ -60,7 +60,7 @@ def test_closed_form_blocks_equal_jacfwd_blocks(hit, when):
 def test_rollout_with_closed_form_blocks_equals_jacfwd_rollout(hit):
     setup, run = hit
     other = jax.jit(rollout, static_argnames="cfg")(setup.model, setup.gains, setup.pulses, setup.ref,
-                                                     dataclasses.replace(setup.sim, jacobians="jacfwd"))
+                                                     dataclasses.replace(setup.options, jacobians="jacfwd"))
     assert float(jnp.abs(run.theta - other.theta).max()) < 1e-11
     assert float(jnp.abs(run.states.omega - other.states.omega).max()) < 1e-9
 
@@ -73,7 +73,7 @@ def test_closing_step_closes_what_the_projection_leaves(hit, unrolled, rows):
     driven joints' rows too, and with the root floating free."""
     setup, _ = hit
     model, targets = setup.model, setup.ref.pose_targets(0)
-    cfg = dataclasses.replace(setup.sim, driven=(2, 5) if rows == "driven" else (), free_root=rows == "free_root")
+    cfg = dataclasses.replace(setup.options, driven=(2, 5) if rows == "driven" else (), free_root=rows == "free_root")
     rng = np.random.default_rng(7)
     quat = quat_mul(quat_exp(jnp.asarray(1e-4 * rng.normal(size=(model.n_bodies, 3)))), setup.ref.init.quat)
     pos = setup.ref.init.pos + 1e-4 * rng.normal(size=(model.n_bodies, 3))

@@ -75,7 +75,7 @@ def test_zero_delay_is_the_undelayed_feedback_term(setup):
     s = setup
     g, c = 250.0, 0.07
     gains = dataclasses.replace(s.gains, reflex=make_reflex(H, gain=g, delay=0.0, rate_weight=c))
-    sim = SimModel(s.model, s.ref, s.sim)
+    sim = SimModel(s.model, s.ref, s.options)
     state = _off_reference_state(s)
 
     @jax.jit
@@ -107,7 +107,7 @@ def batch(setup):
 
     def one(g, d, mag):
         pulses = dataclasses.replace(s.pulses, magnitude=mag)
-        return rollout(s.model, _with_spinal(base, g, d), pulses, s.ref, s.sim)
+        return rollout(s.model, _with_spinal(base, g, d), pulses, s.ref, s.options)
 
     run = jax.jit(jax.vmap(jax.vmap(one, (None, None, 0)), (0, 0, None)))
     mags = jnp.stack([s.pulses.magnitude, jnp.zeros_like(s.pulses.magnitude)])
@@ -147,7 +147,7 @@ def test_zero_gain_reflex_reproduces_the_paper(setup, impulse_runs):
     s = setup
     _, runs = impulse_runs
     assert s.gains.reflex is None
-    paper = jax.jit(lambda g, p: rollout(s.model, g, p, s.ref, s.sim))(s.gains, s.pulses)
+    paper = jax.jit(lambda g, p: rollout(s.model, g, p, s.ref, s.options))(s.gains, s.pulses)
     np.testing.assert_allclose(np.asarray(runs.theta[2, 0]), np.asarray(paper.theta), rtol=0, atol=1e-12)
     np.testing.assert_allclose(np.asarray(runs.states.pos[2, 0]), np.asarray(paper.states.pos), rtol=0, atol=1e-12)
     assert paper.reflex is None

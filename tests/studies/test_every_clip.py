@@ -37,7 +37,7 @@ def test_fast_spinning_root_is_warned_about_only_with_the_continuous_feedforward
     exactly (no warning); Eq. 3's would drift by degrees, and prepare() would warn."""
     name, setup, _ = result
     assert not setup.warnings or not any("rad per step" in w for w in setup.warnings)
-    assert not step_warnings(setup.ref, setup.sim.h)
+    assert not step_warnings(setup.ref, setup.options.h)
     continuous = step_warnings(setup.ref, 1.0 / 120.0, "continuous")
     assert bool(continuous) == (name in KICK)
     if continuous:

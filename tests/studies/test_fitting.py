@@ -133,7 +133,7 @@ def test_cli_fit_writes_json_and_png(tmp_path, evaluator, truth, bank, monkeypat
     from neuromotor.cli import main
 
     x_true, y = truth
-    times = np.asarray(evaluator.problem.ref.time[: evaluator.problem.sim.n_steps + 1])
+    times = np.asarray(evaluator.problem.ref.time[: evaluator.problem.options.n_steps + 1])
     vals = np.rad2deg(y.reshape(2, times.size, len(FITTED_DOFS)))
     write_target_csv(tmp_path / "target.csv", times, FITTED_DOFS, vals, header_comment="test target")
     cfg = tmp_path / "fit.toml"

@@ -63,7 +63,7 @@ def test_a_fit_builds_the_pulses_simulate_runs(character):
     cfg = SimulationConfig(duration=0.8, perturbations=[IMPULSE, dict(IMPULSE, body="LeftElbow")])
     setup = prepare(cfg, *character)
     problem = make_problem(setup, "features")
-    h, com = setup.sim.h, np.asarray(setup.model.com)
+    h, com = setup.options.h, np.asarray(setup.model.com)
     np.testing.assert_array_equal(np.asarray(problem.pulses.magnitude)[:, 0], [40.0 / h, 40.0 / h, 0.0])
     np.testing.assert_array_equal(np.asarray(problem.pulses.point)[:2, 0], np.asarray(setup.pulses.point))
     np.testing.assert_array_equal(np.asarray(problem.pulses.point)[1, 0], com[setup.model.body_names.index("LeftElbow")])
@@ -121,8 +121,8 @@ def test_a_window_past_the_clips_end_by_less_than_a_step_is_rounded_down(charact
     h = 1.0 / 120.0
     end = character[0].clip.duration
     setup = prepare(SimulationConfig(start=end - 2.6 * h, h=h), *character)
-    assert setup.sim.n_steps == 2
-    assert setup.config.start + setup.sim.n_steps * h <= end + 1e-12
+    assert setup.options.n_steps == 2
+    assert setup.config.start + setup.options.n_steps * h <= end + 1e-12
 
 
 def test_provenance_shows_the_impulse_as_configured(character):
@@ -130,7 +130,7 @@ def test_provenance_shows_the_impulse_as_configured(character):
     p = record.provenance(setup)["perturbations"][0]
     assert (p["kind"], p["magnitude"], p["unit"], p["start"], p["duration"], p["shape"]) == \
         ("impulse", 20.0, "N s", 0.3, 0.0, None)
-    assert np.asarray(setup.pulses.magnitude)[0] == pytest.approx(20.0 / setup.sim.h)  # the step's own form
+    assert np.asarray(setup.pulses.magnitude)[0] == pytest.approx(20.0 / setup.options.h)  # the step's own form
 
 
 def test_plot_title_of_a_run_that_never_recovers():

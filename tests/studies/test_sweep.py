@@ -83,16 +83,16 @@ SHARDED_SCRIPT = textwrap.dedent("""\
     index = body_lookup(s.model)
     out = {"devices": len(jax.devices())}
     for name, devs in (("sharded", jax.devices()), ("single", jax.devices()[:1])):
-        sweeper = sw.Sweeper(s.model, s.ref, s.sim, chunk=6, mesh=sw.device_mesh(devs))
+        sweeper = sw.Sweeper(s.model, s.ref, s.options, chunk=6, mesh=sw.device_mesh(devs))
         res = sw.run_sweep(sweeper, s.gains, s.pulses, runs, index, s.model.body_names,
                            keep_curves=True, progress=False)
-        chunk_out = sweeper.simulate_chunk(sweeper.pad(sw.build_batch(s.gains, s.pulses, runs, index, s.sim.h, s.model), 0, 6))
+        chunk_out = sweeper.simulate_chunk(sweeper.pad(sw.build_batch(s.gains, s.pulses, runs, index, s.options.h, s.model), 0, 6))
         out[name] = {"curves": res.curves.tolist(), "rows": res.rows,
                      "shards": len({sh.device for sh in chunk_out.pose.addressable_shards})}
     # Rollouts vmapped three at a time: the sweep switches to the batched solver (branch).
-    sweeper = sw.Sweeper(s.model, s.ref, s.sim, chunk=6, inner_batch=3, mesh=sw.device_mesh(jax.devices()[:1]))
+    sweeper = sw.Sweeper(s.model, s.ref, s.options, chunk=6, inner_batch=3, mesh=sw.device_mesh(jax.devices()[:1]))
     res = sw.run_sweep(sweeper, s.gains, s.pulses, runs, index, s.model.body_names, keep_curves=True, progress=False)
-    out["batched"] = {"curves": res.curves.tolist(), "rows": res.rows, "solver": str(sweeper.sim.solver)}
+    out["batched"] = {"curves": res.curves.tolist(), "rows": res.rows, "solver": str(sweeper.options.solver)}
     # One run of the grid through the ordinary single-run path.
     i = 5  # gains (150, 8), magnitude 15
     one = prepare(SimulationConfig(duration=1.2, ks=150.0, kd=8.0, perturbations=[dict(hit, magnitude=15.0)]),
@@ -104,13 +104,13 @@ SHARDED_SCRIPT = textwrap.dedent("""\
     # A batch split over the devices (bench's batches): equal to the plain vmap, one share per device.
     from neuromotor.physics import dynamics as dy
     from neuromotor.studies.sweep import runner
-    bsim = dataclasses.replace(s.sim, solver="branch", n_steps=40)
+    bsim = dataclasses.replace(s.options, solver="branch", n_steps=40)
     mags = np.linspace(0.5, 1.5, 4)[:, None] * np.asarray(s.pulses.magnitude)[None]
     one = lambda mag, sh: dy.rollout(s.model, sh[0], dataclasses.replace(s.pulses, magnitude=mag), sh[1], bsim).theta
     mesh = runner.batch_mesh(4, bsim)
     split = jax.jit(runner.shard_vmap(one, mesh))(mags, (s.gains, s.ref))
     plain = jax.jit(runner.shard_vmap(one, None))(mags, (s.gains, s.ref))
-    lapack = lambda **kw: dataclasses.replace(s.sim, **kw)
+    lapack = lambda **kw: dataclasses.replace(s.options, **kw)
     out["split"] = {"diff": float(np.max(np.abs(np.asarray(split) - np.asarray(plain)))),
                     "spread": float(np.max(np.abs(np.asarray(plain)[0] - np.asarray(plain)[3]))),
                     "shards": len({sh.device for sh in split.addressable_shards}),
@@ -119,7 +119,7 @@ SHARDED_SCRIPT = textwrap.dedent("""\
                         runner.batch_mesh(4, lapack(free_root=True)), runner.batch_mesh(4, lapack(solver="dense")),
                         runner.batch_mesh(4, lapack(solver="tree")))],
                     "sweeper": [int(sw.Sweeper(s.model, s.ref, sim, chunk=4).mesh.devices.size)
-                                for sim in (s.sim, lapack(driven=(2,)))]}
+                                for sim in (s.options, lapack(driven=(2,)))]}
     print("RESULT" + json.dumps(out))
     """)
 
@@ -203,7 +203,7 @@ def bank_sweep():
     cfg = SimulationConfig(perturbations=[HIT], **WINDOW)
     s = prepare(cfg, character, traj)
     spec = sw.SweepSpec(MAGS, [sw.GainSetting(*g) for g in GAINS])
-    sweeper = sw.Sweeper(s.model, s.ref, s.sim, chunk=8)
+    sweeper = sw.Sweeper(s.model, s.ref, s.options, chunk=8)
     return sw.run_sweep(sweeper, s.gains, s.pulses, spec.runs(HIT), body_lookup(s.model),
                         s.model.body_names, keep_curves=True, progress=False)
 

@@ -38,7 +38,7 @@ def grid(clip):
     s = prepare(_config(ReflexSpec()), *clip)
     spec = sw.SweepSpec([HIT["magnitude"]], [sw.GainSetting(400.0, 20.0)], chunk=4,
                         reflexes=reflex_grid(ReflexSpec(), reflex_gain=GAINS, reflex_delay=DELAYS))
-    sweeper = sw.Sweeper(s.model, s.ref, s.sim, chunk=4, inner_batch=1)
+    sweeper = sw.Sweeper(s.model, s.ref, s.options, chunk=4, inner_batch=1)
     result = sw.run_sweep(sweeper, s.gains, s.pulses, spec.runs(HIT), body_lookup(s.model), s.model.body_names,
                           keep_curves=True, progress=False)
     return spec, result

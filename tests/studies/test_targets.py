@@ -32,7 +32,7 @@ def test_recorded_trial_bvh_gives_the_models_joint_angles(setup):
     s = problem.spec
     want = np.asarray(setup.ref.theta[s.i0:s.i1])
     got = target.reshape(want.shape)
-    assert abs(table.time[1] - 4 * setup.sim.h) < 1e-6 and abs(setup.ref.time[0] / table.time[1] - 15) < 1e-3
+    assert abs(table.time[1] - 4 * setup.options.h) < 1e-6 and abs(setup.ref.time[0] / table.time[1] - 15) < 1e-3
     np.testing.assert_allclose(got[::4], want[::4], rtol=0, atol=2e-5)  # the file's frame time has 6 digits
     np.testing.assert_allclose(got, want, rtol=0, atol=2e-3)
     assert labels == tuple(dofs) and np.all(w == 1.0)

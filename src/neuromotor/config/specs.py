@@ -192,7 +192,7 @@ class BallSpec(_KeyView):
 @dataclasses.dataclass(frozen=True)
 class GainSetting:
     """One controller: the paper's model ("neuromotor") or the high-gain PD tracker ("pd") at
-    the gains (ks, kd). The one way gains are set: :func:`neuromotor.studies.gains.apply_gains`."""
+    the gains (ks, kd). The one way gains are set: :func:`neuromotor.studies.gains.gains_for`."""
 
     ks: float
     kd: float
@@ -240,10 +240,10 @@ class SimulationConfig:
     duration: float | None = None  # None: to the clip's end
     implicit: bool = True
     driven_joints: list[str] = dataclasses.field(default_factory=list)
-    stabilization_steps: int = 2  # Newton steps of post-stabilization (SimConfig.stabilization_steps)
+    stabilization_steps: int = 2  # Newton steps of post-stabilization (StepOptions.stabilization_steps)
     dtype: Precision = Precision.FLOAT64  # float64, or float32 for sweeps (docs/float32.md)
-    feedforward: Feedforward = Feedforward.DISCRETE  # SimConfig.feedforward: discrete | continuous (Eq. 3)
-    joint_law: JointLaw = JointLaw.ROTATION  # SimConfig.joint_law: rotation | euler (per Euler DOF)
+    feedforward: Feedforward = Feedforward.DISCRETE  # StepOptions.feedforward: discrete | continuous (Eq. 3)
+    joint_law: JointLaw = JointLaw.ROTATION  # StepOptions.joint_law: rotation | euler (per Euler DOF)
     metric: str = "geodesic"  # the deviation d(t): geodesic joint angles, or "euler" (per-DOF; studies.metrics)
     ks: float = DEFAULT_KS
     kd: float = DEFAULT_KD
@@ -267,7 +267,8 @@ class SimulationConfig:
         return GainSetting(self.ks, self.kd)
 
     def with_gains(self, ks: float | None = None, kd: float | None = None) -> SimulationConfig:
-        """The config at other gains (None keeps a gain)."""
+        """The config at other gains (None keeps a gain): numbers only; ``prepare`` puts them on the
+        controller through :func:`neuromotor.studies.gains.gains_for`."""
         return dataclasses.replace(self, ks=self.ks if ks is None else ks, kd=self.kd if kd is None else kd)
 
     def mass_options(self):

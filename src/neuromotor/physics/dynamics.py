@@ -7,10 +7,10 @@ One step from t to t + h (Anitescu & Potra's linearly implicit scheme, Section 4
 
 with k = f_ext + H^T (tau + feedback) + perturbations, K = dk/dx over the position tangent space
 and D = dk/dv, both in closed form (:mod:`neuromotor.physics.stiffness`; ``jax.jacfwd`` of k
-is the check, ``SimConfig.jacobians``). b carries the
+is the check, ``StepOptions.jacobians``). b carries the
 driven root's (and driven joints') velocity. Positions then move with v+ (quaternions by the
 exponential map) and are projected back onto the constraint manifold (Cline & Pai 2003) by
-``SimConfig.stabilization_steps`` Newton steps (:func:`neuromotor.physics.constraints.post_stabilize`).
+``StepOptions.stabilization_steps`` Newton steps (:func:`neuromotor.physics.constraints.post_stabilize`).
 Two by default: one leaves up to 3.6e-8 m of violation on the default hit, two leave 1e-14 m
 and give the same motion as three to 1e-13.
 
@@ -18,7 +18,7 @@ The step, in the style of MuJoCo MJX's ``forward``, is ``step(sim, params, data)
 three pytrees:
 
 * :class:`SimModel` -- what stays fixed over a rollout: the skeleton ``Model``, the mocap
-  :class:`Reference` on the time grid and the static :class:`SimConfig`;
+  :class:`Reference` on the time grid and the static :class:`StepOptions`;
 * :class:`Params` -- what a user fits or sweeps: the controller's :class:`Gains` and the
   perturbation :class:`ForcePulses`;
 * :class:`Data` -- what a step advances: the grid index k, the :class:`State` and the
@@ -30,8 +30,11 @@ Eq. 2, KKT assembly and solve (by the chosen :class:`Solver`), integration, post
 Every solver gives the same step (tests check agreement to round-off) and records the relative
 residual of the whole of Eq. 2 and the constraint violation left after post-stabilization.
 
-The rollout is one ``lax.scan`` of :func:`step`; divergence is recorded in the carry (first bad
-step and body) and raised on the host by :func:`check_rollout`. Joint angles and rates are
+The rollout, ``simulate(sim, params) -> Rollout``, is one ``lax.scan`` of :func:`step`: the one
+way to run (the studies, fits, sweeps and experiments call it; the contact rollout scans its
+own step the same way; :func:`rollout` is a thin convenience for users over the separate
+pieces). Divergence is recorded in the carry (first bad step and body) and raised on the host
+by :func:`check_rollout`. Joint angles and rates are
 computed after the scan for all states at once.
 """
 
@@ -76,7 +79,7 @@ class SimulationDiverged(UserError, RuntimeError):
         super().__init__(f"simulation diverged at step {step} (t = {time:.4f} s) in body {body!r}: {reason}")
 
 
-class SimConfig(eqx.Module):
+class StepOptions(eqx.Module):
     """Static settings of a rollout."""
 
     h: float = eqx.field(static=True, default=1.0 / 120.0)
@@ -141,7 +144,7 @@ class Reference(eqx.Module):
         return jnp.concatenate([h * w1[p], h * w1[c], (w1[c] - w1[p]) - (w0[c] - w0[p])], -1)
 
 
-def make_reference(model: Model, traj: Trajectory, t0: float | Array, cfg: SimConfig) -> Reference:
+def make_reference(model: Model, traj: Trajectory, t0: float | Array, cfg: StepOptions) -> Reference:
     """Sample the mocap targets on the simulation grid of ``cfg`` (h, steps), with the feedforward
     of ``cfg.feedforward`` (the discrete inverse of ``cfg``'s step, or Eq. 3) and the joint axes
     of ``cfg.joint_law``."""
@@ -153,7 +156,7 @@ def make_reference(model: Model, traj: Trajectory, t0: float | Array, cfg: SimCo
 
 
 @functools.partial(compiler.jit, static_argnames=("cfg",))
-def _capture_grid(model: Model, traj: Trajectory, t0, cfg: SimConfig):
+def _capture_grid(model: Model, traj: Trajectory, t0, cfg: StepOptions):
     """The capture's poses on the grid and the pose targets post-stabilization reads."""
     times = t0 + cfg.h * jnp.arange(cfg.n_steps + 1)
     q = jax.vmap(traj.q)(times)
@@ -166,7 +169,7 @@ def _capture_grid(model: Model, traj: Trajectory, t0, cfg: SimConfig):
 # One compiled program rather than hundreds of eagerly dispatched small ops (each eager op is
 # compiled on its own, which made preparing a run take longer than compiling the rollout).
 @functools.partial(compiler.jit, static_argnames=("cfg",))
-def _make_reference(model: Model, traj: Trajectory, t0, cfg: SimConfig, landed=None) -> Reference:
+def _make_reference(model: Model, traj: Trajectory, t0, cfg: StepOptions, landed=None) -> Reference:
     times = t0 + cfg.h * jnp.arange(cfg.n_steps + 1)
     q = jax.vmap(traj.q)(times)
     qd = jax.vmap(traj.qd)(times)
@@ -228,7 +231,7 @@ class SimModel(eqx.Module):
 
     model: Model
     ref: Reference
-    cfg: SimConfig
+    options: StepOptions
 
 
 class Params(eqx.Module):
@@ -269,7 +272,7 @@ class Data(eqx.Module):
 
 def init_data(sim: SimModel, params: Params) -> Data:
     """Data at t_0: the reference's initial state, zero diagnostics."""
-    model, cfg, state = sim.model, sim.cfg, sim.ref.init
+    model, cfg, state = sim.model, sim.options, sim.ref.init
     _, force, points = pulse_wrenches(params.pulses, sim.ref.time[0], model.n_bodies, state.pos, state.rot,
                                       model.com)
     zero = jnp.zeros((), state.pos.dtype)
@@ -299,10 +302,10 @@ def active_mask(model: Model, driven: tuple[int, ...], dtype) -> Float[Array, " 
 def reference_inputs(sim: SimModel, gains: Gains, k) -> ControllerInputs:
     """Stage 1: what the controller reads from the mocap at grid step k, per joint."""
     ref, model = sim.ref, sim.model
-    active = active_mask(model, sim.cfg.driven, ref.tau.dtype)
+    active = active_mask(model, sim.options.driven, ref.tau.dtype)
     return controller_inputs(model, gains, active, ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k],
                              ref.rel_omega[k], ref.local_axes[k], ref.rel_quat[k], ref.local_pinv[k],
-                             ref.drift(model, k, sim.cfg.h))
+                             ref.drift(model, k, sim.options.h))
 
 
 def stiff_forces(sim: SimModel, gains: Gains, inputs: ControllerInputs, state: State,
@@ -310,10 +313,10 @@ def stiff_forces(sim: SimModel, gains: Gains, inputs: ControllerInputs, state: S
     """Stage 2: the muscle torques (Eq. 4 and Section 5.2) and the gyroscopic term, with their
     K and D in the representation the solver takes (``unrolled``: the batched solver's form)."""
     model = sim.model
-    if not sim.cfg.implicit:
+    if not sim.options.implicit:
         return explicit_forces(model, gains, inputs, state, tree)
     if tree:
-        return stiff_blocks(model, gains, inputs, state, sim.cfg.jacobians, unrolled)
+        return stiff_blocks(model, gains, inputs, state, sim.options.jacobians, unrolled)
     return stiff_jacobians(model, gains, inputs, state.rot, state.omega)
 
 
@@ -336,7 +339,7 @@ def delayed_reflex(sim: SimModel, gains: Gains, inputs: ControllerInputs, state:
     angle, rate = joint_errors(rot_p, rot[topo.child], omega[topo.parent], omega[topo.child], inputs.pinv(),
                                inputs.rel_rot, inputs.rel_omega)
     history = push(history, angle, rate)
-    return *reflex_torque(gains, history, sim.cfg.h, axes, inputs), history
+    return *reflex_torque(gains, history, sim.options.h, axes, inputs), history
 
 
 def momentum_rhs(model: Model, h: float, state: State, inertia, forces, damping_v) -> Float[Array, "B 6"]:
@@ -361,7 +364,7 @@ class Eq2(eqx.Module):
 def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solvers.KKTSolver) -> Eq2:
     """Stages 1 to 5: controller inputs, stiff forces with K and D, applied forces, the
     right-hand side ``(r, b)`` and the solver's assembly of Eq. 2's matrix."""
-    model, cfg, ref = sim.model, sim.cfg, sim.ref
+    model, cfg, ref = sim.model, sim.options, sim.ref
     k, state = data.k, data.state
     rot = state.rot
     inputs = reference_inputs(sim, params.gains, k)
@@ -386,14 +389,14 @@ def integrate(sim: SimModel, solver: solvers.KKTSolver, k, state: State, dx: Flo
     post-stabilization onto the targets of t_k+1. The new state (velocity ``v_new``) and the
     constraint violation left."""
     pos, quat = retract(state.pos, state.quat, dx)
-    pos, quat, cerr = post_stabilize(sim.model, sim.cfg, solver, pos, quat, sim.ref.pose_targets(k + 1))
+    pos, quat, cerr = post_stabilize(sim.model, sim.options, solver, pos, quat, sim.ref.pose_targets(k + 1))
     violation = jnp.max(jnp.abs(cerr)) if cerr.size else jnp.zeros((), pos.dtype)
     return State(pos, quat, v_new[:, :3], v_new[:, 3:]), violation
 
 
 def step(sim: SimModel, params: Params, data: Data) -> Data:
     """One linearly implicit step from t_k to t_k + h: Eq. 2 plus post-stabilization."""
-    cfg = sim.cfg
+    cfg = sim.options
     solver = solvers.get(cfg.solver)
     eq = equations_of_motion(sim, params, data, solver)
     v_new, aux = solver.solve(eq.system, eq.r, eq.b)  # stage 6
@@ -468,10 +471,10 @@ def depending_on(params, carry, skip=None):
 
 
 def scan_steps(sim: SimModel, params: Params, data0, step_fn=step):
-    """``sim.cfg.n_steps`` steps of ``step_fn(sim, params, data) -> data`` from ``data0`` in one
+    """``sim.options.n_steps`` steps of ``step_fn(sim, params, data) -> data`` from ``data0`` in one
     ``lax.scan``: ``(data stacked over the steps, first diverged step, its body)``. Any data with
     ``k``, ``state``, ``badness`` and ``held`` will do (the contact step's carries a ball too)."""
-    cfg = sim.cfg
+    cfg = sim.options
     if sim.ref.time.shape[0] < cfg.n_steps + 1:
         raise ValueError(f"reference has {sim.ref.time.shape[0] - 1} steps, config asks for {cfg.n_steps}")
 
@@ -493,7 +496,7 @@ def scan_steps(sim: SimModel, params: Params, data0, step_fn=step):
 def rollout_of(sim: SimModel, data0, out, bad_step, bad_body) -> Rollout:
     """The :class:`Rollout` of :func:`scan_steps`' output: states from t_0, their joint angles
     and rates, and the steps' diagnostics."""
-    model, ref, n_steps = sim.model, sim.ref, sim.cfg.n_steps
+    model, ref, n_steps = sim.model, sim.ref, sim.options.n_steps
     stack = lambda a, b: jnp.concatenate([a[None], b], 0)
     states = jax.tree_util.tree_map(stack, data0.state, out.state)
     # Joint angles and rates of all states at once after the scan: the per-step loop keeps
@@ -506,16 +509,17 @@ def rollout_of(sim: SimModel, data0, out, bad_step, bad_body) -> Rollout:
 
 
 def simulate(sim: SimModel, params: Params) -> Rollout:
-    """``sim.cfg.n_steps`` steps of :func:`step` from the reference's initial state (one ``lax.scan``),
-    in the precision ``sim.cfg.dtype`` (the model, reference and parameters are cast to it)."""
-    sim, params = cast((sim, params), sim.cfg.dtype)
+    """``sim.options.n_steps`` steps of :func:`step` from the reference's initial state (one ``lax.scan``),
+    in the precision ``sim.options.dtype`` (the model, reference and parameters are cast to it)."""
+    sim, params = cast((sim, params), sim.options.dtype)
     data0 = init_data(sim, params)
     return rollout_of(sim, data0, *scan_steps(sim, params, data0))
 
 
-def rollout(model: Model, gains: Gains, pulses: ForcePulses | None, ref: Reference, cfg: SimConfig) -> Rollout:
-    """Simulate ``cfg.n_steps`` steps from the reference's initial state (see :func:`simulate`)."""
-    return simulate(SimModel(model, ref, cfg), Params(gains, no_pulses() if pulses is None else pulses))
+def rollout(model: Model, gains: Gains, pulses: ForcePulses | None, ref: Reference, options: StepOptions) -> Rollout:
+    """A convenience for users: ``simulate(SimModel(model, ref, options), Params(gains, pulses))``
+    (``pulses`` None: none). The package itself calls :func:`simulate`, the one way to run."""
+    return simulate(SimModel(model, ref, options), Params(gains, no_pulses() if pulses is None else pulses))
 
 
 def check_rollout(model: Model, run: Rollout) -> Rollout:

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 
 
 class Precision(str, enum.Enum):
-    """The dtype of a rollout's floating arrays (``SimConfig.dtype``; the strings are accepted too)."""
+    """The dtype of a rollout's floating arrays (``StepOptions.dtype``; the strings are accepted too)."""
 
     FLOAT64 = "float64"  # the reference path: KKT residual ~1e-13, constraint drift ~1e-14
     FLOAT32 = "float32"  # for sweeps and accelerators: see docs/float32.md for what it loses

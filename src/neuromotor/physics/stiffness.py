@@ -37,7 +37,7 @@ from neuromotor.rotations import (cross, matrix_to_quat, mm, mmt, mtv, mv, quat_
 
 
 class Jacobians(str, enum.Enum):
-    """How the tree blocks of K and D are computed (``SimConfig.jacobians``)."""
+    """How the tree blocks of K and D are computed (``StepOptions.jacobians``)."""
 
     CLOSED_FORM = "closed_form"  # by hand from the affine torque law (fastest)
     JACFWD = "jacfwd"  # jax.jacfwd along each joint's 6 rotation tangents (the check)
@@ -249,7 +249,7 @@ def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: St
 
 def explicit_forces(model: Model, gains: Gains, inputs: ControllerInputs, state: State,
                     tree: bool) -> StiffBlocks | DenseStiffness:
-    """The stiff forces with K = D = 0 (``SimConfig.implicit = False``), in either representation."""
+    """The stiff forces with K = D = 0 (``StepOptions.implicit = False``), in either representation."""
     k = muscle_and_gyro(model, gains, inputs, state.rot, state.omega)
     n, dtype = model.n_bodies, k.dtype
     if not tree:

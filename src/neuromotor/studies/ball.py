@@ -20,9 +20,11 @@ from neuromotor import compiler
 from neuromotor.config import ConfigError
 from neuromotor.model.kinematics import body_poses
 from neuromotor.model.skeleton import Character, Model
-from neuromotor.physics.contact import (Ball, Capsules, ContactRollout, ContactSettings, batched_contact_rollout,
-                                        candidate_bodies, candidate_names, check_contact_rollout,
-                                        contact_rollout_jit, detect, fit_capsules, make_ball, never_launched)
+from neuromotor.physics.contact import (Ball, Capsules, ContactRollout, ContactScene, ContactSettings,
+                                        batched_simulate_contact, candidate_bodies, candidate_names,
+                                        check_contact_rollout, detect, fit_capsules, make_ball, never_launched,
+                                        simulate_contact_jit)
+from neuromotor.physics.dynamics import Params
 from neuromotor.rotations import quat_to_matrix
 from neuromotor.studies import metrics as mx
 
@@ -34,6 +36,11 @@ class BallSetup(eqx.Module):
     capsules: Capsules
     settings: ContactSettings = eqx.field(static=True)
     target: int | None = eqx.field(static=True, default=None)  # body the ball is aimed at
+
+    def scene(self, ball: Ball | None = None) -> ContactScene:
+        """What the contact step adds to the character: ``ball`` (default: this one), the capsules,
+        the settings."""
+        return ContactScene(self.ball if ball is None else ball, self.capsules, self.settings)
 
 
 # ----------------------------------------------------------------------------- aiming
@@ -138,11 +145,9 @@ def balls_at_speeds(setup, speeds) -> Ball:
 def ball_rollouts(setup, base_pulses, check: bool = True) -> tuple[ContactRollout, ContactRollout]:
     """Perturbed (the ball flies) and unperturbed (the ball never launched, ``base_pulses``:
     the config's pulses switched off) contact rollouts, with the same compiled function."""
-    bs, model = setup.ball, setup.model
-    pert = contact_rollout_jit(model, setup.gains, setup.pulses, setup.ref, setup.sim, bs.ball, bs.capsules,
-                               bs.settings)
-    base = contact_rollout_jit(model, setup.gains, base_pulses, setup.ref, setup.sim, never_launched(bs.ball),
-                               bs.capsules, bs.settings)
+    bs, model, sim = setup.ball, setup.model, setup.sim_model
+    pert = simulate_contact_jit(sim, setup.params, bs.scene())
+    base = simulate_contact_jit(sim, Params(setup.gains, base_pulses), bs.scene(never_launched(bs.ball)))
     if check:
         check_contact_rollout(model, base)
         check_contact_rollout(model, pert)
@@ -177,7 +182,7 @@ def ball_arrays(setup, result) -> dict[str, np.ndarray]:
         "ball_vel": np.asarray(out.ball.vel),
         "ball_radius": np.asarray(float(bs.ball.radius)),
         "contact_impulse": impulse,
-        "contact_force": impulse / setup.sim.h,
+        "contact_force": impulse / setup.options.h,
         "contact_normal_impulse": np.asarray(c.normal_impulse),
         "contact_point": points,
         "contact_gap": np.asarray(c.gap),
@@ -197,8 +202,7 @@ def sweep_ball_speed(setup, speeds) -> dict[str, np.ndarray]:
     speeds = jnp.asarray(speeds, jnp.float64)
     balls = jax.vmap(lambda s: eqx.tree_at(lambda b: b.speed, bs.ball, s))(speeds)
     balls = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), balls, never_launched(bs.ball))
-    batch = batched_contact_rollout(setup.model, setup.gains, setup.pulses, setup.ref, setup.sim, balls,
-                                    bs.capsules, bs.settings)
+    batch = batched_simulate_contact(setup.sim_model, setup.params, bs.scene(balls))
     if setup.config.metric == "euler":
         theta = batch.run.theta
         dev = jax.vmap(lambda th: mx.deviation(th, theta[-1]))(theta[:-1])

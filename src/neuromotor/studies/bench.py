@@ -88,13 +88,13 @@ def _setup(clip, seconds: float, solver: str, load=None):
     config = SimulationConfig(clip=None if clip is None else str(clip), duration=seconds,
                               perturbations=[dict(DEFAULT_HIT, start=min(0.3, seconds / 2))])  # type: ignore[list-item]
     setup = prepare(config, character, traj)
-    return dataclasses.replace(setup, sim=dataclasses.replace(setup.sim, solver=solvers.Solver(solver)))
+    return dataclasses.replace(setup, options=dataclasses.replace(setup.options, solver=solvers.Solver(solver)))
 
 
 def _stages(setup) -> dict:
     """The parts of a step as functions ``body(k, state, ref)``: the Jacobians K, D (Eq. 2),
-    the KKT solve and post-stabilization, for the solver of ``setup.sim``."""
-    m, g, cfg = setup.model, setup.gains, setup.sim
+    the KKT solve and post-stabilization, for the solver of ``setup.options``."""
+    m, g, cfg = setup.model, setup.gains, setup.options
     solver = solvers.get(cfg.solver)
     n = m.n_bodies
     sim = lambda ref: dy.SimModel(m, ref, cfg)
@@ -131,8 +131,8 @@ def _reduce(out):
 def single(setup, repeats: int) -> tuple[dict, object]:
     """One trajectory: speed, compile time and the split of a step; and the compiled rollout
     (a zero-argument callable, for the interleaved comparison with MuJoCo)."""
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
-    run_fn = lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg)
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
+    run_fn = lambda m, g, p, ref: dy.simulate(dy.SimModel(m, ref, cfg), dy.Params(g, p))
     comp, compile_s = _compile(run_fn, m, g, p, ref)
     run = comp(m, g, p, ref)
     total = _best(lambda: comp(m, g, p, ref), repeats)
@@ -165,10 +165,10 @@ def batch_split(setup, size: int, repeats: int) -> dict:
     """The parts of a step (as in :func:`single`) and the whole step under ``vmap`` over
     ``size`` states of a rollout: wall microseconds per trajectory-step. In a batch the
     kernel count no longer dominates; this shows where the arithmetic and copies go."""
-    setup = dataclasses.replace(setup, sim=dataclasses.replace(setup.sim,
-                                                               solver=solvers.Solver(setup.sim.solver).batched()))
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
-    run = compiler.jit(lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg))(m, g, p, ref)
+    batched = dataclasses.replace(setup.options, solver=solvers.Solver(setup.options.solver).batched())
+    setup = dataclasses.replace(setup, options=batched)
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
+    run = compiler.jit(lambda m, g, p, ref: dy.simulate(dy.SimModel(m, ref, cfg), dy.Params(g, p)))(m, g, p, ref)
     idx = np.arange(size) % cfg.n_steps
     states = jax.tree_util.tree_map(lambda x: x[idx], run.states)
     ks = jnp.asarray(idx)
@@ -200,8 +200,8 @@ def _interleaved(runs: dict, repeats: int) -> dict[str, float]:
 
 def compiler_options_ab(setup, repeats: int) -> dict:
     """The rollout compiled with :data:`compiler.CPU_COMPILER_OPTIONS` and with XLA's defaults."""
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
-    fn = lambda m, g, p, ref: dy.rollout(m, g, p, ref, cfg)
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
+    fn = lambda m, g, p, ref: dy.simulate(dy.SimModel(m, ref, cfg), dy.Params(g, p))
     progs = {"tuned": jax.jit(fn).lower(m, g, p, ref).compile(compiler_options=dict(compiler.CPU_COMPILER_OPTIONS)),
              "default": jax.jit(fn).lower(m, g, p, ref).compile()}
     diff = float(jnp.max(jnp.abs(progs["tuned"](m, g, p, ref).theta - progs["default"](m, g, p, ref).theta)))
@@ -214,11 +214,12 @@ def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
     """The rollout with each number of post-stabilization Newton steps: time per step (timed
     in alternation), the largest constraint violation left, and the largest difference in
     joint angles from the last entry of ``steps``."""
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
     progs = {}
     for n in steps:
         c = dataclasses.replace(cfg, stabilization_steps=n)
-        progs[n] = compiler.jit(lambda m, g, p, ref, c=c: dy.rollout(m, g, p, ref, c)).lower(m, g, p, ref).compile()
+        run_n = lambda m, g, p, ref, c=c: dy.simulate(dy.SimModel(m, ref, c), dy.Params(g, p))
+        progs[n] = compiler.jit(run_n).lower(m, g, p, ref).compile()
     runs = {n: progs[n](m, g, p, ref) for n in steps}
     best = _interleaved({k: (lambda c=c: c(m, g, p, ref)) for k, c in progs.items()}, repeats)
     last = runs[steps[-1]]
@@ -245,13 +246,14 @@ def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str
     "float32"``; ``..._one_device`` for the unsplit twin)."""
     from neuromotor.studies.sweep.runner import AXIS, batch_mesh, shard_vmap
 
-    m, g, ref, cfg = setup.model, setup.gains, setup.ref, setup.sim
+    m, g, ref, cfg = setup.model, setup.gains, setup.ref, setup.options
     out = []
     for size in sizes:
         mags = scaled_pulses(setup, np.linspace(0.5, 1.5, size))
-        cfg = dataclasses.replace(setup.sim, solver=solvers.Solver(setup.sim.solver).batched() if size > 1
-                                  else setup.sim.solver, dtype=dtype)
-        one = lambda pulses, shared, cfg=cfg: dy.rollout(m, shared[0], pulses, shared[1], cfg).theta
+        cfg = dataclasses.replace(setup.options, solver=solvers.Solver(setup.options.solver).batched() if size > 1
+                                  else setup.options.solver, dtype=dtype)
+        one = lambda pulses, shared, cfg=cfg: dy.simulate(dy.SimModel(m, shared[1], cfg),
+                                                          dy.Params(shared[0], pulses)).theta
         meshes = {"": batch_mesh(size, cfg) if size > 1 else None}
         if meshes[""] is not None:
             meshes["_one_device"] = None
@@ -279,12 +281,12 @@ def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str
 def gain_jacobian(setup, repeats: int, programs: dict | None = None) -> dict:
     """jacfwd over (ks, kd) through the rollout, against the rollout alone. ``programs`` (a dict)
     receives both compiled programs as zero-argument callables (``jacfwd``, ``jacfwd_rollout``)."""
-    from neuromotor.studies.gains import set_gains
+    from neuromotor.studies.gains import gains_for
 
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.sim
+    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
 
     def theta(x, g, ref):
-        return dy.rollout(m, set_gains(g, x[0], x[1]), p, ref, cfg).theta
+        return dy.simulate(dy.SimModel(m, ref, cfg), dy.Params(gains_for(g, ks=x[0], kd=x[1]), p)).theta
 
     x = jnp.stack([g.ks, g.kd])
     fwd, c1 = _compile(theta, x, g, ref)
@@ -315,7 +317,7 @@ def inverse(clips, repeats: int, load=None) -> list[dict]:
 def mujoco_reference(setup, steps: int, repeats: int, ours=None) -> dict | None:
     """MuJoCo on the same skeleton, masses and step (one thread, implicitfast, PD servos).
 
-    ``ours`` (a callable running our compiled rollout of ``setup.sim.n_steps`` steps) adds the
+    ``ours`` (a callable running our compiled rollout of ``setup.options.n_steps`` steps) adds the
     ratio measured interleaved: our rollout and MuJoCo over the same number of steps, in
     alternation, best of each. The host's speed drifts by 2x or more between runs minutes
     apart, so this ratio is steadier than two figures taken at different moments."""
@@ -323,7 +325,7 @@ def mujoco_reference(setup, steps: int, repeats: int, ours=None) -> dict | None:
         import mujoco
     except ImportError:
         return None
-    mj, data = mujoco_start(setup.character, setup.sim.h, setup.ref.theta[0])
+    mj, data = mujoco_start(setup.character, setup.options.h, setup.ref.theta[0])
     qpos0, qvel0 = data.qpos.copy(), data.qvel.copy()
 
     def run(n):
@@ -335,9 +337,9 @@ def mujoco_reference(setup, steps: int, repeats: int, ours=None) -> dict | None:
 
     t = _best(lambda: run(steps), repeats)
     out = {"version": mujoco.__version__, "nv": int(mj.nv), "nu": int(mj.nu), "steps": steps,
-           "step_us": t / steps * 1e6, "steps_per_s": steps / t, "real_time_factor": steps * setup.sim.h / t}
+           "step_us": t / steps * 1e6, "steps_per_s": steps / t, "real_time_factor": steps * setup.options.h / t}
     if ours is not None:
-        n = setup.sim.n_steps
+        n = setup.options.n_steps
         best = _interleaved({"ours": ours, "mujoco": lambda: run(n)}, max(3 * repeats, 10))
         out["interleaved"] = {"steps": n, "ours_us": best["ours"] / n * 1e6, "mujoco_us": best["mujoco"] / n * 1e6,
                               "ratio": best["ours"] / best["mujoco"]}
@@ -380,10 +382,10 @@ def mjx_beside(setup, batch_setup, programs: dict, res: dict, repeats: int, log=
         ours["batch_one"] = programs["batch1"]
     if f"batch{size}_one_device" in programs:
         ours["batch_one_device"] = programs[f"batch{size}_one_device"]
-    mj, data = mujoco_start(setup.character, setup.sim.h, setup.ref.theta[0])
+    mj, data = mujoco_start(setup.character, setup.options.h, setup.ref.theta[0])
     # MJX gets the XLA options ours is compiled with (on the CPU they cut its jacfwd time ~5x).
-    out = bench_mjx.compare(mj, data, ours, steps=setup.sim.n_steps, batch=size,
-                            batch_steps=batch_setup.sim.n_steps, rounds=max(2 * repeats, 7),
+    out = bench_mjx.compare(mj, data, ours, steps=setup.options.n_steps, batch=size,
+                            batch_steps=batch_setup.options.n_steps, rounds=max(2 * repeats, 7),
                             compiler_options=compiler.compiler_options() if jax.default_backend() == "cpu" else None)
     out["ours_compile_s"] = {"rollout": res["single"]["compile_s"], "jacfwd": res["jacfwd"]["compile_jacfwd_s"],
                              "batch": next(r["compile_s"] for r in res["batch"] if r["batch"] == size)}
@@ -423,7 +425,7 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
     log(f"machine: {machine()}")
     res: dict = {"machine": machine()}
     setup = _setup(clip, 1.0, solver, load)
-    log(f"model: {setup.model.n_bodies} bodies, {setup.model.n_dofs} DOFs, h = {setup.sim.h:.6f} s")
+    log(f"model: {setup.model.n_bodies} bodies, {setup.model.n_dofs} DOFs, h = {setup.options.h:.6f} s")
     res["single"], ours = single(setup, repeats)
     _log_single(res["single"], log)
     if dense_too:  # the other solvers, for comparison

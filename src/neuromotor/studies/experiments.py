@@ -45,7 +45,7 @@ from neuromotor.config.specs import DEFAULT_CONTRAST, ExperimentSpec, GainSettin
 from neuromotor.errors import ConfigError
 from neuromotor.io.tables import write_json as _write_json
 from neuromotor.studies import metrics as mx
-from neuromotor.studies.gains import apply_gains
+from neuromotor.studies.gains import gains_for
 from neuromotor.viz.figures import pyplot, save_png as save_figure
 
 __all__ = ["DEFAULT_CONTRAST", "KINDS", "RUNNERS", "arm", "contrast", "experiment_spec", "full_body", "load_experiment",
@@ -83,7 +83,7 @@ def _simulate(cfg: SimulationConfig, out: pathlib.Path, name: str = "run.npz", s
     if setup is None:
         setup = prepare(cfg)
     if setting is not None:
-        setup = dataclasses.replace(setup, gains=apply_gains(setup.gains, setting))
+        setup = dataclasses.replace(setup, gains=gains_for(setup.gains, setting))
     result = run(setup, check=False)
     path = save_npz_atomic(out / name, run_arrays(setup, result))
     return setup, result, path

@@ -311,7 +311,7 @@ def provenance(setup: Setup) -> dict:
     options, ball, delayed reflex)."""
     from neuromotor import __version__
 
-    cfg, sim = setup.config, setup.sim
+    cfg, options = setup.config, setup.options
     return {
         "neuromotor_version": __version__,
         "jax_version": jax.__version__,
@@ -320,12 +320,12 @@ def provenance(setup: Setup) -> dict:
         "gains": {"ks": float(cfg.ks), "kd": float(cfg.kd), "tau_floor": float(cfg.tau_floor)},
         "h": float(cfg.h),
         "start": float(cfg.start),
-        "duration": float(sim.n_steps * cfg.h),
-        "n_steps": int(sim.n_steps),
+        "duration": float(options.n_steps * cfg.h),
+        "n_steps": int(options.n_steps),
         "implicit": bool(cfg.implicit),
         "stabilization_steps": int(cfg.stabilization_steps),
         "dtype": str(cfg.dtype),  # float64, or float32 (docs/float32.md)
-        "driven_joints": [setup.model.body_names[b] for b in sim.driven],
+        "driven_joints": [setup.model.body_names[b] for b in options.driven],
         "perturbations": _perturbation_records(setup),
         "ball": _ball_record(setup),
         # The delayed reflex (docs/reflex.md), or None: the paper's controller.

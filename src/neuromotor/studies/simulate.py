@@ -20,11 +20,12 @@ from neuromotor import compiler
 from neuromotor.physics.contact import ContactRollout
 from neuromotor.studies.ball import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies import metrics as mx
+from neuromotor.studies.gains import gains_for
 from neuromotor.config import ConfigError, SimulationConfig
 from neuromotor.config.specs import onset
 from neuromotor.physics.control import Gains, make_gains
-from neuromotor.physics.dynamics import (Feedforward, Reference, Rollout, SimConfig, check_rollout, make_reference,
-                                        rollout)
+from neuromotor.physics.dynamics import (Feedforward, Params, Reference, Rollout, SimModel, StepOptions, check_rollout,
+                                        make_reference, simulate)
 from neuromotor.model.kinematics import Trajectory
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
 from neuromotor.physics.precision import Precision
@@ -33,15 +34,17 @@ from neuromotor.model.skeleton import BODY_KEYWORDS, Character, Model, keyword_b
 from neuromotor.io.runfile import read_run_info, save_npz_atomic  # noqa: F401  (re-exported)
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Setup:
-    """Everything a rollout needs; ``model``, ``gains``, ``pulses`` and ``ref`` are pytrees."""
+    """Everything a rollout needs; ``model``, ``gains``, ``pulses`` and ``ref`` are pytrees.
+    Immutable: ``dataclasses.replace(setup, gains=...)`` makes a changed copy. A run is
+    ``simulate(setup.sim_model, setup.params)``."""
 
     character: Character
     traj: Trajectory
     ref: Reference
     gains: Gains
-    sim: SimConfig
+    options: StepOptions
     pulses: ForcePulses
     config: SimulationConfig
     ball: BallSetup | None = None  # a [ball] config: the flying ball and its contacts
@@ -51,6 +54,16 @@ class Setup:
     @property
     def model(self) -> Model:
         return self.character.model
+
+    @property
+    def sim_model(self) -> SimModel:
+        """What stays fixed over this setup's rollouts: the model, the reference, the options."""
+        return SimModel(self.character.model, self.ref, self.options)
+
+    @property
+    def params(self) -> Params:
+        """What the rollouts vary: this setup's gains and pulses."""
+        return Params(self.gains, self.pulses)
 
 
 # With the paper's continuous feedforward (Eq. 3), a driven root turning more than this per step
@@ -153,31 +166,31 @@ def prepare(config: SimulationConfig, character: Character | None = None,
     if config.ball is not None and float(config.ball.get("launch", 0.0)) >= window.t1 - 1e-9:
         raise ConfigError(f"{config.source}: field 'ball.launch' = {float(config.ball['launch']):g} s is at "
                           f"or after the end of {window.text}")
-    sim = SimConfig(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit,
-                    stabilization_steps=config.stabilization_steps, dtype=config.dtype,
-                    feedforward=config.feedforward, joint_law=config.joint_law)
-    ref = make_reference(model, traj, config.start, sim)
-    gains = _initial_gains(model, traj, jnp.asarray(config.start), ref.local_axes[0], ref.activation,
-                           config.ks, config.kd, config.tau_floor)
-    if config.reflex is not None:
-        gains = dataclasses.replace(gains, reflex=config.reflex.build(config.h))
+    options = StepOptions(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit,
+                          stabilization_steps=config.stabilization_steps, dtype=config.dtype,
+                          feedforward=config.feedforward, joint_law=config.joint_law)
+    ref = make_reference(model, traj, config.start, options)
+    template = _initial_gains(model, traj, jnp.asarray(config.start), ref.local_axes[0], ref.activation,
+                              config.tau_floor)
+    gains = gains_for(template, config.gains, reflex=None if config.reflex is None else config.reflex.build(config.h))
     ball = ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
-    return Setup(character, traj, ref, gains, sim, build_pulses(config.perturbations, model, config.h, index), config,
-                 ball, warnings, window)
+    pulses = build_pulses(config.perturbations, model, config.h, index)
+    return Setup(character, traj, ref, gains, options, pulses, config, ball, warnings, window)
 
 
 @compiler.jit
-def _initial_gains(model: Model, traj: Trajectory, t0, local_axes, activation, ks, kd, tau_floor) -> Gains:
-    """:func:`make_gains` at the clip's start, the spline evaluation included: one program
-    rather than a dozen eagerly compiled scalar ops."""
-    return make_gains(model, traj.q(t0), local_axes, activation, ks, kd, tau_floor)
+def _initial_gains(model: Model, traj: Trajectory, t0, local_axes, activation, tau_floor) -> Gains:
+    """The template gains: :func:`make_gains` at the clip's start, the spline evaluation included
+    (one program rather than a dozen eagerly compiled scalar ops); a run's (ks, kd) and reflex
+    are put on them by :func:`~neuromotor.studies.gains.gains_for`."""
+    return make_gains(model, traj.q(t0), local_axes, activation, tau_floor=tau_floor)
 
 
 _zero = compiler.jit(unperturbed)
 
 
-simulate_jit = compiler.jit(rollout, static_argnames=("cfg",))
+simulate_jit = compiler.jit(simulate)  # simulate_jit(sim, params): the StepOptions inside sim are static
 
 
 @dataclasses.dataclass
@@ -193,9 +206,9 @@ def run(setup: Setup, check: bool = True) -> RunResult:
     if setup.ball is not None:
         pert, base = ball_rollouts(setup, _zero(setup.pulses), check)
         return RunResult(pert.run, base.run, run_metrics(setup, pert.run, base.run) | ball_metrics(pert), pert)
-    model = setup.model
-    pert = simulate_jit(model, setup.gains, setup.pulses, setup.ref, setup.sim)
-    base = simulate_jit(model, setup.gains, _zero(setup.pulses), setup.ref, setup.sim)
+    model, sim = setup.model, setup.sim_model
+    pert = simulate_jit(sim, setup.params)
+    base = simulate_jit(sim, Params(setup.gains, _zero(setup.pulses)))
     if check:
         check_rollout(model, base)
         check_rollout(model, pert)

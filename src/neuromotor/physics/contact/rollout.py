@@ -3,20 +3,17 @@ the contact step, the ball's state and the contact record carried beside the cha
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 from neuromotor import compiler
 from neuromotor.model.skeleton import Model
-from neuromotor.physics.contact.ball import Ball, BallState
-from neuromotor.physics.contact.detection import ContactSettings
-from neuromotor.physics.contact.shapes import Capsules
+from neuromotor.physics.contact.ball import BallState
 from neuromotor.physics.contact.step import ContactInfo, ContactScene, contact_step, initial_contact_data
-from neuromotor.physics.control import Gains
-from neuromotor.physics.dynamics import (Params, Reference, Rollout, SimConfig, SimModel, SimulationDiverged,
-                                         init_data, rollout_of, scan_steps)
-from neuromotor.physics.perturbation import ForcePulses, no_pulses
+from neuromotor.physics.dynamics import Params, Rollout, SimModel, SimulationDiverged, init_data, rollout_of, scan_steps
 from neuromotor.physics.precision import cast
 
 
@@ -28,14 +25,13 @@ class ContactRollout(eqx.Module):
     contact: ContactInfo  # row 0: no impulse, the initial gaps
 
 
-def contact_rollout(model: Model, gains: Gains, pulses: ForcePulses | None, ref: Reference,
-                    cfg: SimConfig, ball: Ball, caps: Capsules, settings: ContactSettings) -> ContactRollout:
-    """``cfg.n_steps`` steps of :func:`~neuromotor.physics.contact.step.contact_step` in one ``lax.scan``."""
-    sim = SimModel(model, ref, cfg)
-    params = Params(gains, no_pulses() if pulses is None else pulses)
-    # The precision of cfg.dtype for the character, the ball and the capsules alike.
-    sim, params, scene = cast((sim, params, ContactScene(ball, caps, settings)), cfg.dtype)
-    data0 = initial_contact_data(model, scene, init_data(sim, params))
+def simulate_contact(sim: SimModel, params: Params, scene: ContactScene) -> ContactRollout:
+    """``sim.options.n_steps`` steps of :func:`~neuromotor.physics.contact.step.contact_step` in one
+    ``lax.scan``: :func:`~neuromotor.physics.dynamics.simulate` with the ``scene`` (ball,
+    capsules, settings) beside the character."""
+    # The precision of options.dtype for the character, the ball and the capsules alike.
+    sim, params, scene = cast((sim, params, scene), sim.options.dtype)
+    data0 = initial_contact_data(sim.model, scene, init_data(sim, params))
     out, bad_step, bad_body = scan_steps(sim, params, data0, lambda s, p, d: contact_step(s, p, scene, d))
     stack = lambda a, b: jnp.concatenate([a[None], b], 0)
     return ContactRollout(rollout_of(sim, data0, out, bad_step, bad_body),
@@ -53,7 +49,12 @@ def check_contact_rollout(model: Model, out: ContactRollout) -> ContactRollout:
     return out
 
 
-contact_rollout_jit = compiler.jit(contact_rollout, static_argnames=("cfg", "settings"))
-# One compiled, vmapped rollout over a batch of balls (leading axis), everything else shared.
-batched_contact_rollout = compiler.jit(
-    jax.vmap(contact_rollout, in_axes=(None, None, None, None, None, 0, None, None)), static_argnums=(4, 7))
+simulate_contact_jit = compiler.jit(simulate_contact)
+
+
+def _over_balls(sim: SimModel, params: Params, scene: ContactScene) -> ContactRollout:
+    return jax.vmap(lambda ball: simulate_contact(sim, params, dataclasses.replace(scene, ball=ball)))(scene.ball)
+
+
+# One compiled, vmapped rollout over a batch of balls (``scene.ball``'s leading axis), the rest shared.
+batched_simulate_contact = compiler.jit(_over_balls)

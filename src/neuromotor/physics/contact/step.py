@@ -13,7 +13,7 @@ Contact frame and Jacobian
 
 Free velocity and responses
     The ordinary step's stages (:func:`neuromotor.physics.dynamics.equations_of_motion`) build
-    Eq. 2 for the chosen solver (``SimConfig.solver``: dense, tree or null-space). The solver
+    Eq. 2 for the chosen solver (``StepOptions.solver``: dense, tree or null-space). The solver
     gives the free velocity v_f (no contact) and, vmapped over the contact rows with one
     factorization, the responses X = A^-1 [Jc^T; 0] to unit contact impulses; the ball's block
     diag(m I, 2/5 m r^2 I) is inverted in closed form. So the Delassus matrix is W = Jc X and
@@ -327,8 +327,8 @@ def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: Conta
     """One step of Eq. 2 with the ball and its contacts: the ordinary step's stages, the contact
     rows added to the chosen solver's system (see the module docstring). ``info.lam`` holds the
     constraint forces of the contact-free solve."""
-    model, h, k, state = sim.model, sim.cfg.h, data.k, data.state
-    solver = solvers.get(sim.cfg.solver)
+    model, h, k, state = sim.model, sim.options.h, data.k, data.state
+    solver = solvers.get(sim.options.solver)
     eq = equations_of_motion(sim, params, data, solver)  # type: ignore[arg-type]  # ContactData has Data's fields
     free = ball_free_motion(model, scene.ball, h, sim.ref.time[k], k, data.ball)
     frame = contact_frame(model, scene, state, data.ball)

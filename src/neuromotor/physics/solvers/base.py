@@ -37,7 +37,7 @@ def relative_residual(res: Float[Array, " m"], rhs_norm: Float[Array, ""]) -> Fl
 
 
 class Solver(str, enum.Enum):
-    """Which solver of Eq. 2 a rollout uses (``SimConfig.solver``; the strings are accepted too)."""
+    """Which solver of Eq. 2 a rollout uses (``StepOptions.solver``; the strings are accepted too)."""
 
     NULLSPACE = "nullspace"  # v = S u over the joint-space basis, H factored along the tree (fastest single run)
     BRANCH = "branch"  # the same with its tree indexing as slices (fastest in vmapped batches)

@@ -64,7 +64,7 @@ def trajectory_calibration(setup, table, quantity: str, names=None, weights=None
     """
     from neuromotor.studies.targets import match_trial, resample
 
-    table = match_trial(table, setup.character, setup.sim.h)  # a BVH trial: the simulated DOFs only
+    table = match_trial(table, setup.character, setup.options.h)  # a BVH trial: the simulated DOFs only
     model = setup.model
     src = source or setup.config.source
     known = model.dof_names if quantity == "joint_angles" else model.body_names
@@ -191,7 +191,7 @@ def calibrate(cal: Calibration, outdir=None, progress: bool = True, evaluator: R
     ev = evaluator or ResponseEvaluator(cal.problem, cal.jacobian)
     res = fit(ev, cal.target, cal.weights, cal.x0, cal.solver, cal.options, progress=progress, strict=False)
     doc = {"config": cal.source, "target_file": cal.target_file, "target_kind": cal.problem.spec.kind,
-           "window_s": [float(cal.time[0]), float(cal.time[-1])], "h": cal.setup.sim.h,
+           "window_s": [float(cal.time[0]), float(cal.time[-1])], "h": cal.setup.options.h,
            "cases": [dict(p) for p in cal.setup.config.perturbations], **res.to_json()}
     if cal.not_fitted:
         doc["not_fitted"] = cal.not_fitted

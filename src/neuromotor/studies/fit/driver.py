@@ -13,7 +13,8 @@ from neuromotor.config.specs import FIT_SOLVERS, SolverOptions
 from neuromotor.studies.fit.bridge import residual_function
 from neuromotor.studies.fit.covariance import gauss_newton_covariance
 from neuromotor.studies.fit.evaluate import Evaluation, ResponseEvaluator
-from neuromotor.studies.fit.parameters import describe, value
+from neuromotor.studies.fit.parameters import describe
+from neuromotor.studies.gains import gain_value
 from neuromotor.studies.fit.result import (
     LOSS_FLAT_ITERATIONS, LOSS_FLAT_RTOL, FitError, FitResult, identifiability, loss_is_flat,
 )
@@ -124,7 +125,7 @@ def _report(evaluator, ev, target, weights, x, x0, solver, status, message, hist
     values = {n: float(np.exp(v)) for n, v in zip(names, x)}
     starts = {n: float(np.exp(v)) for n, v in zip(names, x0)}
     gains = evaluator.problem.gains
-    fixed = lambda n, d: d[n] if n in d else float(value(gains, n))
+    fixed = lambda n, d: d[n] if n in d else float(gain_value(gains, n))
     se_abs = {n: values[n] * float(s) for n, s in zip(names, se)}
     corr = float(cov[0, 1] / (se[0] * se[1])) if (len(se) > 1 and np.all(np.isfinite(se[:2]))
                                                   and np.all(se[:2] > 0)) else float("nan")

@@ -17,9 +17,10 @@ from neuromotor.config.specs import FEATURE_NAMES, TARGET_KINDS as KINDS, Surrog
 from neuromotor.errors import ConfigError
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.control import Gains
-from neuromotor.physics.dynamics import Reference, Rollout, SimConfig, rollout
+from neuromotor.physics.dynamics import Params, Reference, Rollout, SimModel, StepOptions, simulate
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
 from neuromotor.studies.fit import parameters as fp
+from neuromotor.studies.gains import gains_for
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.fit.surrogate import (acceleration_deg, deviation_deg, joint_acceleration_deg,
                                               response_features)
@@ -64,7 +65,7 @@ class FitProblem(eqx.Module):
     pulses: ForcePulses
     ref: Reference
     start: Float[Array, " C"]  # start of each case's (first) pulse, clip seconds
-    sim: SimConfig = eqx.field(static=True)
+    options: StepOptions = eqx.field(static=True)
     spec: ResponseSpec = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True, default=fp.DEFAULT)  # the fitted parameters, in x's order
 
@@ -79,12 +80,13 @@ class FitProblem(eqx.Module):
 
     def gains_at(self, x: Float[Array, " p"]) -> Gains:
         """The controller with the fitted parameters at exp(x), the others as in ``gains``."""
-        return fp.with_values(self.gains, self.names, jnp.exp(x))
+        return gains_for(self.gains, **dict(zip(self.names, jnp.exp(x))))
 
     def rollouts(self, x: Float[Array, " p"]) -> Rollout:
         """Every case's rollout at parameters exp(x), one vmap over the case axis."""
         gains = self.gains_at(x)
-        return jax.vmap(lambda p: rollout(self.model, gains, p, self.ref, self.sim))(self.pulses)
+        sim = SimModel(self.model, self.ref, self.options)
+        return jax.vmap(lambda p: simulate(sim, Params(gains, p)))(self.pulses)
 
     def outputs(self, x: Float[Array, " p"]) -> tuple[Float[Array, " m"], Float[Array, "C T c"], Int[Array, " R"]]:
         """Model output y (flat), the curves to plot per case, and each run's diverged step.
@@ -101,7 +103,7 @@ class FitProblem(eqx.Module):
             cur = runs.states.pos[:, s.i0:s.i1][:, :, jnp.asarray(s.columns)]
             return cur.reshape(-1), cur.reshape(cur.shape[0], cur.shape[1], -1), runs.diverged_step
         time = runs.time[0, s.i0:s.i1]
-        h = self.sim.h
+        h = self.options.h
         if s.metric == "geodesic":
             rows, mask = mx.dof_selection(self.model, s.columns) if s.columns else (mx.joint_rows(self.model), None)
             quat, omega = runs.states.quat[:, s.i0:s.i1], runs.states.omega[:, s.i0:s.i1]
@@ -153,11 +155,11 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
     if not specs:
         raise ConfigError(f"{cfg.source}: a fit needs at least one [[perturbation]] (one per case)")
     index = body_lookup(setup.model, cfg.source, setup.character)
-    per_case = [build_pulses([s], setup.model, setup.sim.h, index) for s in specs]
+    per_case = [build_pulses([s], setup.model, setup.options.h, index) for s in specs]
     if kind == "features":
         per_case = per_case + [unperturbed(per_case[0])]
     batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *per_case)
-    sim_time = np.asarray(setup.ref.time[: setup.sim.n_steps + 1])
+    sim_time = np.asarray(setup.ref.time[: setup.options.n_steps + 1])
     if window is None:
         window = (float(sim_time[0]), float(sim_time[-1]))
     i0, i1 = window_indices(sim_time, window, cfg.source, "fit.window")
@@ -166,4 +168,4 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
                         tuple(features) if kind == "features" else (), **surrogate)
     start = jnp.asarray([float(s["start"]) for s in specs])
     names = check_fit_parameters(names, setup.gains.reflex is not None, cfg.source)
-    return FitProblem(setup.model, setup.gains, batch, setup.ref, start, setup.sim, spec, names)
+    return FitProblem(setup.model, setup.gains, batch, setup.ref, start, setup.options, spec, names)

@@ -77,7 +77,7 @@ def write_synthetic_target(config_path, ks: float | None = None, kd: float | Non
     if unit == "deg":
         vals = np.rad2deg(vals)
     at = ", ".join(f"{n} = {known[n]:g} {UNITS[n]}" for n in problem.names)
-    note = (f"synthetic target: neuromotor rollout at {at}, h = {setup.sim.h}\n"
+    note = (f"synthetic target: neuromotor rollout at {at}, h = {setup.options.h}\n"
             f"plus Gaussian noise of sd {noise_deg} deg (seed {seed}); angles in {unit}; config {config_path.name}")
     return write_target_csv(spec.target.file, cal.time, dofs, vals, "joint_angles", note)
 

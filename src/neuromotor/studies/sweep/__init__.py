@@ -87,7 +87,7 @@ from neuromotor.config.specs import CONTROLLERS, GainSetting, SweepSpec
 from neuromotor.errors import ConfigError
 from neuromotor.io import tables
 from neuromotor.io.tables import read_csv
-from neuromotor.studies.gains import apply_gains as gains_for
+from neuromotor.studies.gains import gains_for
 from neuromotor.studies.sweep.ball import BallBatch, BallRunOut, BallSweeper, run_ball_sweep
 from neuromotor.studies.sweep.grid import (
     BALL_COLUMNS, COLUMNS, METRIC_KEYS, REFLEX_COLUMNS, RunBatch, RunOut, build_batch, gain_keys, with_reflex_columns,
@@ -125,7 +125,7 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
             raise
         except ValueError as e:
             raise ConfigError(f"{cfg.source}: field 'sweep.magnitudes': {e}") from None
-        ball_sweeper = BallSweeper(model, setup.ref, setup.sim, setup.ball, setup.pulses, **sizes)
+        ball_sweeper = BallSweeper(model, setup.ref, setup.options, setup.ball, setup.pulses, **sizes)
         return run_ball_sweep(ball_sweeper, setup, spec.magnitudes, spec.gains, balls=balls, keep_curves=keep_curves,
                               progress=progress)
     index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'", setup.character)  # names or segment keywords
@@ -135,7 +135,7 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
         setup.window.check(dataclasses.replace(hit, body=b), f"sweep.bodies[{i}]", "perturbation[0].start")
     for i, t in enumerate(spec.starts or []):
         setup.window.check(dataclasses.replace(hit, start=float(t)), "perturbation[0].body", f"sweep.starts[{i}]")
-    sweeper = Sweeper(model, setup.ref, setup.sim, **sizes)
+    sweeper = Sweeper(model, setup.ref, setup.options, **sizes)
     return run_sweep(sweeper, setup.gains, setup.pulses, spec.runs(hit, cfg.perturbations[1:]), index, model.body_names,
                      keep_curves=keep_curves, progress=progress)
 

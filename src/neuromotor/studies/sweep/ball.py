@@ -19,10 +19,10 @@ from neuromotor.config.specs import GainSetting
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import contact as ct
 from neuromotor.physics.control import Gains
-from neuromotor.physics.dynamics import Reference, SimConfig
+from neuromotor.physics.dynamics import Params, Reference, SimModel, StepOptions
 from neuromotor.physics.perturbation import ForcePulses
 from neuromotor.studies import metrics as mx
-from neuromotor.studies.gains import apply_gains
+from neuromotor.studies.gains import gains_for
 from neuromotor.studies.sweep.grid import _stack
 from neuromotor.studies.sweep.runner import AXIS, Sweeper, SweepResult, sweep_batches
 
@@ -51,10 +51,10 @@ class BallSweeper(Sweeper):
     """:class:`Sweeper` of contact rollouts: runs are (gains, ball) pairs, the capsules, contact
     settings and (empty) force pulses are shared by all of them."""
 
-    def __init__(self, model: Model, ref: Reference, sim: SimConfig, ball_setup,
+    def __init__(self, model: Model, ref: Reference, options: StepOptions, ball_setup,
                  pulses: ForcePulses, **kw):
         self.capsules, self.settings, self.pulses = ball_setup.capsules, ball_setup.settings, pulses
-        super().__init__(model, ref, sim, **kw)
+        super().__init__(model, ref, options, **kw)
 
     def _program(self, static):
         self.model_static = static  # the contact rollout closes over this sweeper's ball set-up
@@ -65,8 +65,8 @@ class BallSweeper(Sweeper):
 
     def _one(self, shared, run: BallBatch) -> BallRunOut:
         model = eqx.combine(shared[0], self.model_static)
-        r = ct.contact_rollout(model, run.gains, self.pulses, shared[1], self.sim, run.ball, self.capsules,
-                               self.settings)
+        r = ct.simulate_contact(SimModel(model, shared[1], self.options), Params(run.gains, self.pulses),
+                                ct.ContactScene(run.ball, self.capsules, self.settings))
         bodies = ct.candidate_bodies(self.capsules, self.settings)
         on_char = bodies >= 0  # not the ground
         imp = jnp.linalg.norm(r.contact.impulse, axis=-1) * on_char  # (S+1, C)
@@ -93,7 +93,7 @@ def run_ball_sweep(sweeper: BallSweeper, setup, speeds: Sequence[float], gain_se
     if balls is None:
         balls = balls_at_speeds(setup, speeds)  # (n_speeds,) leaves
     runs = [(g, i) for g in gain_settings for i in range(len(speeds))]
-    settings = {g: apply_gains(setup.gains, g) for g in gain_settings}
+    settings = {g: gains_for(setup.gains, g) for g in gain_settings}
     take = np.array([i for _, i in runs])
     balls = jax.tree_util.tree_map(lambda x: np.asarray(x)[take], balls)
     batch = BallBatch(_stack([settings[g] for g, _ in runs]), balls)

@@ -3,9 +3,8 @@ it) and force pulses per run, and the shared unperturbed twin of each distinct c
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Any
 from collections.abc import Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -16,7 +15,7 @@ from neuromotor.errors import ConfigError
 from neuromotor.physics.control import Gains
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, replace_first
 from neuromotor.physics.reflex import Reflex
-from neuromotor.studies.gains import apply_gains
+from neuromotor.studies.gains import gains_for
 
 
 METRIC_KEYS = ("peak_deviation_deg", "time_of_peak_s", "recovery_time_s", "final_error_deg",
@@ -70,13 +69,10 @@ def _stack(trees: Sequence[Any]):
 def run_controller(template_gains: Gains, run: dict, h: float | None) -> Gains:
     """The gains of one run: its gain setting and, when the grid varies it, its reflex
     (a :class:`~neuromotor.config.specs.ReflexSpec` built at step ``h``)."""
-    gains = apply_gains(template_gains, run["gain"])
     rx = run.get("reflex")
-    if rx is None:
-        return gains
-    if h is None:
+    if rx is not None and h is None:
         raise ValueError("a run with a reflex setting needs the step h to build its history")
-    return dataclasses.replace(gains, reflex=rx.build(h))
+    return gains_for(template_gains, run["gain"], reflex=None if rx is None else rx.build(h))
 
 
 def reflex_columns(run: dict, template: Reflex | None) -> dict:

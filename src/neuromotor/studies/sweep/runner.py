@@ -19,7 +19,7 @@ from neuromotor.distributed import gather_shares, share
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
 from neuromotor.physics.control import Gains
-from neuromotor.physics.dynamics import Reference, SimConfig, rollout
+from neuromotor.physics.dynamics import Params, Reference, SimModel, StepOptions, simulate
 from neuromotor.physics.perturbation import ForcePulses, unperturbed
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.sweep.grid import METRIC_KEYS, RunBatch, RunOut, build_batch, gain_keys, reflex_columns
@@ -35,18 +35,18 @@ def device_mesh(devices=None) -> Mesh:
     return Mesh(np.array(devices), (AXIS,))
 
 
-def _lapack_on_cpu(sim: SimConfig, devices) -> bool:
+def _lapack_on_cpu(options: StepOptions, devices) -> bool:
     """Batched LAPACK calls on several XLA:CPU devices at once can deadlock: such steps
     (:func:`~neuromotor.physics.solvers.uses_lapack`) keep to one CPU device (GPUs are not affected)."""
-    return devices[0].platform == "cpu" and solvers.uses_lapack(sim.solver, sim.driven, sim.free_root)
+    return devices[0].platform == "cpu" and solvers.uses_lapack(options.solver, options.driven, options.free_root)
 
 
-def batch_mesh(size: int, sim: SimConfig, devices=None) -> Mesh | None:
-    """The mesh :func:`shard_vmap` splits a batch of ``size`` rollouts of ``sim`` over: this
+def batch_mesh(size: int, options: StepOptions, devices=None) -> Mesh | None:
+    """The mesh :func:`shard_vmap` splits a batch of ``size`` rollouts with ``options`` over: this
     process's devices when there are several, ``size`` divides among them, and the step is not a
     LAPACK step on CPU devices (:func:`_lapack_on_cpu`). None: one ``vmap`` on one device."""
     devices = jax.local_devices() if devices is None else list(devices)
-    if len(devices) < 2 or size % len(devices) or _lapack_on_cpu(sim, devices):
+    if len(devices) < 2 or size % len(devices) or _lapack_on_cpu(options, devices):
         return None
     return device_mesh(devices)
 
@@ -75,21 +75,21 @@ class Sweeper:
     reuses the compiled program.
     """
 
-    def __init__(self, model: Model, ref: Reference, sim: SimConfig, *, chunk: int = 64,
+    def __init__(self, model: Model, ref: Reference, options: StepOptions, *, chunk: int = 64,
                  inner_batch: int = 1, mesh: Mesh | None = None, metric: str = "geodesic"):
         if metric not in mx.DEVIATION_METRICS:
             raise ValueError(f"metric must be one of {mx.DEVIATION_METRICS}, got {metric!r}")
         self.metric = metric
         if mesh is None:
             local = jax.local_devices()
-            mesh = device_mesh(local[:1] if _lapack_on_cpu(sim, local) else local)
+            mesh = device_mesh(local[:1] if _lapack_on_cpu(options, local) else local)
         self.mesh = mesh
         n_dev = self.mesh.devices.size
         self.chunk = max(n_dev, int(math.ceil(chunk / n_dev)) * n_dev)
         self.inner_batch = max(1, min(int(inner_batch), self.chunk // n_dev))
         if self.inner_batch > 1:  # rollouts vmapped together: the solver that vectorizes in a batch
-            sim = dataclasses.replace(sim, solver=sim.solver.batched())
-        self.sim, self.n_steps = sim, sim.n_steps
+            options = dataclasses.replace(options, solver=options.solver.batched())
+        self.options, self.n_steps = options, options.n_steps
         self.model = model  # host copy: the one pulse builder reads each body's COM
         arrays, static = eqx.partition(model, eqx.is_array)
         self.shared = jax.tree_util.tree_map(lambda x: _put(x, self.mesh, P()), (arrays, ref))
@@ -97,7 +97,7 @@ class Sweeper:
 
     def _program(self, static):
         """The compiled chunk, ``f(shared, batch) -> RunOut`` (shared by sweepers of one layout)."""
-        return _chunk_program(_Layout(static), self.sim, self.metric, self.inner_batch, self.mesh)
+        return _chunk_program(_Layout(static), self.options, self.metric, self.inner_batch, self.mesh)
 
     def pose(self, model: Model, r):
         """What d(t) is measured on (:class:`RunOut`): local joint quaternions, or theta (euler)."""
@@ -135,13 +135,13 @@ class _Layout:
 
 
 @functools.lru_cache(maxsize=16)
-def _chunk_program(layout: _Layout, sim: SimConfig, metric: str, inner_batch: int, mesh: Mesh):
+def _chunk_program(layout: _Layout, options: StepOptions, metric: str, inner_batch: int, mesh: Mesh):
     """``f(shared, batch) -> RunOut``: a chunk of rollouts sharded over ``mesh``, ``jax.lax.map``
     over each shard's runs (``inner_batch`` of them vmapped together)."""
 
     def one(shared, run: RunBatch) -> RunOut:
         model = eqx.combine(shared[0], layout.static)
-        r = rollout(model, run.gains, run.pulses, shared[1], sim)
+        r = simulate(SimModel(model, shared[1], options), Params(run.gains, run.pulses))
         return RunOut(_pose(metric, model, r), r.diverged_step, r.diverged_body, jnp.max(r.residual),
                       jnp.max(r.violation))
 
@@ -183,7 +183,7 @@ def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[di
     """Simulate every run of ``runs`` (from :meth:`SweepSpec.runs`) and measure its recovery."""
     from tqdm.auto import tqdm
 
-    batch = build_batch(gains, pulses, runs, body_index, sweeper.sim.h, sweeper.model)
+    batch = build_batch(gains, pulses, runs, body_index, sweeper.options.h, sweeper.model)
     first, slot = gain_keys(batch)
     # Baselines: the distinct gain settings without any pulse, simulated with the same program.
     base = jax.tree_util.tree_map(lambda x: np.asarray(x)[first], batch)
