@@ -102,8 +102,8 @@ def model_json(character) -> dict:
 
 def _load(args):
     """The character of a command's clip with its --units, --up-axis and body options."""
-    from neuromotor.studies.simulate import load_character
     from neuromotor.model.skeleton import MassModelOptions
+    from neuromotor.studies.simulate import load_character
 
     options = MassModelOptions(body_mass=args.body_mass, sex=args.sex,
                                simulate_extremities=args.simulate_extremities)
@@ -179,11 +179,10 @@ class _Stages:
 
 
 def cmd_idyn(args) -> int:
-    from neuromotor.physics.inverse import idyn_arrays
-
     import jax
 
     from neuromotor.errors import UserError
+    from neuromotor.physics.inverse import idyn_arrays
 
     if not jax.config.jax_enable_x64:  # type: ignore[attr-defined]  # inverse dynamics is float64 only
         raise UserError("JAX runs with x64 off (JAX_ENABLE_X64 is set to false): inverse dynamics is float64; unset it")

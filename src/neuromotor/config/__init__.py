@@ -65,13 +65,36 @@ Simulation config (every table and key optional)::
 
 from neuromotor.config.fields import Fields, read_toml
 from neuromotor.config.parse import (
-    experiment_spec, fit_spec, load_experiment, load_simulation_config, load_sweep_config, parse_ball,
-    parse_perturbation, read_fitted, simulation_config, sweep_spec,
+    experiment_spec,
+    fit_spec,
+    load_experiment,
+    load_simulation_config,
+    load_sweep_config,
+    parse_ball,
+    parse_perturbation,
+    read_fitted,
+    simulation_config,
+    sweep_spec,
 )
 from neuromotor.config.specs import (
-    CONTROLLERS, DEFAULT_CONTRAST, DEFAULT_HIT, FEATURE_NAMES, FIT_SOLVERS, TARGET_KINDS, BallSpec, ExperimentSpec,
-    FeatureTarget, FitSpec, FitTargetSpec, GainSetting, PerturbationSpec, SimulationConfig, SolverOptions, Surrogate,
-    ReflexSpec, SweepSpec,
+    CONTROLLERS,
+    DEFAULT_CONTRAST,
+    DEFAULT_HIT,
+    FEATURE_NAMES,
+    FIT_SOLVERS,
+    TARGET_KINDS,
+    BallSpec,
+    ExperimentSpec,
+    FeatureTarget,
+    FitSpec,
+    FitTargetSpec,
+    GainSetting,
+    PerturbationSpec,
+    ReflexSpec,
+    SimulationConfig,
+    SolverOptions,
+    Surrogate,
+    SweepSpec,
 )
 from neuromotor.errors import ConfigError, UserError
 

@@ -14,10 +14,33 @@ import numpy as np
 
 from neuromotor.config.fields import Fields, read_toml, resolve
 from neuromotor.config.specs import (
-    CONTROLLERS, EXPERIMENT_KINDS, FEATURE_NAMES, JACOBIANS, PERTURBATION_KINDS, PULSE_SHAPES,
-    DEVIATION_METRICS, SEXES, FIT_SOLVERS, TARGET_KINDS, BallSpec, ExperimentSpec, FeatureTarget, FitSpec, FitTargetSpec, GainSetting,
-    PerturbationSpec, ReflexSpec, SimulationConfig, SolverOptions, Surrogate, SweepSpec, check_fit_parameters,
-    default, reflex_grid, REFLEX_AXES, REFLEX_DELAY_LIMIT,
+    CONTROLLERS,
+    DEVIATION_METRICS,
+    EXPERIMENT_KINDS,
+    FEATURE_NAMES,
+    FIT_SOLVERS,
+    JACOBIANS,
+    PERTURBATION_KINDS,
+    PULSE_SHAPES,
+    REFLEX_AXES,
+    REFLEX_DELAY_LIMIT,
+    SEXES,
+    TARGET_KINDS,
+    BallSpec,
+    ExperimentSpec,
+    FeatureTarget,
+    FitSpec,
+    FitTargetSpec,
+    GainSetting,
+    PerturbationSpec,
+    ReflexSpec,
+    SimulationConfig,
+    SolverOptions,
+    Surrogate,
+    SweepSpec,
+    check_fit_parameters,
+    default,
+    reflex_grid,
 )
 from neuromotor.errors import ConfigError
 from neuromotor.physics.options import Feedforward, JointLaw

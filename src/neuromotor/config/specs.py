@@ -14,13 +14,13 @@ import pathlib
 from collections.abc import Mapping
 from typing import ClassVar
 
+from neuromotor.errors import ConfigError
+from neuromotor.physics import perturbation as _perturbation, reflex as _reflex
 from neuromotor.physics.contact.ball import make_ball
 from neuromotor.physics.contact.detection import ContactSettings
 from neuromotor.physics.control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
 from neuromotor.physics.options import Feedforward, JointLaw
-from neuromotor.errors import ConfigError
 from neuromotor.physics.precision import Precision
-from neuromotor.physics import perturbation as _perturbation, reflex as _reflex
 
 PERTURBATION_KINDS, PULSE_SHAPES = _perturbation.KINDS, _perturbation.SHAPES
 SEXES = ("average", "male", "female")

@@ -14,11 +14,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from neuromotor.errors import UserError
 from neuromotor.io.runfile import EXPORT_FIELDS, read_run
 from neuromotor.model.bvh import read_bvh, write_bvh
 from neuromotor.model.load import load_character
 from neuromotor.rotations import continuous_angles, matrix_to_euler, quat_to_matrix
-from neuromotor.errors import UserError
 
 
 def export_bvh(run_path, out_path) -> pathlib.Path:

@@ -36,8 +36,8 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from neuromotor.atomic import atomic_path
-from neuromotor.model.skeleton import Character
 from neuromotor.errors import UserError
+from neuromotor.model.skeleton import Character
 
 AXIS_VEC = {"X": "1 0 0", "Y": "0 1 0", "Z": "0 0 1"}
 

@@ -7,8 +7,8 @@ import csv
 import json
 import math
 import pathlib
-from typing import Any
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 

@@ -48,8 +48,8 @@ import dataclasses
 import math
 import os
 import re
-from typing import NoReturn
 from collections.abc import Callable
+from typing import NoReturn
 
 import numpy as np
 

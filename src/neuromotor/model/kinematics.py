@@ -29,8 +29,8 @@ from scipy.interpolate import CubicSpline
 
 from neuromotor import compiler
 from neuromotor.model.bvh import BvhClip
-from neuromotor.rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, mm, mmt, mv, quat_to_matrix, vee
 from neuromotor.model.skeleton import Model
+from neuromotor.rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, mm, mmt, mv, quat_to_matrix, vee
 
 
 class Spline(eqx.Module):

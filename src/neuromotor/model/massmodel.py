@@ -34,11 +34,10 @@ import dataclasses
 
 import numpy as np
 
-from neuromotor.model import deleva
-from neuromotor.model import polyhedron as poly
+from neuromotor.errors import UserError
+from neuromotor.model import deleva, polyhedron as poly
 from neuromotor.model.anatomy import DETAIL_SEGMENTS, Anatomy
 from neuromotor.model.bvh import BvhClip
-from neuromotor.errors import UserError
 from neuromotor.rotations_np import euler_to_matrix
 
 # (overhang past the distal joint, distal/proximal radius) of the limb frustums. A frustum of

@@ -33,12 +33,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from neuromotor.errors import UserError
 from neuromotor.model import polyhedron as poly
 from neuromotor.model.anatomy import Anatomy, analyse
 from neuromotor.model.bvh import BvhClip
 from neuromotor.model.massmodel import plan_bodies, plan_generic
 from neuromotor.model.topology import Topology, of as topology_of
-from neuromotor.errors import UserError
 
 
 @dataclasses.dataclass(frozen=True)

@@ -52,8 +52,20 @@ from neuromotor.model.kinematics import body_kinematics
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.reflex import Reflex, reflex_multipliers
 from neuromotor.physics.system import dofs_to_per_joint, per_joint_to_dofs, world_inertia
-from neuromotor.rotations import (AXIS, axis_rotation, inv3, matrix_to_quat, mm, mmt, mtv, mv, quat_conj, quat_log,
-                                  quat_mul, quat_to_matrix)
+from neuromotor.rotations import (
+    AXIS,
+    axis_rotation,
+    inv3,
+    matrix_to_quat,
+    mm,
+    mmt,
+    mtv,
+    mv,
+    quat_conj,
+    quat_log,
+    quat_mul,
+    quat_to_matrix,
+)
 
 DEFAULT_KS = 400.0  # 1/s^2: natural frequency 20 rad/s (3.2 Hz) at typical load
 DEFAULT_KD = 20.0  # 1/s: damping ratio 0.5

@@ -44,8 +44,14 @@ from neuromotor.physics import solvers
 from neuromotor.physics.constraints import PoseTargets, post_stabilize
 from neuromotor.physics.inverse import eq3_matrix
 from neuromotor.physics.stiffness import gyro_blocks
-from neuromotor.physics.system import (gravity_forces, joint_levers, mass_times, per_joint_to_dofs, retract,
-                                       world_inertia)
+from neuromotor.physics.system import (
+    gravity_forces,
+    joint_levers,
+    mass_times,
+    per_joint_to_dofs,
+    retract,
+    world_inertia,
+)
 from neuromotor.rotations import cross, mm, mv, quat_conj, quat_log, quat_mul, quat_to_matrix
 
 LANDING_TOLERANCE = 1e-14  # rad: rotation left between the landed pose and the capture

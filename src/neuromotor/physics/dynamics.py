@@ -55,19 +55,44 @@ from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angle
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
 from neuromotor.physics.constraints import PoseTargets, constraint_count, constraint_velocity, post_stabilize
-from neuromotor.physics.control import (ControllerInputs, Gains, body_torques, controller_inputs, damped_pinv,
-                                        joint_errors, joint_local_axes, joint_torque_magnitude, reflex_torque)
+from neuromotor.physics.control import (
+    ControllerInputs,
+    Gains,
+    body_torques,
+    controller_inputs,
+    damped_pinv,
+    joint_errors,
+    joint_local_axes,
+    joint_torque_magnitude,
+    reflex_torque,
+)
 from neuromotor.physics.discrete import discrete_inverse_dynamics, landing_velocities
-from neuromotor.physics.options import Feedforward, JointLaw
-from neuromotor.physics.reflex import History, empty_history, push
 from neuromotor.physics.inverse import inverse_dynamics, sim_columns
+from neuromotor.physics.options import Feedforward, JointLaw
 from neuromotor.physics.perturbation import ForcePulses, no_pulses, pulse_wrenches
-from neuromotor.physics.solvers import Solver
 from neuromotor.physics.precision import Precision, cast
-from neuromotor.physics.stiffness import (DenseStiffness, Jacobians, StiffBlocks, explicit_forces, stiff_blocks,
-                                          stiff_jacobians)
-from neuromotor.physics.system import (State, dof_axes, dofs_to_per_joint, gravity_forces, joint_angles_and_rates,
-                                       joint_rates, mass_times, per_joint_to_dofs, retract, world_inertia)
+from neuromotor.physics.reflex import History, empty_history, push
+from neuromotor.physics.solvers import Solver
+from neuromotor.physics.stiffness import (
+    DenseStiffness,
+    Jacobians,
+    StiffBlocks,
+    explicit_forces,
+    stiff_blocks,
+    stiff_jacobians,
+)
+from neuromotor.physics.system import (
+    State,
+    dof_axes,
+    dofs_to_per_joint,
+    gravity_forces,
+    joint_angles_and_rates,
+    joint_rates,
+    mass_times,
+    per_joint_to_dofs,
+    retract,
+    world_inertia,
+)
 from neuromotor.rotations import matrix_to_quat, mm
 
 

@@ -19,11 +19,17 @@ from jaxtyping import Array, Float
 
 from neuromotor import compiler
 from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angles_from_q
-from neuromotor.rotations import matrix_to_quat, mm, skew
 from neuromotor.model.skeleton import Model
 from neuromotor.model.topology import Topology
-from neuromotor.physics.system import (dof_axes, external_forces, joint_jacobian_blocks, per_joint_to_dofs, root_lever,
-                                       world_inertia)
+from neuromotor.physics.system import (
+    dof_axes,
+    external_forces,
+    joint_jacobian_blocks,
+    per_joint_to_dofs,
+    root_lever,
+    world_inertia,
+)
+from neuromotor.rotations import matrix_to_quat, mm, skew
 
 
 class InverseDynamics(eqx.Module):

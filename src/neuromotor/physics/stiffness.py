@@ -28,12 +28,30 @@ from jaxtyping import Array, Float
 
 from neuromotor.model.skeleton import Model
 from neuromotor.model.topology import Topology
-from neuromotor.physics.control import (ControllerInputs, Gains, affine_torque, body_torques, joint_affine,
-                                        joint_torque_q, joint_torques)
 from neuromotor.physics import static
+from neuromotor.physics.control import (
+    ControllerInputs,
+    Gains,
+    affine_torque,
+    body_torques,
+    joint_affine,
+    joint_torque_q,
+    joint_torques,
+)
 from neuromotor.physics.system import State, embed_angular, gyroscopic_forces, world_inertia
-from neuromotor.rotations import (cross, matrix_to_quat, mm, mmt, mtv, mv, quat_exp, quat_mul, quat_to_matrix,
-                                  right_jacobian_inv, skew)
+from neuromotor.rotations import (
+    cross,
+    matrix_to_quat,
+    mm,
+    mmt,
+    mtv,
+    mv,
+    quat_exp,
+    quat_mul,
+    quat_to_matrix,
+    right_jacobian_inv,
+    skew,
+)
 
 
 class Jacobians(str, enum.Enum):

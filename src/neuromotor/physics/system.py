@@ -19,6 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from neuromotor.model.skeleton import Model
+from neuromotor.physics import static
 from neuromotor.rotations import (
     euler_angles_and_rates,
     euler_axes,
@@ -34,8 +36,6 @@ from neuromotor.rotations import (
     rotation_error,
     skew,
 )
-from neuromotor.model.skeleton import Model
-from neuromotor.physics import static
 
 
 def per_joint_to_dofs(model: Model, values: Float[Array, "C 3 ..."]) -> Float[Array, "n ..."]:

@@ -20,10 +20,22 @@ from neuromotor import compiler
 from neuromotor.config import ConfigError
 from neuromotor.model.kinematics import body_poses
 from neuromotor.model.skeleton import Character, Model
-from neuromotor.physics.contact import (Ball, Capsules, ContactRollout, ContactScene, ContactSettings,
-                                        batched_simulate_contact, candidate_bodies, candidate_names,
-                                        check_contact_rollout, detect, fit_capsules, make_ball, never_launched,
-                                        simulate_contact_jit)
+from neuromotor.physics.contact import (
+    Ball,
+    Capsules,
+    ContactRollout,
+    ContactScene,
+    ContactSettings,
+    batched_simulate_contact,
+    candidate_bodies,
+    candidate_names,
+    check_contact_rollout,
+    detect,
+    fit_capsules,
+    make_ball,
+    never_launched,
+    simulate_contact_jit,
+)
 from neuromotor.physics.dynamics import Params
 from neuromotor.rotations import quat_to_matrix
 from neuromotor.studies import metrics as mx

@@ -35,11 +35,10 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 
 from neuromotor import compiler
 from neuromotor.config import DEFAULT_HIT, SimulationConfig
-from neuromotor.physics import dynamics as dy
-from neuromotor.physics import solvers
+from neuromotor.physics import dynamics as dy, solvers
 from neuromotor.physics.constraints import constraint_count, post_stabilize
-from neuromotor.physics.perturbation import build_pulses
 from neuromotor.physics.inverse import inverse_dynamics
+from neuromotor.physics.perturbation import build_pulses
 from neuromotor.physics.stiffness import DenseStiffness, StiffBlocks
 from neuromotor.physics.system import world_inertia
 from neuromotor.studies.simulate import load_character, prepare

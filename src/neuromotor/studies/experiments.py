@@ -40,8 +40,14 @@ from typing import Any
 import numpy as np
 
 from neuromotor.config.parse import experiment_spec, load_experiment
-from neuromotor.config.specs import EXPERIMENT_KINDS as KINDS
-from neuromotor.config.specs import DEFAULT_CONTRAST, ExperimentSpec, GainSetting, SimulationConfig, onset
+from neuromotor.config.specs import (
+    DEFAULT_CONTRAST,
+    EXPERIMENT_KINDS as KINDS,
+    ExperimentSpec,
+    GainSetting,
+    SimulationConfig,
+    onset,
+)
 from neuromotor.errors import ConfigError
 from neuromotor.io.tables import write_json as _write_json
 from neuromotor.studies import metrics as mx

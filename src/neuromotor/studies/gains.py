@@ -20,8 +20,7 @@ from types import MappingProxyType
 
 import jax.numpy as jnp
 
-from neuromotor.config.specs import FIT_PARAMETERS as PARAMETERS
-from neuromotor.config.specs import GainSetting
+from neuromotor.config.specs import FIT_PARAMETERS as PARAMETERS, GainSetting
 from neuromotor.physics.control import Gains, pd_tracking_gains
 from neuromotor.physics.reflex import Reflex
 

@@ -23,9 +23,15 @@ from neuromotor.errors import ConfigError
 from neuromotor.io import tables
 from neuromotor.studies.simulate import deviation_curve, prepare, run
 from neuromotor.studies.sweep import COLUMNS, simulate_grid
-from neuromotor.studies.sweep.stability import (DECAY_FRACTION, PAPER_FEEDBACK, STABLE_PEAK_DEG, classified,  # noqa: F401
-                                                classify, map_options)
 from neuromotor.studies.sweep.grid import with_reflex_columns
+from neuromotor.studies.sweep.stability import (  # noqa: F401
+    DECAY_FRACTION,
+    PAPER_FEEDBACK,
+    STABLE_PEAK_DEG,
+    classified,
+    classify,
+    map_options,
+)
 
 METRICS = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg", "final_error_deg",
            "unperturbed_rms_error_deg", "peak_reflex_Nm", "diverged")

@@ -16,22 +16,30 @@ import jax.numpy as jnp
 import numpy as np
 
 from neuromotor import compiler
-
-from neuromotor.physics.contact import ContactRollout
-from neuromotor.studies.ball import BallSetup, ball_metrics, ball_rollouts, ball_setup
-from neuromotor.studies import metrics as mx
-from neuromotor.studies.gains import gains_for
 from neuromotor.config import ConfigError, SimulationConfig
 from neuromotor.config.specs import onset
-from neuromotor.physics.control import Gains, make_gains
-from neuromotor.physics.dynamics import (Feedforward, Params, Reference, Rollout, SimModel, StepOptions, check_rollout,
-                                        make_reference, simulate)
+from neuromotor.io.runfile import read_run_info, save_npz_atomic  # noqa: F401  (re-exported)
 from neuromotor.model.kinematics import Trajectory
-from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
-from neuromotor.physics.precision import Precision
 from neuromotor.model.load import DEFAULT_CLIP_NAME, default_clip_path, load_character  # noqa: F401  (re-exported)
 from neuromotor.model.skeleton import BODY_KEYWORDS, Character, Model, keyword_body
-from neuromotor.io.runfile import read_run_info, save_npz_atomic  # noqa: F401  (re-exported)
+from neuromotor.physics.contact import ContactRollout
+from neuromotor.physics.control import Gains, make_gains
+from neuromotor.physics.dynamics import (
+    Feedforward,
+    Params,
+    Reference,
+    Rollout,
+    SimModel,
+    StepOptions,
+    check_rollout,
+    make_reference,
+    simulate,
+)
+from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
+from neuromotor.physics.precision import Precision
+from neuromotor.studies import metrics as mx
+from neuromotor.studies.ball import BallSetup, ball_metrics, ball_rollouts, ball_setup
+from neuromotor.studies.gains import gains_for
 
 
 @dataclasses.dataclass(frozen=True)

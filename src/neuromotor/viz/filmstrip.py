@@ -8,8 +8,17 @@ import numpy as np
 from neuromotor.viz.camera import fit, ghost_offset, set_camera
 from neuromotor.viz.geometry import ArrowGeometry, FigureGeometry, add_ground
 from neuromotor.viz.scene import Scene
-from neuromotor.viz.style import (COLOR_BALL, COLOR_FORCE, COLOR_GHOST, COLOR_GHOST_JOINT, COLOR_ORIGINAL,
-                                  COLOR_ORIGINAL_JOINT, COLOR_PERTURBED, COLOR_PERTURBED_JOINT, PANEL_SIZE)
+from neuromotor.viz.style import (
+    COLOR_BALL,
+    COLOR_FORCE,
+    COLOR_GHOST,
+    COLOR_GHOST_JOINT,
+    COLOR_ORIGINAL,
+    COLOR_ORIGINAL_JOINT,
+    COLOR_PERTURBED,
+    COLOR_PERTURBED_JOINT,
+    PANEL_SIZE,
+)
 
 
 def _write_png(path, img):

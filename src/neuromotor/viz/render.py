@@ -53,9 +53,17 @@ from neuromotor.viz.data import RenderError, load_run  # noqa: F401
 from neuromotor.viz.filmstrip import render_filmstrip
 from neuromotor.viz.plots import plot_run  # noqa: F401
 from neuromotor.viz.scene import Scene
-from neuromotor.viz.style import (CAMERA_AZIMUTH_DEG, CAMERA_ELEVATION_DEG, DETAIL_RADIUS_M,  # noqa: F401
-                                  FORCE_SCALE_N_PER_M, IMAGE_EXTENSIONS, PANEL_SIZE, VIDEO_EXTENSIONS,
-                                  VIDEO_FPS, VIDEO_SIZE)
+from neuromotor.viz.style import (  # noqa: F401
+    CAMERA_AZIMUTH_DEG,
+    CAMERA_ELEVATION_DEG,
+    DETAIL_RADIUS_M,
+    FORCE_SCALE_N_PER_M,
+    IMAGE_EXTENSIONS,
+    PANEL_SIZE,
+    VIDEO_EXTENSIONS,
+    VIDEO_FPS,
+    VIDEO_SIZE,
+)
 from neuromotor.viz.video import render_video, video_sample_times
 
 

@@ -14,8 +14,13 @@ from neuromotor.io.runfile import json_field
 from neuromotor.model.facing import facing_direction, horizontal, unit
 from neuromotor.viz.camera import camera_view
 from neuromotor.viz.geometry import quat_matrices
-from neuromotor.viz.style import (DETAIL_RADIUS_M, FORCE_SCALE_N_PER_M, FORCE_VISIBLE_FRACTION, GROUND_COLORS,
-                                  GROUND_TILE_M)
+from neuromotor.viz.style import (
+    DETAIL_RADIUS_M,
+    FORCE_SCALE_N_PER_M,
+    FORCE_VISIBLE_FRACTION,
+    GROUND_COLORS,
+    GROUND_TILE_M,
+)
 
 _NO_OFFSET = np.zeros(3)  # default offset, shared: never written to
 

@@ -12,9 +12,19 @@ import numpy as np
 from neuromotor.viz.camera import fit, ghost_offset, set_camera
 from neuromotor.viz.geometry import ArrowGeometry, FigureGeometry, add_ground
 from neuromotor.viz.scene import Scene
-from neuromotor.viz.style import (COLOR_BALL, COLOR_FORCE, COLOR_GHOST, COLOR_GHOST_JOINT, COLOR_ORIGINAL,
-                                  COLOR_ORIGINAL_JOINT, COLOR_ORIGINAL_VIDEO, COLOR_PERTURBED,
-                                  COLOR_PERTURBED_JOINT, VIDEO_FPS, VIDEO_SIZE)
+from neuromotor.viz.style import (
+    COLOR_BALL,
+    COLOR_FORCE,
+    COLOR_GHOST,
+    COLOR_GHOST_JOINT,
+    COLOR_ORIGINAL,
+    COLOR_ORIGINAL_JOINT,
+    COLOR_ORIGINAL_VIDEO,
+    COLOR_PERTURBED,
+    COLOR_PERTURBED_JOINT,
+    VIDEO_FPS,
+    VIDEO_SIZE,
+)
 
 
 def video_sample_times(time, fps):

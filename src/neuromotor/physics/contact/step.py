@@ -50,12 +50,10 @@ from jaxtyping import Array, Bool, Float, Int
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
 from neuromotor.physics.contact.ball import Ball, BallState, initial_ball_state
-from neuromotor.physics.contact.detection import (ContactSettings, candidate_bodies, detect, single_gap,
-                                                  tangent_basis)
+from neuromotor.physics.contact.detection import ContactSettings, candidate_bodies, detect, single_gap, tangent_basis
 from neuromotor.physics.contact.lcp import solve_gap_projection, solve_lcp_pgs
 from neuromotor.physics.contact.shapes import Capsules
-from neuromotor.physics.dynamics import (Eq2, Params, SimModel, StepInfo, badness, equations_of_motion, hold,
-                                         integrate)
+from neuromotor.physics.dynamics import Eq2, Params, SimModel, StepInfo, badness, equations_of_motion, hold, integrate
 from neuromotor.physics.reflex import History
 from neuromotor.physics.system import State
 from neuromotor.rotations import quat_turn

@@ -44,11 +44,15 @@ Config files (:mod:`.calibration`): the ``[fit]`` table is parsed by
 :mod:`neuromotor.viz.fit_plots`.
 """
 
-from neuromotor.config.specs import FEATURE_NAMES, FIT_SOLVERS, SolverOptions
-from neuromotor.config.specs import TARGET_KINDS as KINDS
+from neuromotor.config.specs import FEATURE_NAMES, FIT_SOLVERS, TARGET_KINDS as KINDS, SolverOptions
 from neuromotor.studies.fit.bridge import residual_function
 from neuromotor.studies.fit.calibration import (
-    Calibration, calibrate, calibration_from_dict, calibration_from_spec, load_calibration, trajectory_calibration,
+    Calibration,
+    calibrate,
+    calibration_from_dict,
+    calibration_from_spec,
+    load_calibration,
+    trajectory_calibration,
 )
 from neuromotor.studies.fit.covariance import gauss_newton_covariance
 from neuromotor.studies.fit.driver import fit
@@ -56,12 +60,23 @@ from neuromotor.studies.fit.evaluate import REVERSE_BATCH, Evaluation, ResponseE
 from neuromotor.studies.fit.parameters import PARAMETERS
 from neuromotor.studies.fit.problem import FitProblem, ResponseSpec, loss, make_problem
 from neuromotor.studies.fit.result import (
-    CONVERGED_STATUSES, IDENTIFIABLE_SE_LOG, LOSS_FLAT_ITERATIONS, LOSS_FLAT_RTOL, FitError, FitResult, identifiability,
+    CONVERGED_STATUSES,
+    IDENTIFIABLE_SE_LOG,
+    LOSS_FLAT_ITERATIONS,
+    LOSS_FLAT_RTOL,
+    FitError,
+    FitResult,
+    identifiability,
     loss_is_flat,
 )
 from neuromotor.studies.fit.solvers import GaussNewtonLineSearch, run_solver
 from neuromotor.studies.fit.surrogate import (
-    acceleration_deg, deviation_deg, exact_peak_acceleration, response_features, soft_max_weighted, soft_recovery,
+    acceleration_deg,
+    deviation_deg,
+    exact_peak_acceleration,
+    response_features,
+    soft_max_weighted,
+    soft_recovery,
 )
 from neuromotor.studies.fit.synthetic import record_trial, synthetic_target, truth_recovery, write_synthetic_target
 

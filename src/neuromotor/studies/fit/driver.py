@@ -14,11 +14,16 @@ from neuromotor.studies.fit.bridge import residual_function
 from neuromotor.studies.fit.covariance import gauss_newton_covariance
 from neuromotor.studies.fit.evaluate import Evaluation, ResponseEvaluator
 from neuromotor.studies.fit.parameters import describe
-from neuromotor.studies.gains import gain_value
 from neuromotor.studies.fit.result import (
-    LOSS_FLAT_ITERATIONS, LOSS_FLAT_RTOL, FitError, FitResult, identifiability, loss_is_flat,
+    LOSS_FLAT_ITERATIONS,
+    LOSS_FLAT_RTOL,
+    FitError,
+    FitResult,
+    identifiability,
+    loss_is_flat,
 )
 from neuromotor.studies.fit.solvers import run_solver
+from neuromotor.studies.gains import gain_value
 
 
 def fit(evaluator: ResponseEvaluator, target, weights, x0, solver: str = "optimistix_lm",

@@ -19,11 +19,10 @@ from neuromotor.model.skeleton import Model
 from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Params, Reference, Rollout, SimModel, StepOptions, simulate
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
-from neuromotor.studies.fit import parameters as fp
-from neuromotor.studies.gains import gains_for
 from neuromotor.studies import metrics as mx
-from neuromotor.studies.fit.surrogate import (acceleration_deg, deviation_deg, joint_acceleration_deg,
-                                              response_features)
+from neuromotor.studies.fit import parameters as fp
+from neuromotor.studies.fit.surrogate import acceleration_deg, deviation_deg, joint_acceleration_deg, response_features
+from neuromotor.studies.gains import gains_for
 
 
 @dataclasses.dataclass(frozen=True)

@@ -90,7 +90,15 @@ from neuromotor.io.tables import read_csv
 from neuromotor.studies.gains import gains_for
 from neuromotor.studies.sweep.ball import BallBatch, BallRunOut, BallSweeper, run_ball_sweep
 from neuromotor.studies.sweep.grid import (
-    BALL_COLUMNS, COLUMNS, METRIC_KEYS, REFLEX_COLUMNS, RunBatch, RunOut, build_batch, gain_keys, with_reflex_columns,
+    BALL_COLUMNS,
+    COLUMNS,
+    METRIC_KEYS,
+    REFLEX_COLUMNS,
+    RunBatch,
+    RunOut,
+    build_batch,
+    gain_keys,
+    with_reflex_columns,
 )
 from neuromotor.studies.sweep.runner import AXIS, Sweeper, SweepResult, device_mesh, run_sweep, sweep_batches
 from neuromotor.viz.sweep_plots import plot_gains_map, plot_sweep, save_figure

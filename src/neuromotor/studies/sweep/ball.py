@@ -10,9 +10,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
-
 from jax.sharding import PartitionSpec as P
+from jaxtyping import Array, Float, Int
 
 from neuromotor import compiler
 from neuromotor.config.specs import GainSetting

@@ -17,7 +17,6 @@ from neuromotor.physics.perturbation import ForcePulses, build_pulses, replace_f
 from neuromotor.physics.reflex import Reflex
 from neuromotor.studies.gains import gains_for
 
-
 METRIC_KEYS = ("peak_deviation_deg", "time_of_peak_s", "recovery_time_s", "final_error_deg",
                "overshoot_deg", "recovery_threshold_deg")
 

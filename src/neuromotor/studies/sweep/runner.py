@@ -24,7 +24,6 @@ from neuromotor.physics.perturbation import ForcePulses, unperturbed
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.sweep.grid import METRIC_KEYS, RunBatch, RunOut, build_batch, gain_keys, reflex_columns
 
-
 AXIS = "runs"
 
 
