@@ -74,16 +74,18 @@ def model_json(character) -> dict:
                 "com": [float(x) for x in model.com[b]],
                 "inertia": [[float(x) for x in row] for row in model.inertia[b]],
             }
-        joints.append({
-            "name": joint.name,
-            "parent": clip.joints[joint.parent].name if joint.parent >= 0 else None,
-            "offset": [float(x) for x in model.joint_offset[k]],
-            "channels": list(joint.channels),
-            "dofs": cols.get(joint.name, []) if joint.parent >= 0 else [],
-            "segment": anat.segment[k],
-            "side": anat.side[k] or None,
-            "body": body,
-        })
+        joints.append(
+            {
+                "name": joint.name,
+                "parent": clip.joints[joint.parent].name if joint.parent >= 0 else None,
+                "offset": [float(x) for x in model.joint_offset[k]],
+                "channels": list(joint.channels),
+                "dofs": cols.get(joint.name, []) if joint.parent >= 0 else [],
+                "segment": anat.segment[k],
+                "side": anat.side[k] or None,
+                "body": body,
+            }
+        )
     return {
         "source": str(clip.path),
         "units": anat.units,
@@ -105,8 +107,7 @@ def _load(args):
     from neuromotor.model.skeleton import MassModelOptions
     from neuromotor.studies.simulate import load_character
 
-    options = MassModelOptions(body_mass=args.body_mass, sex=args.sex,
-                               simulate_extremities=args.simulate_extremities)
+    options = MassModelOptions(body_mass=args.body_mass, sex=args.sex, simulate_extremities=args.simulate_extremities)
     return load_character(args.clip, args.units, args.up_axis, args.stature, options)
 
 
@@ -126,11 +127,16 @@ def cmd_inspect(args) -> int:
     for k, joint in enumerate(clip.joints):
         b = model.joint_body[k]
         n_dof = sum(1 for d in model.dof_body if b >= 0 and d == b)
-        rows.append([joint.name, clip.joints[joint.parent].name if joint.parent >= 0 else "-",
-                     _segment_label(character, k),
-                     f"{float(model.mass[b]):.3f}" if b >= 0 else "(none)",
-                     "root (6, driven)" if joint.parent < 0 else str(n_dof),
-                     " ".join(joint.channels)])
+        rows.append(
+            [
+                joint.name,
+                clip.joints[joint.parent].name if joint.parent >= 0 else "-",
+                _segment_label(character, k),
+                f"{float(model.mass[b]):.3f}" if b >= 0 else "(none)",
+                "root (6, driven)" if joint.parent < 0 else str(n_dof),
+                " ".join(joint.channels),
+            ]
+        )
     up = "+-"[int(anat.up.sum() < 0)] + "XYZ"[anat.up_axis]
     print(f"clip      {clip.path}")
     print(f"frames    {clip.n_frames} at {1.0 / clip.frame_time:.2f} Hz, {clip.duration:.3f} s")
@@ -138,12 +144,21 @@ def cmd_inspect(args) -> int:
     print(f"stature   {anat.stature:.3f} m, up axis {up}")
     print(f"bodies    {model.n_bodies}, simulated DOFs {model.n_dofs}, constraint rows {model.n_constraints}")
     if anat.humanoid:  # docs/body-model.md, "What the body depends on"
-        print("shapes    " + ("built on the zero pose (the skeleton alone)" if anat.shape_frame is None else
-                              f"built on frame {anat.shape_frame + 1}, the most upright (the zero pose does "
-                              "not stand): a part of the clip without it gets another body"))
+        print(
+            "shapes    "
+            + (
+                "built on the zero pose (the skeleton alone)"
+                if anat.shape_frame is None
+                else f"built on frame {anat.shape_frame + 1}, the most upright (the zero pose does "
+                "not stand): a part of the clip without it gets another body"
+            )
+        )
     total = float(np.sum(model.mass))
-    source = ("given" if character.options.body_mass is not None else
-              f"BMI {total / anat.stature ** 2:.0f} at the stature") if anat.humanoid else "polyhedra at 1000 kg/m^3"
+    source = (
+        ("given" if character.options.body_mass is not None else f"BMI {total / anat.stature**2:.0f} at the stature")
+        if anat.humanoid
+        else "polyhedra at 1000 kg/m^3"
+    )
     segments = f", {character.options.sex} de Leva segments" if anat.humanoid else ""
     print(f"mass      {total:.2f} kg total ({source}{segments})")
     for w in character.warnings:
@@ -174,8 +189,7 @@ class _Stages:
 
     def __call__(self, text: str) -> None:
         if not self.quiet:
-            print(f"neuromotor {self.command}: [{self._clock() - self._t0:5.1f} s] {text}", file=sys.stderr,
-                  flush=True)
+            print(f"neuromotor {self.command}: [{self._clock() - self._t0:5.1f} s] {text}", file=sys.stderr, flush=True)
 
 
 def cmd_idyn(args) -> int:
@@ -200,8 +214,10 @@ def cmd_idyn(args) -> int:
     arrays["joint_names"] = np.array(character.model.joint_names)
     stage(f"writing {args.output}")
     save_npz_atomic(args.output, arrays)
-    print(f"wrote {args.output}: {len(times)} frames, {len(arrays['dof_names'])} DOFs, "
-          f"max Eq. 3 residual {arrays['kkt_residual'].max():.2e}")
+    print(
+        f"wrote {args.output}: {len(times)} frames, {len(arrays['dof_names'])} DOFs, "
+        f"max Eq. 3 residual {arrays['kkt_residual'].max():.2e}"
+    )
     if getattr(args, "opensim_dir", None):
         from neuromotor.io.opensim import write_idyn_storage
 
@@ -243,8 +259,10 @@ def cmd_simulate(args) -> int:
     setup = prepare(cfg, character, traj)
     for line in setup.warnings:
         print(f"neuromotor simulate: warning: {line}", file=sys.stderr)
-    stage(f"simulating {setup.options.n_steps} steps of {setup.options.h * 1000:.2f} ms, perturbed and unperturbed "
-          "(compiling on first use)")
+    stage(
+        f"simulating {setup.options.n_steps} steps of {setup.options.h * 1000:.2f} ms, perturbed and unperturbed "
+        "(compiling on first use)"
+    )
     result = run(setup)
     stage(f"writing {args.output}")
     arrays = run_arrays(setup, result)
@@ -253,9 +271,11 @@ def cmd_simulate(args) -> int:
         print(json.dumps(metrics_json(result.metrics), indent=2))
     else:
         m = result.metrics
-        print(f"wrote {args.output}: peak deviation {m['peak_deviation_deg']:.2f} deg at "
-              f"{m['time_of_peak_s']:.2f} s, recovery {m['recovery_time_s']:.2f} s, "
-              f"unperturbed RMS error {m['unperturbed_rms_error_deg']:.2f} deg")
+        print(
+            f"wrote {args.output}: peak deviation {m['peak_deviation_deg']:.2f} deg at "
+            f"{m['time_of_peak_s']:.2f} s, recovery {m['recovery_time_s']:.2f} s, "
+            f"unperturbed RMS error {m['unperturbed_rms_error_deg']:.2f} deg"
+        )
     if getattr(args, "opensim_dir", None):
         from neuromotor.io.opensim import write_run_storage
 
@@ -273,8 +293,7 @@ def cmd_render(args) -> int:
     from neuromotor.viz.render import render_run
 
     quiet = getattr(args, "quiet", False)
-    render_run(args.run, args.output, frames=args.frames, progress=not quiet,
-               stage=_Stages("render", quiet))
+    render_run(args.run, args.output, frames=args.frames, progress=not quiet, stage=_Stages("render", quiet))
     return _wrote(args.output)
 
 
@@ -303,8 +322,9 @@ def cmd_sweep(args) -> int:
     if procs is not None:
         distributed.initialize(procs)
     fitted = tuple(args.fitted) if args.fitted else args.fitted_json
-    result, files = sweep_from_config(args.config, args.output, chunk=args.chunk, inner_batch=args.inner_batch,
-                                      fitted=fitted, progress=not args.quiet)
+    result, files = sweep_from_config(
+        args.config, args.output, chunk=args.chunk, inner_batch=args.inner_batch, fitted=fitted, progress=not args.quiet
+    )
     if distributed.is_lead():  # the other processes computed their shares; process 0 wrote the table
         bad = sum(r["diverged"] for r in result.rows)
         print(f"{len(result.rows)} runs ({bad} diverged); wrote " + ", ".join(str(f) for f in files.values()))
@@ -316,8 +336,9 @@ def cmd_fit(args) -> int:
 
     try:
         if args.write_synthetic:
-            path = write_synthetic_target(args.config, *_truth(args.write_synthetic), noise_deg=args.noise_deg,
-                                          seed=args.seed)
+            path = write_synthetic_target(
+                args.config, *_truth(args.write_synthetic), noise_deg=args.noise_deg, seed=args.seed
+            )
             print(f"wrote {path}")
             return 0
         cal = load_calibration(args.config, solver=args.solver)
@@ -331,8 +352,10 @@ def cmd_fit(args) -> int:
     from neuromotor.studies.fit.parameters import UNITS
 
     fitted = ", ".join(f"{n} = {v:.6g} +- {res.standard_errors[n]:.3g} {UNITS[n]}" for n, v in res.values.items())
-    print(f"{res.solver}: {fitted} (corr {res.correlation:+.2f}); residual {res.residual_norm:.4g}, "
-          f"{res.iterations} iterations, {res.wall_time_s:.1f} s; wrote {args.output}/fit.json, fit.png")
+    print(
+        f"{res.solver}: {fitted} (corr {res.correlation:+.2f}); residual {res.residual_norm:.4g}, "
+        f"{res.iterations} iterations, {res.wall_time_s:.1f} s; wrote {args.output}/fit.json, fit.png"
+    )
     if not all(res.identifiable.values()):
         print(f"neuromotor fit: warning: {res.identifiability}", file=sys.stderr)
     if not res.converged:
@@ -408,8 +431,9 @@ def _flat(prefix: str, value, out: list) -> None:
         for i, v in enumerate(value):
             _flat(f"{prefix}[{i}]", v, out)
     elif isinstance(value, list):
-        out.append((prefix, "[" + ", ".join(f"{v:.6g}" if isinstance(v, float) else json.dumps(v)
-                                            for v in value) + "]"))
+        out.append(
+            (prefix, "[" + ", ".join(f"{v:.6g}" if isinstance(v, float) else json.dumps(v) for v in value) + "]")
+        )
     elif isinstance(value, float):
         out.append((prefix, f"{value:.6g}"))
     else:
@@ -448,7 +472,7 @@ def cmd_info(args) -> int:
             print(f"  {k.ljust(width)}  {v}")
     print()
     arrays = info["arrays"]
-    shown = ', '.join(f'{k} {tuple(v)}' for k, v in arrays.items() if k in ('time', 'theta'))
+    shown = ", ".join(f"{k} {tuple(v)}" for k, v in arrays.items() if k in ("time", "theta"))
     print(f"arrays: {len(arrays)} ({shown}, ...)")
     return 0
 
@@ -545,17 +569,30 @@ PROGRESS_HELP = "no progress bar on stderr (--no-progress is the same)"
 def _body_args(sp, defaults=True) -> None:
     """The clip options: units, up axis and the body model (``defaults=False``: None unless given)."""
     d = (lambda v: v) if defaults else (lambda v: None)
-    sp.add_argument("--units", default=d("auto"), type=_units_arg,
-                    help="length unit of the file: auto (from the stature the long bones give), m, cm, mm, "
-                         "in, cmu (CMU's 1/0.45 inch), ft, dm, or metres per file unit")
-    sp.add_argument("--up-axis", default=d("auto"), type=_up_arg,
-                    help="world up axis: auto (from the motion), 0 (X), 1 (Y) or 2 (Z); gravity along -up")
+    sp.add_argument(
+        "--units",
+        default=d("auto"),
+        type=_units_arg,
+        help="length unit of the file: auto (from the stature the long bones give), m, cm, mm, "
+        "in, cmu (CMU's 1/0.45 inch), ft, dm, or metres per file unit",
+    )
+    sp.add_argument(
+        "--up-axis",
+        default=d("auto"),
+        type=_up_arg,
+        help="world up axis: auto (from the motion), 0 (X), 1 (Y) or 2 (Z); gravity along -up",
+    )
     sp.add_argument("--stature", type=_positive_arg, default=None, help="stature in metres (default: estimated)")
     sp.add_argument("--body-mass", type=_positive_arg, default=None, help="body mass in kg (default: BMI 22)")
-    sp.add_argument("--sex", choices=("average", "male", "female"), default=d("average"),
-                    help="column of de Leva's segment table")
-    sp.add_argument("--simulate-extremities", action="store_true", default=d(False),
-                    help="simulate fingers, toes and face joints as bodies")
+    sp.add_argument(
+        "--sex", choices=("average", "male", "female"), default=d("average"), help="column of de Leva's segment table"
+    )
+    sp.add_argument(
+        "--simulate-extremities",
+        action="store_true",
+        default=d(False),
+        help="simulate fingers, toes and face joints as bodies",
+    )
 
 
 def _command(sub, name: str, func, help: str, first=None, output=None, **output_kw):
@@ -579,13 +616,23 @@ def _clip_command(sub, name, func, help, output=None):
 def _add_clip_commands(sub) -> None:
     sp = _clip_command(sub, "inspect", cmd_inspect, "bodies, masses, DOFs of a clip")
     sp.add_argument("--json", action="store_true", help="print the model as JSON (README: file contracts)")
-    sp = _clip_command(sub, "idyn", cmd_idyn, "inverse dynamics (Eq. 3) on every frame",
-                       "NPZ file of joint angles, torques (N m), root wrench")
+    sp = _clip_command(
+        sub,
+        "idyn",
+        cmd_idyn,
+        "inverse dynamics (Eq. 3) on every frame",
+        "NPZ file of joint angles, torques (N m), root wrench",
+    )
     sp.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     sp.add_argument("--opensim-dir", default=None, help=OPENSIM_HELP + "motion.mot and inverse_dynamics.sto")
-    sp = _command(sub, "simulate", cmd_simulate, "perturbed forward simulation (Eq. 2)",
-                  ("config", "TOML config (default: the embedded clip and a 400 N chest push)", "?"),
-                  "RUN.npz: the perturbed and unperturbed runs")
+    sp = _command(
+        sub,
+        "simulate",
+        cmd_simulate,
+        "perturbed forward simulation (Eq. 2)",
+        ("config", "TOML config (default: the embedded clip and a 400 N chest push)", "?"),
+        "RUN.npz: the perturbed and unperturbed runs",
+    )
     sp.add_argument("--ks", type=_gain_arg, help="stiffness gain, 1/s^2 (>= 0)")
     sp.add_argument("--kd", type=_gain_arg, help="damping gain, 1/s (>= 0)")
     sp.add_argument("--clip", default=None, help="BVH file (overrides the config's clip)")
@@ -596,64 +643,134 @@ def _add_clip_commands(sub) -> None:
 
 
 def _add_run_commands(sub) -> None:
-    sp = _command(sub, "render", cmd_render, "filmstrip PNG or MP4/GIF of a run", ("run", RUN_HELP, None),
-                  "PNG (filmstrip), MP4 or GIF (side-by-side video)")
+    sp = _command(
+        sub,
+        "render",
+        cmd_render,
+        "filmstrip PNG or MP4/GIF of a run",
+        ("run", RUN_HELP, None),
+        "PNG (filmstrip), MP4 or GIF (side-by-side video)",
+    )
     sp.add_argument("--frames", type=_count_arg, default=6, help="panels of the filmstrip per row")
     sp.add_argument("--quiet", action="store_true", help="no progress lines or bar on stderr")
-    _command(sub, "plot", cmd_plot, "PNG plots of a run: deviation and joint angles vs time", ("run", RUN_HELP, None),
-             "PNG of the deviation (deg) and joint angles against time (s)")
-    _command(sub, "view", cmd_view, "interactive 3-D viewer of a run: one self-contained HTML page",
-             ("run", RUN_HELP, None), "HTML page (opens offline in a browser; docs/viewer.md)")
+    _command(
+        sub,
+        "plot",
+        cmd_plot,
+        "PNG plots of a run: deviation and joint angles vs time",
+        ("run", RUN_HELP, None),
+        "PNG of the deviation (deg) and joint angles against time (s)",
+    )
+    _command(
+        sub,
+        "view",
+        cmd_view,
+        "interactive 3-D viewer of a run: one self-contained HTML page",
+        ("run", RUN_HELP, None),
+        "HTML page (opens offline in a browser; docs/viewer.md)",
+    )
 
 
 def _add_sweep_command(sub) -> None:
-    sp = _command(sub, "sweep", cmd_sweep, "batch grid of perturbed runs (sharded over devices) -> CSV + plots",
-                  ("config", "TOML config with a [sweep] table", None), "folder (default: the config's sweep.output)",
-                  default=None)
+    sp = _command(
+        sub,
+        "sweep",
+        cmd_sweep,
+        "batch grid of perturbed runs (sharded over devices) -> CSV + plots",
+        ("config", "TOML config with a [sweep] table", None),
+        "folder (default: the config's sweep.output)",
+        default=None,
+    )
     sp.add_argument("--chunk", type=_count_arg, help="runs per device call")
     sp.add_argument("--inner-batch", type=_count_arg, help="rollouts vmapped together inside each shard")
-    sp.add_argument("--fitted", type=_gain_arg, nargs=2, metavar=("KS", "KD"),
-                    help="fitted pair to mark on the gains map")
+    sp.add_argument(
+        "--fitted", type=_gain_arg, nargs=2, metavar=("KS", "KD"), help="fitted pair to mark on the gains map"
+    )
     sp.add_argument("--fitted-json", help="JSON file with the fitted ks and kd")
     sp.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help=PROGRESS_HELP)
     from neuromotor.distributed import add_arguments
 
     add_arguments(sp)
-    _command(sub, "export-bvh", cmd_export_bvh, "write the perturbed motion as BVH", ("run", RUN_HELP, None),
-             "BVH in the source clip's skeleton, channel orders and units")
-    sp = _command(sub, "export-gltf", cmd_export_gltf, "write the bodies and both motions as glTF 2.0",
-                  ("run", RUN_HELP, None), "GLB (binary) or GLTF (JSON, buffer embedded) file; docs/gltf.md")
-    sp.add_argument("--layout", choices=("ghost", "shared"), default="ghost",
-                    help="unperturbed motion on a translucent second character (ghost) or on the same one (shared)")
+    _command(
+        sub,
+        "export-bvh",
+        cmd_export_bvh,
+        "write the perturbed motion as BVH",
+        ("run", RUN_HELP, None),
+        "BVH in the source clip's skeleton, channel orders and units",
+    )
+    sp = _command(
+        sub,
+        "export-gltf",
+        cmd_export_gltf,
+        "write the bodies and both motions as glTF 2.0",
+        ("run", RUN_HELP, None),
+        "GLB (binary) or GLTF (JSON, buffer embedded) file; docs/gltf.md",
+    )
+    sp.add_argument(
+        "--layout",
+        choices=("ghost", "shared"),
+        default="ghost",
+        help="unperturbed motion on a translucent second character (ghost) or on the same one (shared)",
+    )
 
 
 def _add_study_commands(sub) -> None:
-    sp = _command(sub, "fit", cmd_fit, "calibrate the gain pair (ks, kd) (or the [fit] parameters: reflex gains and "
-                  "delays too) to a target response -> fit.json + fit.png",
-                  ("config", "TOML config with a [fit] table", None), "folder for fit.json and fit.png",
-                  default="out/fit")
-    sp.add_argument("--solver", default=None, help="override fit.solver (optimistix_lm, optimistix_gn, "
-                    "optimistix_bfgs, jaxopt_lm, jaxopt_lbfgs)")
+    sp = _command(
+        sub,
+        "fit",
+        cmd_fit,
+        "calibrate the gain pair (ks, kd) (or the [fit] parameters: reflex gains and "
+        "delays too) to a target response -> fit.json + fit.png",
+        ("config", "TOML config with a [fit] table", None),
+        "folder for fit.json and fit.png",
+        default="out/fit",
+    )
+    sp.add_argument(
+        "--solver",
+        default=None,
+        help="override fit.solver (optimistix_lm, optimistix_gn, optimistix_bfgs, jaxopt_lm, jaxopt_lbfgs)",
+    )
     sp.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help=PROGRESS_HELP)
-    sp.add_argument("--write-synthetic", nargs="+", type=_truth_arg, metavar="VALUE",
-                    help="instead of fitting, simulate the config's target file at these values: KS KD, or "
-                         "NAME=VALUE for each of the [fit] parameters (e.g. reflex_gain=130 reflex_delay=0.05)")
-    sp.add_argument("--noise-deg", type=_nonneg_arg, default=0.0,
-                    help="with --write-synthetic: Gaussian noise added to the target angles (deg)")
+    sp.add_argument(
+        "--write-synthetic",
+        nargs="+",
+        type=_truth_arg,
+        metavar="VALUE",
+        help="instead of fitting, simulate the config's target file at these values: KS KD, or "
+        "NAME=VALUE for each of the [fit] parameters (e.g. reflex_gain=130 reflex_delay=0.05)",
+    )
+    sp.add_argument(
+        "--noise-deg",
+        type=_nonneg_arg,
+        default=0.0,
+        help="with --write-synthetic: Gaussian noise added to the target angles (deg)",
+    )
     sp.add_argument("--seed", type=int, default=0, help="with --write-synthetic: random seed of the noise")
-    sp = _command(sub, "experiment", cmd_experiment, "run one of the paper's experiments (arm, full_body, contrast)",
-                  ("config", "TOML config with an [experiment] table whose kind picks the experiment", None),
-                  "folder for run*.npz, metrics.json and the figures (default: the config's experiment.output)",
-                  default=None)
+    sp = _command(
+        sub,
+        "experiment",
+        cmd_experiment,
+        "run one of the paper's experiments (arm, full_body, contrast)",
+        ("config", "TOML config with an [experiment] table whose kind picks the experiment", None),
+        "folder for run*.npz, metrics.json and the figures (default: the config's experiment.output)",
+        default=None,
+    )
     sp.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help=PROGRESS_HELP)
 
 
 def _add_other_commands(sub) -> None:
-    sp = _command(sub, "bench", cmd_bench, "speed: steps/s, real-time factor, batch throughput, vs MuJoCo",
-                  ("clip", "BVH clip (default: the embedded 19-joint clip)", "?"))
+    sp = _command(
+        sub,
+        "bench",
+        cmd_bench,
+        "speed: steps/s, real-time factor, batch throughput, vs MuJoCo",
+        ("clip", "BVH clip (default: the embedded 19-joint clip)", "?"),
+    )
     _body_args(sp)
-    sp.add_argument("--solver", choices=("nullspace", "tree", "dense"), default="nullspace",
-                    help="KKT solver of Eq. 2 to time")
+    sp.add_argument(
+        "--solver", choices=("nullspace", "tree", "dense"), default="nullspace", help="KKT solver of Eq. 2 to time"
+    )
     sp.add_argument("--sizes", type=_count_arg, nargs="+", default=[1, 8, 64, 256], help="vmap batch sizes")
     sp.add_argument("--repeats", type=_count_arg, default=5, help="timed repeats; the best is reported")
     sp.add_argument("--idyn", nargs="*", default=[], help="clips for the inverse-dynamics figure")
@@ -661,16 +778,37 @@ def _add_other_commands(sub) -> None:
     sp.add_argument("--json", default=None, help="write all figures as JSON")
     sp.add_argument("--no-dense", action="store_true", help="skip the dense reference path")
     sp.add_argument("--no-mjx", action="store_true", help="skip MuJoCo MJX (optional extra; compiles six programs)")
-    sp = _clip_command(sub, "export-mjcf", cmd_export_mjcf,
-                       "write the character as MuJoCo MJCF (hinges, position servos)", "MJCF XML file")
+    sp = _clip_command(
+        sub,
+        "export-mjcf",
+        cmd_export_mjcf,
+        "write the character as MuJoCo MJCF (hinges, position servos)",
+        "MJCF XML file",
+    )
     sp.add_argument("--timestep", type=_positive_arg, default=1.0 / 120.0, help="MuJoCo time step (s, > 0)")
-    _clip_command(sub, "export-osim", cmd_export_osim,
-                  "write the character as an OpenSim model (bodies, custom joints, Y-up)", "OpenSim .osim file")
-    sp = _command(sub, "info", cmd_info, "what made a run: version, clip and its SHA-256, resolved config, metrics",
-                  ("run", RUN_HELP, None))
+    _clip_command(
+        sub,
+        "export-osim",
+        cmd_export_osim,
+        "write the character as an OpenSim model (bodies, custom joints, Y-up)",
+        "OpenSim .osim file",
+    )
+    sp = _command(
+        sub,
+        "info",
+        cmd_info,
+        "what made a run: version, clip and its SHA-256, resolved config, metrics",
+        ("run", RUN_HELP, None),
+    )
     sp.add_argument("--json", action="store_true", help="print it as JSON")
-    _command(sub, "demo", cmd_demo, "main job: simulate the default hit on the embedded clip and render it",
-             output="folder for run.npz, filmstrip.png, video.mp4, deviation.png", default="out/demo")
+    _command(
+        sub,
+        "demo",
+        cmd_demo,
+        "main job: simulate the default hit on the embedded clip and render it",
+        output="folder for run.npz, filmstrip.png, video.mp4, deviation.png",
+        default="out/demo",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:

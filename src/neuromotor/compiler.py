@@ -171,8 +171,11 @@ def use_cpu_cores() -> int | None:
 
         raise UserError(f"NEUROMOTOR_CPU_DEVICES: expected 'auto', 'off' or a device count, got {env!r}")
     flags = os.environ.get("XLA_FLAGS", "")
-    chosen = ("JAX_NUM_CPU_DEVICES" in os.environ or jax.config.jax_num_cpu_devices > 0  # type: ignore[attr-defined]
-              or any(name in flags for name in _LEAVE))
+    chosen = (
+        "JAX_NUM_CPU_DEVICES" in os.environ
+        or jax.config.jax_num_cpu_devices > 0  # type: ignore[attr-defined]
+        or any(name in flags for name in _LEAVE)
+    )
     if count < 2 or chosen or xla_bridge.backends_are_initialized():
         return None
     jax.config.update("jax_num_cpu_devices", count)

@@ -62,14 +62,16 @@ class Processes:
         if self.process_id is not None and self.process_id < 0:
             raise UserError(f"--process-id: must be >= 0, got {self.process_id}")
         if None not in (self.num_processes, self.process_id) and self.process_id >= self.num_processes:
-            raise UserError(f"--process-id: must be below --num-processes ({self.num_processes}), "
-                            f"got {self.process_id}")
+            raise UserError(
+                f"--process-id: must be below --num-processes ({self.num_processes}), got {self.process_id}"
+            )
         if not self.timeout_s > 0:
             raise UserError(f"--process-timeout: must be > 0 s, got {self.timeout_s}")
 
 
 def _int_from(low: int):
     """An argparse type: an integer >= ``low``."""
+
     def parse(text: str) -> int:
         try:
             value = int(text)
@@ -78,6 +80,7 @@ def _int_from(low: int):
         if value < low:
             raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}")
         return value
+
     return parse
 
 
@@ -94,23 +97,39 @@ def _seconds(text: str) -> float:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The multi-process options of ``neuromotor sweep`` and the sweep scripts."""
     g = parser.add_argument_group("several processes (jax.distributed; README: sweeps across processes and hosts)")
-    g.add_argument("--local-processes", type=_int_from(1), metavar="N",
-                   help="start N processes on this machine (127.0.0.1, one XLA thread each) and wait for them")
-    g.add_argument("--coordinator", metavar="HOST:PORT",
-                   help="address of process 0 (with --num-processes, --process-id)")
+    g.add_argument(
+        "--local-processes",
+        type=_int_from(1),
+        metavar="N",
+        help="start N processes on this machine (127.0.0.1, one XLA thread each) and wait for them",
+    )
+    g.add_argument(
+        "--coordinator", metavar="HOST:PORT", help="address of process 0 (with --num-processes, --process-id)"
+    )
     g.add_argument("--num-processes", type=_int_from(1), metavar="N", help="processes in the job")
     g.add_argument("--process-id", type=_int_from(0), metavar="I", help="this process's rank, 0..N-1")
-    g.add_argument("--distributed", action="store_true",
-                   help="join a multi-process job; what is not given is detected (SLURM, Open MPI, ...)")
-    g.add_argument("--process-timeout", type=_seconds, default=600.0, metavar="S",
-                   help="seconds to wait for the other processes at start-up and at the gather (default 600)")
+    g.add_argument(
+        "--distributed",
+        action="store_true",
+        help="join a multi-process job; what is not given is detected (SLURM, Open MPI, ...)",
+    )
+    g.add_argument(
+        "--process-timeout",
+        type=_seconds,
+        default=600.0,
+        metavar="S",
+        help="seconds to wait for the other processes at start-up and at the gather (default 600)",
+    )
 
 
 def from_args(args) -> Processes | None:
     """The :class:`Processes` of parsed :func:`add_arguments` options; None for one process
     (also for ``--local-processes``, whose children get explicit options)."""
-    explicit = {"--coordinator": args.coordinator, "--num-processes": args.num_processes,
-                "--process-id": args.process_id}
+    explicit = {
+        "--coordinator": args.coordinator,
+        "--num-processes": args.num_processes,
+        "--process-id": args.process_id,
+    }
     given = [k for k, v in explicit.items() if v is not None]
     if args.local_processes is not None and (given or args.distributed):
         raise UserError(f"--local-processes starts its own processes: drop {(given or ['--distributed'])[0]}")
@@ -131,9 +150,14 @@ def initialize(procs: Processes) -> None:
     t = max(1, int(round(procs.timeout_s)))
     _timeout_s[0] = procs.timeout_s
     try:
-        jax.distributed.initialize(procs.coordinator, procs.num_processes, procs.process_id,
-                                   initialization_timeout=t, heartbeat_timeout_seconds=min(t, 100),
-                                   shutdown_timeout_seconds=t)
+        jax.distributed.initialize(
+            procs.coordinator,
+            procs.num_processes,
+            procs.process_id,
+            initialization_timeout=t,
+            heartbeat_timeout_seconds=min(t, 100),
+            shutdown_timeout_seconds=t,
+        )
     except (ValueError, TypeError, RuntimeError) as e:  # nothing detected, backend already started, ...
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         guessed = None in (procs.coordinator, procs.num_processes, procs.process_id)
@@ -165,8 +189,10 @@ def _wait_for_everyone(timeout_s: float) -> None:
         client.wait_at_barrier(f"neuromotor-gather-{_gathers[0]}", int(timeout_s * 1000))
     except Exception as e:  # the runtime's status error: a process failed, or is too slow
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise UserError(f"sweep: process {jax.process_index()} waited {timeout_s:g} s for the other processes "
-                        f"to finish their shares ({first})") from None
+        raise UserError(
+            f"sweep: process {jax.process_index()} waited {timeout_s:g} s for the other processes "
+            f"to finish their shares ({first})"
+        ) from None
 
 
 def gather_shares(local: dict[str, np.ndarray], n: int, timeout_s: float | None = None) -> dict[str, np.ndarray]:
@@ -236,8 +262,16 @@ def launch_local(argv: Sequence[str], n: int, timeout_s: float = 600.0, program:
     coordinator = f"127.0.0.1:{free_port()}"
     env = _single_thread_env()
     program = [sys.executable, "-m", "neuromotor"] if program is None else list(program)
-    cmd = [*program, *argv, "--coordinator", coordinator, "--num-processes", str(n),
-           "--process-timeout", f"{timeout_s:g}"]
+    cmd = [
+        *program,
+        *argv,
+        "--coordinator",
+        coordinator,
+        "--num-processes",
+        str(n),
+        "--process-timeout",
+        f"{timeout_s:g}",
+    ]
     children = [subprocess.Popen([*cmd, "--process-id", str(i)], env=env) for i in range(n)]
     try:
         while True:

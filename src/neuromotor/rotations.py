@@ -26,16 +26,12 @@ def skew(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
     """Cross-product matrix: skew(a) @ b == cross(a, b)."""
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     o = jnp.zeros_like(x)
-    return jnp.stack(
-        [jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2
-    )
+    return jnp.stack([jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2)
 
 
 def vee(m: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
     """Inverse of skew for the antisymmetric part of m."""
-    return 0.5 * jnp.stack(
-        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1
-    )
+    return 0.5 * jnp.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1)
 
 
 def axis_rotation(axis: int, angle: Float[Array, ...]) -> Float[Array, "... 3 3"]:
@@ -83,8 +79,9 @@ def _euler_parts(entry, order: str, reference: Float[Array, "... 3"] | None):
     # Of (t1, t2, t3) and (t1 + pi, pi - t2, t3 + pi), the one nearest the reference.
     a1, b1, c1 = near(a, ref1), near(b, ref2), near(c, ref3)
     a2, b2, c2 = near(a + jnp.pi, ref1), near(jnp.pi - b, ref2), near(c + jnp.pi, ref3)
-    first = ((a1 - ref1) ** 2 + (b1 - ref2) ** 2 + (c1 - ref3) ** 2
-             <= (a2 - ref1) ** 2 + (b2 - ref2) ** 2 + (c2 - ref3) ** 2)
+    first = (a1 - ref1) ** 2 + (b1 - ref2) ** 2 + (c1 - ref3) ** 2 <= (a2 - ref1) ** 2 + (b2 - ref2) ** 2 + (
+        c2 - ref3
+    ) ** 2
     t1, t2, t3 = jnp.where(first, a1, a2), jnp.where(first, b1, b2), jnp.where(first, c1, c2)
     cos1, sin1, cos2 = jnp.where(first, cos1, -cos1), jnp.where(first, sin1, -sin1), jnp.where(first, cos2, -cos2)
     # Gimbal lock: R depends on t1 + s' t3 only; keep t1 at the reference, and read t3 from
@@ -94,8 +91,10 @@ def _euler_parts(entry, order: str, reference: Float[Array, "... 3"] | None):
     k1, k2 = (k + 1) % 3, (k + 2) % 3
     col = _unrotate(j, cos2, sin2, _unrotate(i, cr, sr, [entry(0, k1), entry(1, k1), entry(2, k1)]))
     t3_locked = near(jnp.arctan2(col[k2], col[k1]), ref3)
-    return ((jnp.where(locked, ref1, t1), t2, jnp.where(locked, t3_locked, t3)),
-            (jnp.where(locked, cr, cos1), jnp.where(locked, sr, sin1), cos2, sin2))
+    return (
+        (jnp.where(locked, ref1, t1), t2, jnp.where(locked, t3_locked, t3)),
+        (jnp.where(locked, cr, cos1), jnp.where(locked, sr, sin1), cos2, sin2),
+    )
 
 
 def _unrotate(axis: int, c, s, v: list) -> list:
@@ -122,8 +121,7 @@ def matrix_to_euler(
     return jnp.stack(angles, -1)
 
 
-def euler_angles_and_rates(entry, w: Float[Array, "... 3"], order: str,
-                           reference: Float[Array, "... 3"] | None = None):
+def euler_angles_and_rates(entry, w: Float[Array, "... 3"], order: str, reference: Float[Array, "... 3"] | None = None):
     """The Euler angles of :func:`matrix_to_euler`, of the matrix R whose entry (a, b) is
     ``entry(a, b)``, and their rates for ``w``, the angular velocity in the frame R maps into.
 
@@ -144,8 +142,9 @@ def wrap_angle(x: Float[Array, ...]) -> Float[Array, ...]:
     return x - 2.0 * jnp.pi * jnp.ceil((x - jnp.pi) / (2.0 * jnp.pi))
 
 
-def euler_axes(parent_rot: Float[Array, "... 3 3"], angles: Float[Array, "... 3"],
-               order: str) -> Float[Array, "... 3 3"]:
+def euler_axes(
+    parent_rot: Float[Array, "... 3 3"], angles: Float[Array, "... 3"], order: str
+) -> Float[Array, "... 3 3"]:
     """World-frame Euler axes h_1, h_2, h_3 (rows) of joints (the rows of H, Eq. 4), batched.
 
     The relative angular velocity of the child is ``sum_i h_i thetadot_i``:
@@ -169,9 +168,14 @@ def dot(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, ...]
 
 
 def cross(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
-    return jnp.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-                      a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
+    return jnp.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        -1,
+    )
 
 
 def mv(m: Float[Array, "... 3 3"], x: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
@@ -186,14 +190,20 @@ def mtv(m: Float[Array, "... 3 3"], x: Float[Array, "... 3"]) -> Float[Array, ".
 
 def mm(a: Float[Array, "... 3 3"], b: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
     """a b."""
-    return (a[..., :, 0, None] * b[..., None, 0, :] + a[..., :, 1, None] * b[..., None, 1, :]
-            + a[..., :, 2, None] * b[..., None, 2, :])
+    return (
+        a[..., :, 0, None] * b[..., None, 0, :]
+        + a[..., :, 1, None] * b[..., None, 1, :]
+        + a[..., :, 2, None] * b[..., None, 2, :]
+    )
 
 
 def mmt(a: Float[Array, "... 3 3"], b: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
     """a b^T."""
-    return (a[..., :, 0, None] * b[..., None, :, 0] + a[..., :, 1, None] * b[..., None, :, 1]
-            + a[..., :, 2, None] * b[..., None, :, 2])
+    return (
+        a[..., :, 0, None] * b[..., None, :, 0]
+        + a[..., :, 1, None] * b[..., None, :, 1]
+        + a[..., :, 2, None] * b[..., None, :, 2]
+    )
 
 
 def inv3(a: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
@@ -231,14 +241,36 @@ def matrix_to_quat(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4"]:
     tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
     cands = jnp.stack(
         [
-            jnp.stack([1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
-                       m[..., 1, 0] - m[..., 0, 1]], -1),
-            jnp.stack([m[..., 2, 1] - m[..., 1, 2], 1 + 2 * m[..., 0, 0] - tr,
-                       m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
-            jnp.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0],
-                       1 + 2 * m[..., 1, 1] - tr, m[..., 1, 2] + m[..., 2, 1]], -1),
-            jnp.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0],
-                       m[..., 1, 2] + m[..., 2, 1], 1 + 2 * m[..., 2, 2] - tr], -1),
+            jnp.stack(
+                [1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1
+            ),
+            jnp.stack(
+                [
+                    m[..., 2, 1] - m[..., 1, 2],
+                    1 + 2 * m[..., 0, 0] - tr,
+                    m[..., 0, 1] + m[..., 1, 0],
+                    m[..., 0, 2] + m[..., 2, 0],
+                ],
+                -1,
+            ),
+            jnp.stack(
+                [
+                    m[..., 0, 2] - m[..., 2, 0],
+                    m[..., 0, 1] + m[..., 1, 0],
+                    1 + 2 * m[..., 1, 1] - tr,
+                    m[..., 1, 2] + m[..., 2, 1],
+                ],
+                -1,
+            ),
+            jnp.stack(
+                [
+                    m[..., 1, 0] - m[..., 0, 1],
+                    m[..., 0, 2] + m[..., 2, 0],
+                    m[..., 1, 2] + m[..., 2, 1],
+                    1 + 2 * m[..., 2, 2] - tr,
+                ],
+                -1,
+            ),
         ],
         -2,
     )
@@ -259,9 +291,11 @@ def quat_rotate(q: Float[Array, "... 4"], v: Float[Array, "... 3"]) -> Float[Arr
 def quat_entries(q: Float[Array, "... 4"]):
     """``entry(a, b)``: the entry (a, b) of ``quat_to_matrix(q)`` alone (a component array)."""
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    rows = ((lambda: 1 - 2 * (y * y + z * z), lambda: 2 * (x * y - w * z), lambda: 2 * (x * z + w * y)),
-            (lambda: 2 * (x * y + w * z), lambda: 1 - 2 * (x * x + z * z), lambda: 2 * (y * z - w * x)),
-            (lambda: 2 * (x * z - w * y), lambda: 2 * (y * z + w * x), lambda: 1 - 2 * (x * x + y * y)))
+    rows = (
+        (lambda: 1 - 2 * (y * y + z * z), lambda: 2 * (x * y - w * z), lambda: 2 * (x * z + w * y)),
+        (lambda: 2 * (x * y + w * z), lambda: 1 - 2 * (x * x + z * z), lambda: 2 * (y * z - w * x)),
+        (lambda: 2 * (x * z - w * y), lambda: 2 * (y * z + w * x), lambda: 1 - 2 * (x * x + y * y)),
+    )
     return lambda a, b: rows[a][b]()
 
 
@@ -300,8 +334,11 @@ def right_jacobian_inv(e: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
     small = t2 < 1e-4
     t = jnp.sqrt(jnp.where(small, 1.0, t2))
     half = 0.5 * t
-    beta = jnp.where(small, 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
-                     1.0 / jnp.where(small, 1.0, t2) - jnp.cos(half) / (2.0 * t * jnp.sin(half)))
+    beta = jnp.where(
+        small,
+        1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
+        1.0 / jnp.where(small, 1.0, t2) - jnp.cos(half) / (2.0 * t * jnp.sin(half)),
+    )
     k = skew(e)
     eye = jnp.eye(3, dtype=e.dtype)
     return eye + 0.5 * k + beta[..., None, None] * mm(k, k)
@@ -320,6 +357,8 @@ def continuous_angles(theta, reference=None) -> np.ndarray:
     if theta.shape[0] == 0:
         return theta
     first = theta[0]
-    target = np.arctan2(np.sin(first), np.cos(first)) if reference is None else np.asarray(reference, dtype=np.float64)[0]
+    target = (
+        np.arctan2(np.sin(first), np.cos(first)) if reference is None else np.asarray(reference, dtype=np.float64)[0]
+    )
     turns = np.round((first - target) / (2 * np.pi))
     return theta - 2 * np.pi * turns

@@ -62,8 +62,9 @@ def matrix_to_euler(r, order: str, reference=None) -> np.ndarray:
     # Of (t1, t2, t3) and (t1 + pi, pi - t2, t3 + pi), the one nearest the reference.
     a1, b1, c1 = near(a, ref1), near(b, ref2), near(c, ref3)
     a2, b2, c2 = near(a + np.pi, ref1), near(np.pi - b, ref2), near(c + np.pi, ref3)
-    first = ((a1 - ref1) ** 2 + (b1 - ref2) ** 2 + (c1 - ref3) ** 2
-             <= (a2 - ref1) ** 2 + (b2 - ref2) ** 2 + (c2 - ref3) ** 2)
+    first = (a1 - ref1) ** 2 + (b1 - ref2) ** 2 + (c1 - ref3) ** 2 <= (a2 - ref1) ** 2 + (b2 - ref2) ** 2 + (
+        c2 - ref3
+    ) ** 2
     t1, t2, t3 = np.where(first, a1, a2), np.where(first, b1, b2), np.where(first, c1, c2)
     # Gimbal lock: R depends on t1 + s' t3 only; t1 stays at the reference and t3 is read from
     # column k1 of R_k(t3) = R_a2(t2)^T R_a1(t1)^T R.

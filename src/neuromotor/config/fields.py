@@ -23,8 +23,9 @@ def read_toml(path) -> dict:
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
-        raise ConfigError(f"{path}: not a text (UTF-8 TOML) config: byte 0x{raw[e.start]:02x} at offset "
-                          f"{e.start}") from None
+        raise ConfigError(
+            f"{path}: not a text (UTF-8 TOML) config: byte 0x{raw[e.start]:02x} at offset {e.start}"
+        ) from None
     if "\x00" in text:
         raise ConfigError(f"{path}: not a text (TOML) config: NUL byte at offset {text.index(chr(0))}")
     if not text.strip():
@@ -147,8 +148,10 @@ class Fields:
         elif isinstance(val, list) and val and all(_is_number(x) and math.isfinite(x) for x in val):
             vals = val
         else:
-            self.fail(key, f"must be a non-empty list of numbers{' or {start, stop, num}' if allow_range else ''}, "
-                           f"got {val!r}")
+            self.fail(
+                key,
+                f"must be a non-empty list of numbers{' or {start, stop, num}' if allow_range else ''}, got {val!r}",
+            )
         if nonneg and any(v < 0 for v in vals):
             self.fail(key, "values must be >= 0")
         return [float(v) for v in vals]

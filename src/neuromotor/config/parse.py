@@ -62,10 +62,14 @@ def parse_perturbation(table, where: str, source: str) -> PerturbationSpec:
     if kind == "impulse":
         for key in ("duration", "shape"):
             if key in table:
-                f.fail(key, "does not apply to an impulse (magnitude in N s, delivered within one step); "
-                            "use kind = \"force\" for a pulse of a shape and duration")
+                f.fail(
+                    key,
+                    "does not apply to an impulse (magnitude in N s, delivered within one step); "
+                    'use kind = "force" for a pulse of a shape and duration',
+                )
     spec = PerturbationSpec(
-        kind=kind, body=body,
+        kind=kind,
+        body=body,
         point=f.vector("point", None) if "point" in table else None,
         direction=f.vector("direction", d("direction")),
         magnitude=f.required("magnitude", f.number("magnitude", None, nonneg=True)),
@@ -86,8 +90,11 @@ def _ball_velocity(f: Fields, table: dict) -> dict:
         if len(given) > 1:
             f.fail("velocity", f"give either velocity or speed with direction/target, not {given}")
         return {"velocity": f.vector("velocity", None)}
-    out = {"speed": f.required("speed", f.number("speed", None, nonneg=True),
-                               "is required (or give velocity = [vx, vy, vz])")}
+    out = {
+        "speed": f.required(
+            "speed", f.number("speed", None, nonneg=True), "is required (or give velocity = [vx, vy, vz])"
+        )
+    }
     if ("direction" in table) == ("target" in table):
         f.fail("direction", "give exactly one of direction (a vector) or target (a body name)")
     if "direction" in table:
@@ -107,8 +114,15 @@ def parse_ball(table, source: str) -> BallSpec:
     if "position" not in table:
         f.fail("position", "is required")
     out = {"position": f.vector("position", None)}
-    for key, rule in (("radius", "positive"), ("mass", "positive"), ("launch", "nonneg"), ("restitution", "nonneg"),
-                      ("friction", "nonneg"), ("restitution_threshold", "nonneg"), ("ground_height", None)):
+    for key, rule in (
+        ("radius", "positive"),
+        ("mass", "positive"),
+        ("launch", "nonneg"),
+        ("restitution", "nonneg"),
+        ("friction", "nonneg"),
+        ("restitution_threshold", "nonneg"),
+        ("ground_height", None),
+    ):
         out[key] = f.number(key, d(key), **({rule: True} if rule else {}))
     out["ground"] = f.boolean("ground", d("ground"))
     if out["restitution"] > 1.0:
@@ -126,28 +140,41 @@ def _body_fields(top: Fields, base_dir) -> dict:
 
     clip = top.path("clip", None, base_dir)
     units = top.get("units", "auto")
-    if not (units == "auto" or (isinstance(units, str) and units in UNIT_CHOICES)
-            or (isinstance(units, (int, float)) and not isinstance(units, bool) and math.isfinite(units)
-                and units > 0)):
-        top.fail("units", f"must be auto, {', '.join(UNIT_CHOICES)} or a positive number of metres per "
-                          f"file unit, got {units!r}")
+    if not (
+        units == "auto"
+        or (isinstance(units, str) and units in UNIT_CHOICES)
+        or (isinstance(units, (int, float)) and not isinstance(units, bool) and math.isfinite(units) and units > 0)
+    ):
+        top.fail(
+            "units",
+            f"must be auto, {', '.join(UNIT_CHOICES)} or a positive number of metres per file unit, got {units!r}",
+        )
     up = top.choice("up_axis", "auto", ("auto", 0, 1, 2))
     stature = top.number("stature", None, positive=True)
     if stature is not None and not 0.3 <= stature <= 3.0:
         top.fail("stature", f"must be a stature in metres between 0.3 and 3, got {stature!r}")
-    return dict(clip=None if clip is None else str(clip), units=units, up_axis=None if up == "auto" else int(up),
-                stature=stature, body_mass=top.number("body_mass", None, positive=True),
-                sex=top.choice("sex", default(SimulationConfig, "sex"), SEXES),
-                simulate_extremities=top.boolean("simulate_extremities", False))
+    return dict(
+        clip=None if clip is None else str(clip),
+        units=units,
+        up_axis=None if up == "auto" else int(up),
+        stature=stature,
+        body_mass=top.number("body_mass", None, positive=True),
+        sex=top.choice("sex", default(SimulationConfig, "sex"), SEXES),
+        simulate_extremities=top.boolean("simulate_extremities", False),
+    )
 
 
 def _sim_fields(top: Fields) -> dict:
     """The ``[sim]`` and ``[gains]`` tables."""
     d = lambda name: default(SimulationConfig, name)
     sim = top.sub("sim")
-    out = dict(h=sim.number("h", d("h"), positive=True), start=sim.number("start", d("start"), nonneg=True),
-               duration=sim.number("duration", None, positive=True), implicit=sim.boolean("implicit", d("implicit")),
-               driven_joints=sim.string_list("driven_joints", []))
+    out = dict(
+        h=sim.number("h", d("h"), positive=True),
+        start=sim.number("start", d("start"), nonneg=True),
+        duration=sim.number("duration", None, positive=True),
+        implicit=sim.boolean("implicit", d("implicit")),
+        driven_joints=sim.string_list("driven_joints", []),
+    )
     steps = sim.get("stabilization_steps", d("stabilization_steps"))
     if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 5:
         sim.fail("stabilization_steps", f"must be an integer from 1 to 5, got {steps!r}")
@@ -168,11 +195,14 @@ def parse_reflex(top: Fields) -> ReflexSpec:
     """The ``[reflex]`` table (defaults: :class:`ReflexSpec`)."""
     f = top.sub("reflex")
     d = lambda name: default(ReflexSpec, name)
-    out = {k: f.number(k, d(k), nonneg=True) for k in ("gain", "delay", "long_latency_gain", "long_latency_delay",
-                                                         "rate_weight")}
+    out = {
+        k: f.number(k, d(k), nonneg=True)
+        for k in ("gain", "delay", "long_latency_gain", "long_latency_delay", "rate_weight")
+    }
     out["width"] = f.number("width", d("width"), positive=True)
-    out["max_delay"] = f.number("max_delay", max(d("max_delay"), out["delay"], out["long_latency_delay"]),
-                                positive=True)
+    out["max_delay"] = f.number(
+        "max_delay", max(d("max_delay"), out["delay"], out["long_latency_delay"]), positive=True
+    )
     if out["max_delay"] > REFLEX_DELAY_LIMIT:
         f.fail("max_delay", f"must be at most {REFLEX_DELAY_LIMIT:g} s (the history buffer), got {out['max_delay']!r}")
     for key in ("delay", "long_latency_delay"):
@@ -216,8 +246,14 @@ def gain_settings(f: Fields, key: str, cfg: SimulationConfig) -> list[GainSettin
     out = []
     for i, t in enumerate(tables):
         g = Fields(t, f"{f.name(key)}[{i}]", f.source)
-        out.append(GainSetting(g.number("ks", cfg.ks, nonneg=True), g.number("kd", cfg.kd, nonneg=True),
-                               g.choice("controller", "neuromotor", CONTROLLERS), str(g.get("label", ""))))
+        out.append(
+            GainSetting(
+                g.number("ks", cfg.ks, nonneg=True),
+                g.number("kd", cfg.kd, nonneg=True),
+                g.choice("controller", "neuromotor", CONTROLLERS),
+                str(g.get("label", "")),
+            )
+        )
         g.done()
     return out
 
@@ -263,13 +299,18 @@ def _sweep_magnitudes(f: Fields, cfg: SimulationConfig) -> tuple[str, list[float
     """The kind of sweep (force pulse or ball speed) and its magnitudes."""
     if cfg.ball is not None:
         if cfg.perturbations:
-            raise ConfigError(f"{cfg.source}: field 'perturbation': a sweep of a [ball] config varies the ball speed "
-                              "(sweep.magnitudes in m/s); remove the [[perturbation]] tables, or the [ball] "
-                              "table to sweep the force pulse")
+            raise ConfigError(
+                f"{cfg.source}: field 'perturbation': a sweep of a [ball] config varies the ball speed "
+                "(sweep.magnitudes in m/s); remove the [[perturbation]] tables, or the [ball] "
+                "table to sweep the force pulse"
+            )
         for key in ("bodies", "directions", "starts"):
             if key in f.table:
-                f.fail(key, "does not apply to a ball sweep: sweep.magnitudes are ball speeds (m/s); "
-                            "aim and launch time come from [ball]")
+                f.fail(
+                    key,
+                    "does not apply to a ball sweep: sweep.magnitudes are ball speeds (m/s); "
+                    "aim and launch time come from [ball]",
+                )
         ball = cfg.ball
         speed = float(np.linalg.norm(ball.velocity)) if ball.velocity is not None else ball.speed
         mags = f.number_list("magnitudes", [speed], nonneg=True)
@@ -277,26 +318,40 @@ def _sweep_magnitudes(f: Fields, cfg: SimulationConfig) -> tuple[str, list[float
             f.fail("magnitudes", "ball speeds must be > 0 when the ball aims at a target (ball.target)")
         return "ball", mags
     if not cfg.perturbations:
-        raise ConfigError(f"{cfg.source}: field 'perturbation' is required: a sweep varies perturbation[0] "
-                          "(or give a [ball] table to sweep the ball speed)")
+        raise ConfigError(
+            f"{cfg.source}: field 'perturbation' is required: a sweep varies perturbation[0] "
+            "(or give a [ball] table to sweep the ball speed)"
+        )
     return "force", f.number_list("magnitudes", [cfg.perturbations[0].magnitude], nonneg=True)
 
 
 def _sweep_axes(f: Fields) -> dict:
     """Bodies, directions and start times of the grid (None: perturbation[0]'s)."""
     bodies = f.get("bodies", None)
-    if bodies is not None and (not isinstance(bodies, list) or not bodies
-                               or not all(isinstance(b, str) for b in bodies)):
+    if bodies is not None and (
+        not isinstance(bodies, list) or not bodies or not all(isinstance(b, str) for b in bodies)
+    ):
         f.fail("bodies", f"must be a non-empty list of body names, got {bodies!r}")
     directions = f.get("directions", None)
     if directions is not None:
-        ok = isinstance(directions, list) and directions and all(
-            isinstance(d, list) and len(d) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                                        for x in d) and any(d) for d in directions)
+        ok = (
+            isinstance(directions, list)
+            and directions
+            and all(
+                isinstance(d, list)
+                and len(d) == 3
+                and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in d)
+                and any(d)
+                for d in directions
+            )
+        )
         if not ok:
             f.fail("directions", f"must be a non-empty list of non-zero [x, y, z], got {directions!r}")
-    return dict(bodies=bodies, directions=[list(map(float, d)) for d in directions] if directions else None,
-                starts=f.number_list("starts", None, nonneg=True, allow_range=False))
+    return dict(
+        bodies=bodies,
+        directions=[list(map(float, d)) for d in directions] if directions else None,
+        starts=f.number_list("starts", None, nonneg=True, allow_range=False),
+    )
 
 
 def _sweep_gains(f: Fields, cfg: SimulationConfig) -> list[GainSetting]:
@@ -323,8 +378,10 @@ def _sweep_reflex(f: Fields, cfg: SimulationConfig, kind: str) -> tuple[ReflexSp
         f.fail(given[0], "does not apply to a ball sweep (reflex axes sweep force pulses)")
     for key in ("reflex_delay", "long_latency_delay"):
         if max(axes[key] or [0.0]) > REFLEX_DELAY_LIMIT:
-            f.fail(key, f"delays must be at most {REFLEX_DELAY_LIMIT:g} s (the reflex history buffer), "
-                        f"got {max(axes[key])!r}")
+            f.fail(
+                key,
+                f"delays must be at most {REFLEX_DELAY_LIMIT:g} s (the reflex history buffer), got {max(axes[key])!r}",
+            )
     return reflex_grid(cfg.reflex, **axes)
 
 
@@ -334,8 +391,11 @@ def _sweep_fitted(f: Fields, base_dir) -> tuple[float, float] | None:
         return None
     if isinstance(fitted, str):
         return read_fitted(str(resolve(fitted, base_dir)), f"{f.source}: field 'sweep.fitted'")
-    if isinstance(fitted, list) and len(fitted) == 2 and all(
-            isinstance(x, (int, float)) and not isinstance(x, bool) for x in fitted):
+    if (
+        isinstance(fitted, list)
+        and len(fitted) == 2
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in fitted)
+    ):
         return read_fitted(fitted)
     f.fail("fitted", f"must be a JSON path or [ks, kd], got {fitted!r}")
 
@@ -353,8 +413,9 @@ def sweep_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> SweepSpec:
     fitted = _sweep_fitted(f, base_dir)
     f.done()
     output = None if out is None else output_dir(out, base_dir)
-    return SweepSpec(mags, gains, chunk=chunk, inner_batch=inner, output=output, fitted=fitted, kind=kind,
-                     reflexes=reflexes, **axes)
+    return SweepSpec(
+        mags, gains, chunk=chunk, inner_batch=inner, output=output, fitted=fitted, kind=kind, reflexes=reflexes, **axes
+    )
 
 
 def load_sweep_config(path) -> tuple[SimulationConfig, SweepSpec]:
@@ -367,8 +428,9 @@ def load_sweep_config(path) -> tuple[SimulationConfig, SweepSpec]:
 # ----------------------------------------------------------------------------- experiment
 
 
-def experiment_spec(data: dict, cfg: SimulationConfig, base_dir=None,
-                    default_kind: str | None = None) -> ExperimentSpec:
+def experiment_spec(
+    data: dict, cfg: SimulationConfig, base_dir=None, default_kind: str | None = None
+) -> ExperimentSpec:
     """The ``[experiment]`` table (layout in :mod:`neuromotor.studies.experiments`)."""
     f = Fields(data.get("experiment", {}), "experiment", cfg.source)
     d = lambda name: default(ExperimentSpec, name)
@@ -377,17 +439,24 @@ def experiment_spec(data: dict, cfg: SimulationConfig, base_dir=None,
     frames = f.integer("frames", d("frames"), 1, "must be a positive integer")
     video = f.get("video", d("video"))
     if not isinstance(video, str) or (video and not video.endswith((".mp4", ".gif"))):
-        f.fail("video", f"must be a file name ending .mp4 or .gif, or \"\", got {video!r}")
+        f.fail("video", f'must be a file name ending .mp4 or .gif, or "", got {video!r}')
     arm = tuple(f.string_list("arm", list(d("arm"))))
     mags = f.number_list("magnitudes", None, nonneg=True)
     controllers = gain_settings(f, "controller", cfg)
     f.done()
     if not cfg.perturbations and cfg.ball is None:
-        raise ConfigError(f"{cfg.source}: field 'perturbation' is required (or a [ball]): every experiment hits "
-                          "the character")
-    return ExperimentSpec(kind, output_dir(out, base_dir), frames, video, arm,
-                          d("controllers") if controllers is None else tuple(controllers),
-                          None if mags is None else tuple(mags))
+        raise ConfigError(
+            f"{cfg.source}: field 'perturbation' is required (or a [ball]): every experiment hits the character"
+        )
+    return ExperimentSpec(
+        kind,
+        output_dir(out, base_dir),
+        frames,
+        video,
+        arm,
+        d("controllers") if controllers is None else tuple(controllers),
+        None if mags is None else tuple(mags),
+    )
 
 
 def load_experiment(path, default_kind: str | None = None) -> tuple[SimulationConfig, ExperimentSpec]:
@@ -402,8 +471,11 @@ def load_experiment(path, default_kind: str | None = None) -> tuple[SimulationCo
 
 def _fit_window(f: Fields):
     window = f.get("window")
-    if window is not None and (not isinstance(window, list) or len(window) != 2 or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) for v in window)):
+    if window is not None and (
+        not isinstance(window, list)
+        or len(window) != 2
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in window)
+    ):
         f.fail("window", f"must be [t0, t1] in clip seconds, got {window!r}")
     return None if window is None else tuple(window)
 
@@ -417,8 +489,9 @@ def _feature_case(case, i: int, source: str) -> dict:
             continue
         g = c.sub(feat)
         value = g.required("value", g.number("value", None))
-        sd = g.required("sd", g.number("sd", None, positive=True),
-                        "is required (the residual is (simulated - value) / sd)")
+        sd = g.required(
+            "sd", g.number("sd", None, positive=True), "is required (the residual is (simulated - value) / sd)"
+        )
         cite = g.get("source", "")
         if not isinstance(cite, str) or not cite.strip():
             g.fail("source", "is required: cite where the number comes from, or say it is illustrative")
@@ -433,11 +506,13 @@ def _feature_case(case, i: int, source: str) -> dict:
 def _feature_target(t: Fields, n_perturbations: int) -> FitTargetSpec:
     d = lambda name: default(Surrogate, name)
     dofs = tuple(t.string_list("dofs", []))
-    surrogate = Surrogate(beta=t.number("beta", d("beta"), positive=True),
-                          width=t.number("width", d("width"), positive=True),
-                          fraction=t.number("recovery_fraction", d("fraction"), positive=True),
-                          floor_deg=t.number("recovery_floor_deg", d("floor_deg"), nonneg=True),
-                          accel_beta=t.number("accel_beta", d("accel_beta"), positive=True))
+    surrogate = Surrogate(
+        beta=t.number("beta", d("beta"), positive=True),
+        width=t.number("width", d("width"), positive=True),
+        fraction=t.number("recovery_fraction", d("fraction"), positive=True),
+        floor_deg=t.number("recovery_floor_deg", d("floor_deg"), nonneg=True),
+        accel_beta=t.number("accel_beta", d("accel_beta"), positive=True),
+    )
     cases = t.get("case", [])
     if not isinstance(cases, list) or not cases:
         t.fail("case", "must be one or more [[fit.target.case]] tables (one per [[perturbation]])")
@@ -472,18 +547,23 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
     if "fit" not in data:
         raise ConfigError(f"{source}: a fit config needs a [fit] table")
     if cfg.ball is not None:  # the fit's forward model has no contact: it would leave the ball out
-        raise ConfigError(f"{source}: field 'ball': a fit simulates its [[perturbation]] cases without contact, "
-                          "so it cannot take a [ball] (remove it; a ball-speed sweep maps a ball's effect)")
+        raise ConfigError(
+            f"{source}: field 'ball': a fit simulates its [[perturbation]] cases without contact, "
+            "so it cannot take a [ball] (remove it; a ball-speed sweep maps a ball's effect)"
+        )
     f = Fields(data["fit"], "fit", source)
     d = lambda name: default(SolverOptions, name)
     solver = f.choice("solver", default(FitSpec, "solver"), FIT_SOLVERS)
-    opts = SolverOptions(max_steps=int(f.number("max_steps", d("max_steps"), positive=True)),
-                         rtol=f.number("rtol", d("rtol"), positive=True),
-                         atol=f.number("atol", d("atol"), positive=True),
-                         gtol=f.number("gtol", d("gtol"), positive=True))
+    opts = SolverOptions(
+        max_steps=int(f.number("max_steps", d("max_steps"), positive=True)),
+        rtol=f.number("rtol", d("rtol"), positive=True),
+        atol=f.number("atol", d("atol"), positive=True),
+        gtol=f.number("gtol", d("gtol"), positive=True),
+    )
     jacobian = f.choice("jacobian", default(FitSpec, "jacobian"), JACOBIANS)
-    names = check_fit_parameters(f.string_list("parameters", list(default(FitSpec, "parameters"))),
-                                 cfg.reflex is not None, source)
+    names = check_fit_parameters(
+        f.string_list("parameters", list(default(FitSpec, "parameters"))), cfg.reflex is not None, source
+    )
     window = _fit_window(f)
     t = Fields(f.get("target", None) or f.fail("target", "is required ([fit.target] table)"), "fit.target", source)
     f.done()

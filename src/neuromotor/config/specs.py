@@ -28,8 +28,7 @@ CONTROLLERS = ("neuromotor", "pd")  # the paper's model, or the high-gain PD tra
 FIT_SOLVERS = ("optimistix_lm", "optimistix_gn", "optimistix_bfgs", "jaxopt_lm", "jaxopt_lbfgs")
 JACOBIANS = ("forward", "reverse")
 TARGET_KINDS = ("joint_angles", "body_positions", "features")
-FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg",
-                 "peak_acceleration_deg_s2")
+FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg", "peak_acceleration_deg_s2")
 EXPERIMENT_KINDS = ("arm", "full_body", "contrast")
 # What a fit may tune (neuromotor.studies.fit.parameters): the muscle feedback pair and the reflex paths.
 FIT_PARAMETERS = ("ks", "kd", "reflex_gain", "reflex_delay", "long_latency_gain", "long_latency_delay")
@@ -71,8 +70,11 @@ class _KeyView(Mapping):
     _optional: ClassVar[tuple[str, ...]] = ()
 
     def _keys(self) -> list[str]:
-        return [f.name for f in dataclasses.fields(self)  # type: ignore[arg-type]  # mixed into dataclasses
-                if not (f.name in self._optional and getattr(self, f.name) is None)]
+        return [
+            f.name
+            for f in dataclasses.fields(self)  # type: ignore[arg-type]  # mixed into dataclasses
+            if not (f.name in self._optional and getattr(self, f.name) is None)
+        ]
 
     def __getitem__(self, key):
         if key not in self._keys():
@@ -220,8 +222,17 @@ class ReflexSpec:
 
     def build(self, h: float):
         """The :class:`~neuromotor.physics.reflex.Reflex` of this table at step ``h``."""
-        return _reflex.make_reflex(h, self.gain, self.delay, self.long_latency_gain, self.long_latency_delay,
-                                   self.rate_weight, self.one_sided, self.width, self.max_delay)
+        return _reflex.make_reflex(
+            h,
+            self.gain,
+            self.delay,
+            self.long_latency_gain,
+            self.long_latency_delay,
+            self.rate_weight,
+            self.one_sided,
+            self.width,
+            self.max_delay,
+        )
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -258,7 +269,9 @@ class SimulationConfig:
         object.__setattr__(self, "feedforward", Feedforward(self.feedforward))
         object.__setattr__(self, "joint_law", JointLaw(self.joint_law))
         if self.metric not in DEVIATION_METRICS:
-            raise ConfigError(f"{self.source}: field 'sim.metric' must be one of {list(DEVIATION_METRICS)}, got {self.metric!r}")
+            raise ConfigError(
+                f"{self.source}: field 'sim.metric' must be one of {list(DEVIATION_METRICS)}, got {self.metric!r}"
+            )
         object.__setattr__(self, "perturbations", [PerturbationSpec.of(p) for p in self.perturbations])
         object.__setattr__(self, "ball", BallSpec.of(self.ball))
 
@@ -274,8 +287,7 @@ class SimulationConfig:
     def mass_options(self):
         from neuromotor.model.skeleton import MassModelOptions
 
-        return MassModelOptions(body_mass=self.body_mass, sex=self.sex,
-                                simulate_extremities=self.simulate_extremities)
+        return MassModelOptions(body_mass=self.body_mass, sex=self.sex, simulate_extremities=self.simulate_extremities)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -344,8 +356,12 @@ class FitSpec:
 
 # The reflex axes of a sweep: [sweep] key -> ReflexSpec field.
 REFLEX_DELAY_LIMIT = _reflex.DELAY_LIMIT  # s
-REFLEX_AXES = {"reflex_gain": "gain", "reflex_delay": "delay", "long_latency_gain": "long_latency_gain",
-               "long_latency_delay": "long_latency_delay"}
+REFLEX_AXES = {
+    "reflex_gain": "gain",
+    "reflex_delay": "delay",
+    "long_latency_gain": "long_latency_gain",
+    "long_latency_delay": "long_latency_delay",
+}
 
 
 def reflex_grid(base: ReflexSpec, **axes) -> tuple[ReflexSpec, ...]:
@@ -356,8 +372,11 @@ def reflex_grid(base: ReflexSpec, **axes) -> tuple[ReflexSpec, ...]:
     out = [dataclasses.replace(base, max_delay=max([base.max_delay, base.delay, base.long_latency_delay, *delays]))]
     for key, values in axes.items():
         if values is not None:
-            out = [dataclasses.replace(r, **{REFLEX_AXES[key]: float(v)})  # type: ignore[arg-type]  # a float field
-                   for r in out for v in values]
+            out = [
+                dataclasses.replace(r, **{REFLEX_AXES[key]: float(v)})  # type: ignore[arg-type]  # a float field
+                for r in out
+                for v in values
+            ]
     return tuple(out)
 
 
@@ -394,11 +413,20 @@ class SweepSpec:
                             for m in self.magnitudes:
                                 # An axis replaces a field; the point stays the user's (None: each
                                 # body's own COM), resolved by the one builder.
-                                p = dataclasses.replace(base, body=body, direction=list(d), start=float(start),
-                                                        magnitude=float(m))
-                                run = dict(gain=g, body=body, direction=list(d), start=float(start),
-                                           magnitude=float(m), duration=p.span, kind=p.kind, perturbation=p,
-                                           onset=onset([p, *others]))
+                                p = dataclasses.replace(
+                                    base, body=body, direction=list(d), start=float(start), magnitude=float(m)
+                                )
+                                run = dict(
+                                    gain=g,
+                                    body=body,
+                                    direction=list(d),
+                                    start=float(start),
+                                    magnitude=float(m),
+                                    duration=p.span,
+                                    kind=p.kind,
+                                    perturbation=p,
+                                    onset=onset([p, *others]),
+                                )
                                 out.append(run if rx is None else dict(run, reflex=rx))
         return out
 

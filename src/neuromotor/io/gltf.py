@@ -49,7 +49,7 @@ UP_TO_Y = {0: np.array([_S, 0.0, 0.0, _S]), 1: np.array([1.0, 0.0, 0.0, 0.0]), 2
 class Layout(enum.Enum):
     """Where the unperturbed motion goes."""
 
-    GHOST = "ghost"    # a translucent second copy of the character
+    GHOST = "ghost"  # a translucent second copy of the character
     SHARED = "shared"  # the same joints as the perturbed motion
 
 
@@ -57,20 +57,33 @@ class Layout(enum.Enum):
 # Poses in glTF's frame
 # ----------------------------------------------------------------------------------------------
 
+
 def quat_mul_wxyz(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product p q of w x y z quaternions (broadcasting)."""
     pw, px, py, pz = np.moveaxis(p, -1, 0)
     qw, qx, qy, qz = np.moveaxis(q, -1, 0)
-    return np.stack([pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
-                     pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw], -1)
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        -1,
+    )
 
 
 def quat_matrix_wxyz(q: np.ndarray) -> np.ndarray:
     """Rotation matrices of unit w x y z quaternions (..., 3, 3)."""
     w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
-    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
 
 
 def continuous_quats(quat: np.ndarray) -> np.ndarray:
@@ -110,8 +123,7 @@ class _Buffer:
     views: list = dataclasses.field(default_factory=list)
     accessors: list = dataclasses.field(default_factory=list)
 
-    def add(self, array, component: int, target: int | None = None, bounds: bool = False,
-            matrix: bool = False) -> int:
+    def add(self, array, component: int, target: int | None = None, bounds: bool = False, matrix: bool = False) -> int:
         """Append ``array`` (N,) or (N, k) as ``component`` values; the accessor's index."""
         a = np.ascontiguousarray(np.asarray(array).astype(_DTYPES[component]))
         width = 16 if matrix else (a.shape[1] if a.ndim == 2 else 1)
@@ -120,8 +132,12 @@ class _Buffer:
             view["target"] = target
         self.data += a.tobytes() + b"\0" * (-a.nbytes % 4)
         self.views.append(view)
-        acc = {"bufferView": len(self.views) - 1, "componentType": component, "count": int(a.shape[0]),
-               "type": _TYPES[width]}
+        acc = {
+            "bufferView": len(self.views) - 1,
+            "componentType": component,
+            "count": int(a.shape[0]),
+            "type": _TYPES[width],
+        }
         if bounds:  # required for POSITION and animation inputs
             flat = a.reshape(a.shape[0], -1)
             acc["min"], acc["max"] = flat.min(0).tolist(), flat.max(0).tolist()
@@ -133,18 +149,19 @@ class _Buffer:
 # Scene content
 # ----------------------------------------------------------------------------------------------
 
+
 @dataclasses.dataclass(frozen=True)
 class GltfRun:
     """What the file shows, in glTF's frame (Y up, metres, seconds from 0)."""
 
-    time: np.ndarray               # (T,) s, starting at 0
-    names: tuple[str, ...]         # (B,) body names
-    vertices: np.ndarray           # (V, 3) body frame less COM
-    faces: np.ndarray              # (F, 3)
-    owner: np.ndarray              # (V,) body of each vertex
-    pose: tuple[np.ndarray, np.ndarray]        # perturbed (T, B, 3), (T, B, 4 w x y z)
-    pose_base: tuple[np.ndarray, np.ndarray]   # unperturbed
-    ball: np.ndarray | None        # (T, 3) or None
+    time: np.ndarray  # (T,) s, starting at 0
+    names: tuple[str, ...]  # (B,) body names
+    vertices: np.ndarray  # (V, 3) body frame less COM
+    faces: np.ndarray  # (F, 3)
+    owner: np.ndarray  # (V,) body of each vertex
+    pose: tuple[np.ndarray, np.ndarray]  # perturbed (T, B, 3), (T, B, 4 w x y z)
+    pose_base: tuple[np.ndarray, np.ndarray]  # unperturbed
+    ball: np.ndarray | None  # (T, 3) or None
     ball_radius: float
     up_axis: int
     time_offset: float
@@ -158,23 +175,36 @@ def load_gltf_run(run_path) -> GltfRun:
     up = int(d.get("up_axis", 1))
     B = d["body_pos"].shape[1]
     given = d.get("body_names")
-    names = tuple(str(n) for n in given) if given is not None and given.shape == (B,) else \
-        tuple(f"body{b}" for b in range(B))
+    names = (
+        tuple(str(n) for n in given)
+        if given is not None and given.shape == (B,)
+        else tuple(f"body{b}" for b in range(B))
+    )
     ball = d.get("ball_pos")
-    return GltfRun(time=d["time"] - d["time"][0], names=names, vertices=np.asarray(d["shape_vertices"], float),
-                   faces=d["shape_faces"], owner=d["shape_body"],
-                   pose=y_up_poses(d["body_pos"], d["body_quat"], up),
-                   pose_base=y_up_poses(d["body_pos_unperturbed"], d["body_quat_unperturbed"], up),
-                   ball=None if ball is None else ball @ quat_matrix_wxyz(UP_TO_Y[up]).T,
-                   ball_radius=float(d.get("ball_radius", 0.0)), up_axis=up, time_offset=float(d["time"][0]))
+    return GltfRun(
+        time=d["time"] - d["time"][0],
+        names=names,
+        vertices=np.asarray(d["shape_vertices"], float),
+        faces=d["shape_faces"],
+        owner=d["shape_body"],
+        pose=y_up_poses(d["body_pos"], d["body_quat"], up),
+        pose_base=y_up_poses(d["body_pos_unperturbed"], d["body_quat_unperturbed"], up),
+        ball=None if ball is None else ball @ quat_matrix_wxyz(UP_TO_Y[up]).T,
+        ball_radius=float(d.get("ball_radius", 0.0)),
+        up_axis=up,
+        time_offset=float(d["time"][0]),
+    )
 
 
 def body_side(name: str) -> int:
     """+1 for a left body, -1 for a right one, 0 otherwise, from its name (``LeftArm``,
     ``mixamorig:RightLeg``, ``L_Hip``, ``lShldr``, ``hip.R``)."""
     for sign, word, letter in ((1, "left", "l"), (-1, "right", "r")):
-        if word in name.lower() or re.match(rf"[{letter}{letter.upper()}]([_.]|[A-Z])", name) \
-                or re.search(rf"[_.]{letter}$", name, re.IGNORECASE):
+        if (
+            word in name.lower()
+            or re.match(rf"[{letter}{letter.upper()}]([_.]|[A-Z])", name)
+            or re.search(rf"[_.]{letter}$", name, re.IGNORECASE)
+        ):
             return sign
     return 0
 
@@ -212,6 +242,7 @@ def uv_sphere(radius: float, rings: int = 8, segments: int = 16) -> tuple[np.nda
 # Document
 # ----------------------------------------------------------------------------------------------
 
+
 @dataclasses.dataclass
 class _Doc:
     """The glTF JSON being assembled, with its buffer."""
@@ -228,8 +259,14 @@ class _Doc:
         return len(self.nodes) - 1
 
     def material(self, name: str, rgb, alpha: float = 1.0) -> int:
-        m = {"name": name, "pbrMetallicRoughness": {"baseColorFactor": [*map(float, rgb), alpha],
-                                                    "metallicFactor": 0.0, "roughnessFactor": 0.8}}
+        m = {
+            "name": name,
+            "pbrMetallicRoughness": {
+                "baseColorFactor": [*map(float, rgb), alpha],
+                "metallicFactor": 0.0,
+                "roughnessFactor": 0.8,
+            },
+        }
         if alpha < 1.0:
             m["alphaMode"] = "BLEND"
         self.materials.append(m)
@@ -265,9 +302,11 @@ def _mesh_attributes(doc: _Doc, run: GltfRun) -> dict:
     joints[:, 0] = run.owner
     weights = np.zeros((len(world), 4))
     weights[:, 0] = 1.0
-    return {"POSITION": doc.buf.add(world, FLOAT, ARRAY_BUFFER, bounds=True),
-            "JOINTS_0": doc.buf.add(joints, UBYTE if len(run.names) < 256 else USHORT, ARRAY_BUFFER),
-            "WEIGHTS_0": doc.buf.add(weights, FLOAT, ARRAY_BUFFER)}
+    return {
+        "POSITION": doc.buf.add(world, FLOAT, ARRAY_BUFFER, bounds=True),
+        "JOINTS_0": doc.buf.add(joints, UBYTE if len(run.names) < 256 else USHORT, ARRAY_BUFFER),
+        "WEIGHTS_0": doc.buf.add(weights, FLOAT, ARRAY_BUFFER),
+    }
 
 
 def _character(doc: _Doc, run: GltfRun, ghost: bool) -> dict:
@@ -280,22 +319,37 @@ def _character(doc: _Doc, run: GltfRun, ghost: bool) -> dict:
     for b, rgb in enumerate(body_colors(run.names)):
         f = run.faces[face_body == b]
         if len(f):
-            prims.append({"attributes": attrs, "indices": doc.buf.add(f.reshape(-1), UINT, ELEMENT_ARRAY_BUFFER),
-                          "material": doc.material(run.names[b], rgb)})
+            prims.append(
+                {
+                    "attributes": attrs,
+                    "indices": doc.buf.add(f.reshape(-1), UINT, ELEMENT_ARRAY_BUFFER),
+                    "material": doc.material(run.names[b], rgb),
+                }
+            )
     doc.meshes.append({"name": "character", "primitives": prims})
     joints = {"perturbed": _skeleton(doc, run, run.pose, "")}
-    doc.skins.append({"name": "skeleton", "joints": joints["perturbed"], "inverseBindMatrices": ibm,
-                      "skeleton": doc.roots[-1]})
+    doc.skins.append(
+        {"name": "skeleton", "joints": joints["perturbed"], "inverseBindMatrices": ibm, "skeleton": doc.roots[-1]}
+    )
     doc.roots.append(doc.node(name="character", mesh=0, skin=0))
     if not ghost:
         joints["unperturbed"] = joints["perturbed"]
         return joints
-    prim = {"attributes": attrs, "indices": doc.buf.add(run.faces.reshape(-1), UINT, ELEMENT_ARRAY_BUFFER),
-            "material": doc.material("ghost", np.asarray(COLOR_GHOST) ** 2.2, GHOST_ALPHA)}
+    prim = {
+        "attributes": attrs,
+        "indices": doc.buf.add(run.faces.reshape(-1), UINT, ELEMENT_ARRAY_BUFFER),
+        "material": doc.material("ghost", np.asarray(COLOR_GHOST) ** 2.2, GHOST_ALPHA),
+    }
     doc.meshes.append({"name": "ghost", "primitives": [prim]})
     joints["unperturbed"] = _skeleton(doc, run, run.pose_base, "ghost_")
-    doc.skins.append({"name": "ghost_skeleton", "joints": joints["unperturbed"], "inverseBindMatrices": ibm,
-                      "skeleton": doc.roots[-1]})
+    doc.skins.append(
+        {
+            "name": "ghost_skeleton",
+            "joints": joints["unperturbed"],
+            "inverseBindMatrices": ibm,
+            "skeleton": doc.roots[-1],
+        }
+    )
     doc.roots.append(doc.node(name="ghost", mesh=1, skin=1))
     return joints
 
@@ -304,12 +358,13 @@ def _ball(doc: _Doc, run: GltfRun) -> int:
     """The ball's node (a UV sphere at its first position)."""
     assert run.ball is not None  # called for runs with a ball
     verts, faces = uv_sphere(run.ball_radius)
-    prim = {"attributes": {"POSITION": doc.buf.add(verts, FLOAT, ARRAY_BUFFER, bounds=True)},
-            "indices": doc.buf.add(faces.reshape(-1), UINT, ELEMENT_ARRAY_BUFFER),
-            "material": doc.material("ball", np.asarray(COLOR_BALL) ** 2.2)}
+    prim = {
+        "attributes": {"POSITION": doc.buf.add(verts, FLOAT, ARRAY_BUFFER, bounds=True)},
+        "indices": doc.buf.add(faces.reshape(-1), UINT, ELEMENT_ARRAY_BUFFER),
+        "material": doc.material("ball", np.asarray(COLOR_BALL) ** 2.2),
+    }
     doc.meshes.append({"name": "ball", "primitives": [prim]})
-    doc.roots.append(doc.node(name="ball", mesh=len(doc.meshes) - 1,
-                              translation=[float(x) for x in run.ball[0]]))
+    doc.roots.append(doc.node(name="ball", mesh=len(doc.meshes) - 1, translation=[float(x) for x in run.ball[0]]))
     return doc.roots[-1]
 
 
@@ -324,8 +379,7 @@ def _animation(doc: _Doc, name: str, t_acc: int, tracks) -> dict:
 
 def _pose_tracks(joints, pose) -> list:
     pos, quat = pose
-    return [t for b, j in enumerate(joints)
-            for t in ((j, "translation", pos[:, b]), (j, "rotation", xyzw(quat[:, b])))]
+    return [t for b, j in enumerate(joints) for t in ((j, "translation", pos[:, b]), (j, "rotation", xyzw(quat[:, b])))]
 
 
 def build_gltf(run: GltfRun, layout: Layout = Layout.GHOST) -> tuple[dict, bytes]:
@@ -339,20 +393,35 @@ def build_gltf(run: GltfRun, layout: Layout = Layout.GHOST) -> tuple[dict, bytes
     pert = _pose_tracks(joints["perturbed"], run.pose)
     if ball is not None:
         pert.append((ball, "translation", run.ball))
-    animations = [_animation(doc, "perturbed", t_acc, pert),
-                  _animation(doc, "unperturbed", t_acc, _pose_tracks(joints["unperturbed"], run.pose_base))]
-    gltf = {"asset": {"version": "2.0", "generator": f"neuromotor {__version__}"},
-            "scene": 0, "scenes": [{"name": "run", "nodes": doc.roots,
-                                    "extras": {"source_up_axis": run.up_axis, "time_offset_s": run.time_offset,
-                                               "layout": layout.value}}],
-            "nodes": doc.nodes, "meshes": doc.meshes, "materials": doc.materials, "skins": doc.skins,
-            "animations": animations, "accessors": doc.buf.accessors, "bufferViews": doc.buf.views}
+    animations = [
+        _animation(doc, "perturbed", t_acc, pert),
+        _animation(doc, "unperturbed", t_acc, _pose_tracks(joints["unperturbed"], run.pose_base)),
+    ]
+    gltf = {
+        "asset": {"version": "2.0", "generator": f"neuromotor {__version__}"},
+        "scene": 0,
+        "scenes": [
+            {
+                "name": "run",
+                "nodes": doc.roots,
+                "extras": {"source_up_axis": run.up_axis, "time_offset_s": run.time_offset, "layout": layout.value},
+            }
+        ],
+        "nodes": doc.nodes,
+        "meshes": doc.meshes,
+        "materials": doc.materials,
+        "skins": doc.skins,
+        "animations": animations,
+        "accessors": doc.buf.accessors,
+        "bufferViews": doc.buf.views,
+    }
     return gltf, bytes(doc.buf.data)
 
 
 # ----------------------------------------------------------------------------------------------
 # Files
 # ----------------------------------------------------------------------------------------------
+
 
 def glb_bytes(gltf: dict, binary: bytes) -> bytes:
     """A GLB container: 12-byte header, the JSON chunk (space padded), the BIN chunk (zero padded)."""

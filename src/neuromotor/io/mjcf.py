@@ -48,8 +48,12 @@ def _fmt(values) -> str:
 
 def _check_params(timestep, kp, kv) -> None:
     for key, value, low in (("timestep", timestep, None), ("kp", kp, 0.0), ("kv", kv, 0.0)):
-        ok = (not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
-              and np.isfinite(value) and (value > 0 if low is None else value >= low))
+        ok = (
+            not isinstance(value, bool)
+            and isinstance(value, (int, float, np.integer, np.floating))
+            and np.isfinite(value)
+            and (value > 0 if low is None else value >= low)
+        )
         if not ok:
             raise UserError(f"MJCF {key} must be a finite number {'> 0' if low is None else '>= 0'}, got {value!r}")
 
@@ -57,8 +61,9 @@ def _check_params(timestep, kp, kv) -> None:
 def _header(root, model, timestep: float) -> None:
     """Compiler, option (gravity, step, integrator) and defaults."""
     ET.SubElement(root, "compiler", angle="radian", inertiafromgeom="false", autolimits="true")
-    ET.SubElement(root, "option", gravity=_fmt(model.gravity), timestep=repr(float(timestep)),
-                  integrator="implicitfast")
+    ET.SubElement(
+        root, "option", gravity=_fmt(model.gravity), timestep=repr(float(timestep)), integrator="implicitfast"
+    )
     default = ET.SubElement(root, "default")
     ET.SubElement(default, "joint", damping="0", armature="0", limited="false")
     ET.SubElement(default, "geom", contype="0", conaffinity="0", mass="0", rgba="0.7 0.6 0.5 1")
@@ -89,8 +94,13 @@ class _BodyTree:
         k = model.body_joint[b]
         body = ET.SubElement(parent_el, "body", name=names[k], pos=_fmt(self.offsets[k]))
         i = self.inertia[b]
-        ET.SubElement(body, "inertial", pos=_fmt(self.com[b]), mass=repr(float(self.mass[b])),
-                      fullinertia=_fmt([i[0, 0], i[1, 1], i[2, 2], i[0, 1], i[0, 2], i[1, 2]]))
+        ET.SubElement(
+            body,
+            "inertial",
+            pos=_fmt(self.com[b]),
+            mass=repr(float(self.mass[b])),
+            fullinertia=_fmt([i[0, 0], i[1, 1], i[2, 2], i[0, 1], i[0, 2], i[1, 2]]),
+        )
         if model.body_parent[b] < 0:
             ET.SubElement(body, "freejoint", name=names[k])
         else:
@@ -107,13 +117,15 @@ class _BodyTree:
     def add_geoms(self, body, k: int) -> None:
         """Viewing geoms: one capsule per bone (to each child joint and End Site), else a sphere."""
         r = float(max(self.radii[k], 1e-3))
-        bone_ends = ([self.offsets[c] for c in self.children.get(k, [])]
-                     + [self.end_offsets[e] for e in self.ends.get(k, [])])
+        bone_ends = [self.offsets[c] for c in self.children.get(k, [])] + [
+            self.end_offsets[e] for e in self.ends.get(k, [])
+        ]
         drawn = False
         for end in bone_ends:
             if np.linalg.norm(end) > 1e-6:
-                ET.SubElement(body, "geom", type="capsule", size=repr(r),
-                              fromto=_fmt(np.concatenate([np.zeros(3), end])))
+                ET.SubElement(
+                    body, "geom", type="capsule", size=repr(r), fromto=_fmt(np.concatenate([np.zeros(3), end]))
+                )
                 drawn = True
         if not drawn:
             ET.SubElement(body, "geom", type="sphere", size=repr(r))
@@ -135,8 +147,7 @@ def model_to_mjcf(
     tree.add_body(ET.SubElement(root, "worldbody"), 0)
     actuator = ET.SubElement(root, "actuator")
     for hinge in tree.hinges:
-        ET.SubElement(actuator, "position", name=hinge, joint=hinge, kp=repr(float(kp)),
-                      kv=repr(float(kv)))
+        ET.SubElement(actuator, "position", name=hinge, joint=hinge, kp=repr(float(kp)), kv=repr(float(kv)))
     ET.indent(root)
     return ET.tostring(root, encoding="unicode") + "\n"
 

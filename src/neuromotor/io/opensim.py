@@ -91,11 +91,15 @@ def layout(model: Model) -> Layout:
     """Names of the exported bodies and coordinates (unique after :func:`osim_name`)."""
     bodies = tuple(osim_name(n) for n in model.body_names)
     if len(set(bodies)) != len(bodies):
-        raise UserError("joint names collide once made OpenSim names (letters, digits, _ and -): "
-                        + ", ".join(sorted({b for b in bodies if bodies.count(b) > 1})))
+        raise UserError(
+            "joint names collide once made OpenSim names (letters, digits, _ and -): "
+            + ", ".join(sorted({b for b in bodies if bodies.count(b) > 1}))
+        )
     if len(model.joint_order[model.body_joint[0]]) != 3:
-        raise UserError(f"root joint {model.joint_names[model.body_joint[0]]!r} needs 3 rotation channels "
-                        "for an OpenSim model (its 6-coordinate joint to ground)")
+        raise UserError(
+            f"root joint {model.joint_names[model.body_joint[0]]!r} needs 3 rotation channels "
+            "for an OpenSim model (its 6-coordinate joint to ground)"
+        )
     coords: list[str] = []
     rotational: list[bool] = []
     per_body: list[tuple[int, ...]] = []
@@ -113,6 +117,7 @@ def layout(model: Model) -> Layout:
 # ----------------------------------------------------------------------------------------------
 # Frames
 # ----------------------------------------------------------------------------------------------
+
 
 def channel_rotation(angles, order: str) -> np.ndarray:
     """Body-fixed product ``R_a1(t1) R_a2(t2) ...`` of a joint's channels: (..., 3, 3)."""
@@ -173,11 +178,17 @@ def _turn_y_to(direction) -> np.ndarray:
 # Model XML
 # ----------------------------------------------------------------------------------------------
 
+
 def _coordinate(parent, name: str, rotational: bool) -> None:
     low, high = ROTATION_RANGE if rotational else TRANSLATION_RANGE
     c = ET.SubElement(parent, "Coordinate", name=name)
-    for tag, text in (("default_value", "0"), ("default_speed_value", "0"), ("range", _fmt([low, high])),
-                      ("clamped", "false"), ("locked", "false")):
+    for tag, text in (
+        ("default_value", "0"),
+        ("default_speed_value", "0"),
+        ("range", _fmt([low, high])),
+        ("clamped", "false"),
+        ("locked", "false"),
+    ):
         ET.SubElement(c, tag).text = text
 
 
@@ -224,16 +235,16 @@ def _joint(jointset, body: str, parent_socket: str, offset, orientation, names, 
 
 def _geometry(body_el, name: str, radius: float, bones) -> None:
     """A sphere at the joint and a cylinder along each bone (frames owned by the body)."""
-    ET.SubElement(ET.SubElement(ET.SubElement(body_el, "attached_geometry"), "Sphere", name=f"{name}_joint_geom"),
-                  "radius").text = repr(radius)
+    ET.SubElement(
+        ET.SubElement(ET.SubElement(body_el, "attached_geometry"), "Sphere", name=f"{name}_joint_geom"), "radius"
+    ).text = repr(radius)
     comps = None
     for i, end in enumerate(bones):
         length = float(np.linalg.norm(end))
         if length < 1e-6:
             continue
         comps = comps if comps is not None else ET.SubElement(body_el, "components")
-        frame = _offset_frame(comps, f"{name}_bone{i}", "..", 0.5 * np.asarray(end),
-                              xyz_orientation(_turn_y_to(end)))
+        frame = _offset_frame(comps, f"{name}_bone{i}", "..", 0.5 * np.asarray(end), xyz_orientation(_turn_y_to(end)))
         cyl = ET.SubElement(ET.SubElement(frame, "attached_geometry"), "Cylinder", name=f"{name}_bone{i}_geom")
         ET.SubElement(cyl, "radius").text = repr(0.6 * radius)
         ET.SubElement(cyl, "half_height").text = repr(0.5 * length)
@@ -242,8 +253,9 @@ def _geometry(body_el, name: str, radius: float, bones) -> None:
 def _bones(model: Model, k: int) -> list[np.ndarray]:
     offsets = np.asarray(model.joint_offset, dtype=np.float64)
     ends = np.asarray(model.end_site_offset, dtype=np.float64).reshape(-1, 3)
-    return ([offsets[c] for c, p in enumerate(model.joint_parent) if p == k]
-            + [ends[e] for e, j in enumerate(model.end_site_joint) if j == k])
+    return [offsets[c] for c, p in enumerate(model.joint_parent) if p == k] + [
+        ends[e] for e, j in enumerate(model.end_site_joint) if j == k
+    ]
 
 
 def _bodies(bodyset, character: Character, lay: Layout) -> None:
@@ -281,11 +293,20 @@ def model_to_osim(character: Character, name: str | None = None) -> str:
         names = [lay.coordinates[c] for c in cols]
         rotational = [lay.rotational[c] for c in cols]
         if p < 0:  # ground -> root: ground turned so our world's up is OpenSim's +Y
-            _joint(joints, body, "/ground", np.zeros(3), xyz_orientation(g_rot), names, rotational,
-                   model.joint_order[k])
+            _joint(
+                joints, body, "/ground", np.zeros(3), xyz_orientation(g_rot), names, rotational, model.joint_order[k]
+            )
         else:
-            _joint(joints, body, f"/bodyset/{lay.bodies[p]}", offsets[k], np.zeros(3), names, rotational,
-                   model.joint_order[k])
+            _joint(
+                joints,
+                body,
+                f"/bodyset/{lay.bodies[p]}",
+                offsets[k],
+                np.zeros(3),
+                names,
+                rotational,
+                model.joint_order[k],
+            )
     ET.indent(doc)
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(doc, encoding="unicode") + "\n"
 
@@ -300,6 +321,7 @@ def export_osim(character: Character, path, **kwargs) -> pathlib.Path:
 # Storage files (.mot, .sto)
 # ----------------------------------------------------------------------------------------------
 
+
 def storage_text(name: str, labels, time, values, in_degrees: bool) -> str:
     """An OpenSim storage file: the header, then ``time`` and one column per label (tabs)."""
     time = np.asarray(time, dtype=np.float64).reshape(-1)
@@ -307,8 +329,15 @@ def storage_text(name: str, labels, time, values, in_degrees: bool) -> str:
     labels = list(labels)
     if values.shape[1] != len(labels):
         raise ValueError(f"{len(labels)} labels for {values.shape[1]} columns")
-    head = [name, "version=1", f"nRows={len(time)}", f"nColumns={len(labels) + 1}",
-            f"inDegrees={'yes' if in_degrees else 'no'}", "endheader", "\t".join(["time", *labels])]
+    head = [
+        name,
+        "version=1",
+        f"nRows={len(time)}",
+        f"nColumns={len(labels) + 1}",
+        f"inDegrees={'yes' if in_degrees else 'no'}",
+        "endheader",
+        "\t".join(["time", *labels]),
+    ]
     rows = ["\t".join(repr(float(x)) for x in row) for row in np.column_stack([time, values])]
     return "\n".join(head + rows) + "\n"
 
@@ -343,8 +372,8 @@ def motion_values(model: Model, root_origin, root_rot, theta_sim) -> np.ndarray:
     out = np.zeros((theta_sim.shape[0], len(lay.coordinates)))
     order = model.joint_order[model.body_joint[0]]
     root_cols = lay.body_coordinates[0]
-    out[:, list(root_cols[:len(order)])] = euler_angles(root_rot, order)
-    out[:, list(root_cols[len(order):])] = np.asarray(root_origin, dtype=np.float64)
+    out[:, list(root_cols[: len(order)])] = euler_angles(root_rot, order)
+    out[:, list(root_cols[len(order) :])] = np.asarray(root_origin, dtype=np.float64)
     for b, dofs in enumerate(_body_dofs(model)[1:], start=1):
         out[:, list(lay.body_coordinates[b])] = theta_sim[:, list(dofs)]
     return out
@@ -374,8 +403,8 @@ def coordinate_forces(model: Model, root_rot, theta_sim, joint_torque_world, roo
     root_cols = list(lay.body_coordinates[0])
     angles = euler_angles(root_rot, order)
     axes = channel_axes(np.eye(3), angles, order)
-    out[:, root_cols[:len(order)]] = np.einsum("tij,tj->ti", axes, wrench[:, 3:6])
-    out[:, root_cols[len(order):]] = wrench[:, 0:3]
+    out[:, root_cols[: len(order)]] = np.einsum("tij,tj->ti", axes, wrench[:, 3:6])
+    out[:, root_cols[len(order) :]] = wrench[:, 0:3]
     for b, dofs in enumerate(_body_dofs(model)[1:], start=1):
         k = model.body_joint[b]
         axes = channel_axes(rots[:, model.body_parent[b]], theta_sim[:, list(dofs)], model.joint_order[k])
@@ -395,8 +424,13 @@ def write_idyn_storage(folder, character: Character, arrays: dict) -> dict[str, 
     return {
         "model": export_osim(character, folder / "model.osim"),
         "motion": write_motion(folder / "motion.mot", model, arrays["time"], arrays["root_pos"], root_rot, theta),
-        "forces": write_storage(folder / "inverse_dynamics.sto", "Inverse Dynamics Generalized Forces",
-                                layout(model).force_labels, arrays["time"], forces),
+        "forces": write_storage(
+            folder / "inverse_dynamics.sto",
+            "Inverse Dynamics Generalized Forces",
+            layout(model).force_labels,
+            arrays["time"],
+            forces,
+        ),
     }
 
 
@@ -416,6 +450,7 @@ def write_run_storage(folder, character: Character, arrays: dict) -> dict[str, p
     out = {"model": export_osim(character, folder / "model.osim")}
     for key, suffix in (("perturbed", ""), ("unperturbed", "_unperturbed")):
         origin, rot = root_pose_of_bodies(model, arrays["body_pos" + suffix], arrays["body_quat" + suffix])
-        out[key] = write_motion(folder / f"{key}.mot", model, arrays["time"], origin, rot,
-                                arrays["theta" + suffix], name=key)
+        out[key] = write_motion(
+            folder / f"{key}.mot", model, arrays["time"], origin, rot, arrays["theta" + suffix], name=key
+        )
     return out

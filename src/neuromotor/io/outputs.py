@@ -106,13 +106,15 @@ def check_outputs(files: Iterable = (), folders: Iterable = (), inputs: Iterable
         if os.path.isdir(f):
             raise OutputError(f"{f}: is a directory; give a file name")
         if os.path.lexists(f) and os.path.exists(f) and not stat.S_ISREG(os.stat(f).st_mode):
-            raise OutputError(f"{f}: is not a regular file (a device, pipe or socket); outputs are "
-                              f"replaced, so give a file name")
+            raise OutputError(
+                f"{f}: is not a regular file (a device, pipe or socket); outputs are replaced, so give a file name"
+            )
         for i in inputs:
             if os.path.exists(f) and _same(f, i):
                 same = "" if os.path.abspath(f) == os.path.abspath(i) else f" {i}"
-                raise OutputError(f"{f}: is also the input{same} of this command; refusing to overwrite it "
-                                  f"(give another output name)")
+                raise OutputError(
+                    f"{f}: is also the input{same} of this command; refusing to overwrite it (give another output name)"
+                )
         key = os.path.realpath(f)
         if key in seen:
             raise OutputError(f"{f}: is named twice as an output ({seen[key]})")

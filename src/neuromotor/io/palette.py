@@ -4,12 +4,12 @@ the video and the viewer (:mod:`neuromotor.viz.style` takes them from here) and 
 
 from __future__ import annotations
 
-COLOR_ORIGINAL = (0.52, 0.64, 0.84)       # blue-grey
+COLOR_ORIGINAL = (0.52, 0.64, 0.84)  # blue-grey
 COLOR_ORIGINAL_JOINT = (0.36, 0.47, 0.68)
 COLOR_ORIGINAL_VIDEO = (0.66, 0.76, 0.92)  # lighter, for the original beside the perturbed one
-COLOR_GHOST = (0.80, 0.84, 0.90)          # the original, drawn behind the perturbed one
+COLOR_GHOST = (0.80, 0.84, 0.90)  # the original, drawn behind the perturbed one
 COLOR_GHOST_JOINT = (0.72, 0.77, 0.85)
-COLOR_PERTURBED = (0.90, 0.45, 0.20)      # orange
+COLOR_PERTURBED = (0.90, 0.45, 0.20)  # orange
 COLOR_PERTURBED_JOINT = (0.62, 0.26, 0.10)
 COLOR_FORCE = (0.85, 0.05, 0.05)
 COLOR_BALL = (0.95, 0.85, 0.15)

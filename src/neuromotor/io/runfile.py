@@ -39,14 +39,39 @@ from neuromotor.atomic import atomic_path
 from neuromotor.errors import UserError
 
 INFO_FIELDS = ("time", "theta")
-DRAW_FIELDS = ("time", "skeleton_points", "skeleton_points_unperturbed", "skeleton_edges",
-               "skeleton_radii", "force_origin", "force_vector")
+DRAW_FIELDS = (
+    "time",
+    "skeleton_points",
+    "skeleton_points_unperturbed",
+    "skeleton_edges",
+    "skeleton_radii",
+    "force_origin",
+    "force_vector",
+)
 PLOT_FIELDS = ("time", "dof_names", "theta", "theta_unperturbed", "theta_desired", "force_vector")
 EXPORT_FIELDS = ("time", "theta", "dof_names", "source_clip", "source_units", "up_axis")
-OPTIONAL_FIELDS = ("up_axis", "ball_pos", "ball_radius", "metrics_json", "facing", "skeleton_edge_body",
-                   "contact_force", "provenance_json", "body_names", "deviation", "deviation_metric")
-SHAPE_FIELDS = ("shape_vertices", "shape_faces", "shape_body", "body_pos", "body_quat",
-                "body_pos_unperturbed", "body_quat_unperturbed")
+OPTIONAL_FIELDS = (
+    "up_axis",
+    "ball_pos",
+    "ball_radius",
+    "metrics_json",
+    "facing",
+    "skeleton_edge_body",
+    "contact_force",
+    "provenance_json",
+    "body_names",
+    "deviation",
+    "deviation_metric",
+)
+SHAPE_FIELDS = (
+    "shape_vertices",
+    "shape_faces",
+    "shape_body",
+    "body_pos",
+    "body_quat",
+    "body_pos_unperturbed",
+    "body_quat_unperturbed",
+)
 POSE_FIELDS = ("body_pos", "body_quat", "body_pos_unperturbed", "body_quat_unperturbed")
 
 
@@ -58,6 +83,7 @@ class RunFileError(UserError):
 # Writing
 # ----------------------------------------------------------------------------------------------
 
+
 def save_npz_atomic(path, arrays: Mapping[str, np.ndarray]) -> pathlib.Path:
     """Write an .npz through a temporary file in the same folder, then rename."""
     path = pathlib.Path(path)
@@ -66,8 +92,7 @@ def save_npz_atomic(path, arrays: Mapping[str, np.ndarray]) -> pathlib.Path:
     return path
 
 
-def write_run(path, arrays: Mapping[str, np.ndarray],
-              extra: Mapping[str, np.ndarray] | None = None) -> pathlib.Path:
+def write_run(path, arrays: Mapping[str, np.ndarray], extra: Mapping[str, np.ndarray] | None = None) -> pathlib.Path:
     """Write a RUN.npz atomically: ``arrays`` (the contract above) plus ``extra`` arrays that a
     study adds (a ball's trajectory and contacts); an extra name may not replace a field."""
     extra = dict(extra or {})
@@ -81,20 +106,21 @@ def write_run(path, arrays: Mapping[str, np.ndarray],
 # Reading
 # ----------------------------------------------------------------------------------------------
 
+
 def _wanted_fields(path, names: set, fields: Iterable[str], error) -> set:
     """The arrays to read: ``fields`` (all must exist), the optional ones present, and the body
     shapes (all or none) when drawing."""
     fields = tuple(fields)
     missing = [f for f in fields if f not in names]
     if missing:
-        raise error(f"{path}: missing array(s) {', '.join(missing)} "
-                    f"(not a RUN.npz from `neuromotor simulate`?)")
+        raise error(f"{path}: missing array(s) {', '.join(missing)} (not a RUN.npz from `neuromotor simulate`?)")
     wanted = set(fields) | (set(OPTIONAL_FIELDS) & names)
     if "skeleton_points" in fields and "shape_vertices" in names:
         missing = [f for f in SHAPE_FIELDS if f not in names]
         if missing:
-            raise error(f"{path}: has shape_vertices but lacks array(s) "
-                        f"{', '.join(missing)} needed to draw the body shapes")
+            raise error(
+                f"{path}: has shape_vertices but lacks array(s) {', '.join(missing)} needed to draw the body shapes"
+            )
         wanted |= set(SHAPE_FIELDS)
     return wanted
 
@@ -114,8 +140,9 @@ def _unreadable(path: pathlib.Path, e: Exception) -> str:
     return f"{path}: cannot read as .npz: {e}"
 
 
-def read_run(run_path, fields: Iterable[str] = DRAW_FIELDS, error: type[ValueError] = RunFileError,
-             check: bool = True) -> dict[str, np.ndarray]:
+def read_run(
+    run_path, fields: Iterable[str] = DRAW_FIELDS, error: type[ValueError] = RunFileError, check: bool = True
+) -> dict[str, np.ndarray]:
     """Read the arrays ``fields`` of a RUN.npz (each must be there) plus the optional fields
     present and, when ``fields`` include the skeleton, the body shapes (all or none); then
     :func:`check_run` them. Problems raise ``error`` naming the file and the field."""
@@ -183,6 +210,7 @@ def source_clip(run_path) -> str | None:
 # Validation
 # ----------------------------------------------------------------------------------------------
 
+
 class _Checker:
     """Shape and value checks of one run's arrays; each failure names the file and the field."""
 
@@ -217,9 +245,10 @@ class _Checker:
         if p.ndim != 3 or p.shape[0] != T or p.shape[2] != 3 or p.shape[1] < 2:
             fail("skeleton_points", f"must have shape (T={T}, P>=2, 3), got {p.shape}")
         if d["skeleton_points_unperturbed"].shape != p.shape:
-            fail("skeleton_points_unperturbed",
-                 f"must have the shape of skeleton_points {p.shape}, got "
-                 f"{d['skeleton_points_unperturbed'].shape}")
+            fail(
+                "skeleton_points_unperturbed",
+                f"must have the shape of skeleton_points {p.shape}, got {d['skeleton_points_unperturbed'].shape}",
+            )
         self.finite("skeleton_points")
         self.finite("skeleton_points_unperturbed")
         e = d["skeleton_edges"]
@@ -262,8 +291,11 @@ class _Checker:
         if pos.ndim != 3 or pos.shape[0] != T or pos.shape[2] != 3:
             self.fail("body_pos", f"must have shape (T={T}, B, 3), got {pos.shape}")
         B = pos.shape[1]
-        for name, shape in (("body_quat", (T, B, 4)), ("body_pos_unperturbed", (T, B, 3)),
-                            ("body_quat_unperturbed", (T, B, 4))):
+        for name, shape in (
+            ("body_quat", (T, B, 4)),
+            ("body_pos_unperturbed", (T, B, 3)),
+            ("body_quat_unperturbed", (T, B, 4)),
+        ):
             self.shape(name, shape)
         for name in POSE_FIELDS:
             self.finite(name)
@@ -273,8 +305,10 @@ class _Checker:
         d, fail = self.d, self.fail
         if "skeleton_edge_body" in d and "skeleton_edges" in d:
             if d["skeleton_edge_body"].shape != (d["skeleton_edges"].shape[0],):
-                fail("skeleton_edge_body", f"must have shape (E={d['skeleton_edges'].shape[0]},), "
-                                           f"got {d['skeleton_edge_body'].shape}")
+                fail(
+                    "skeleton_edge_body",
+                    f"must have shape (E={d['skeleton_edges'].shape[0]},), got {d['skeleton_edge_body'].shape}",
+                )
         if "facing" in d:
             if d["facing"].shape != (3,) or not np.all(np.isfinite(d["facing"])):
                 fail("facing", f"must be a finite vector of shape (3,), got {d['facing']!r}")
@@ -290,8 +324,10 @@ class _Checker:
     def ball(self, T):
         d, fail = self.d, self.fail
         if "ball_pos" not in d or "ball_radius" not in d:
-            fail("ball_pos" if "ball_pos" not in d else "ball_radius",
-                 "is missing (ball_pos and ball_radius come together)")
+            fail(
+                "ball_pos" if "ball_pos" not in d else "ball_radius",
+                "is missing (ball_pos and ball_radius come together)",
+            )
         if d["ball_pos"].shape != (T, 3):
             fail("ball_pos", f"must have shape (T={T}, 3), got {d['ball_pos'].shape}")
         if d["ball_radius"].size != 1 or not float(d["ball_radius"]) > 0:

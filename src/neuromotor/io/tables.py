@@ -14,8 +14,18 @@ import numpy as np
 
 from neuromotor.atomic import atomic_path
 
-TEXT_COLUMNS = {"label", "controller", "body", "diverged_body", "kind", "hit_body", "dtype",
-                "feedback", "stability", "path"}  # the last three: the reflex studies (studies.reflex)
+TEXT_COLUMNS = {
+    "label",
+    "controller",
+    "body",
+    "diverged_body",
+    "kind",
+    "hit_body",
+    "dtype",
+    "feedback",
+    "stability",
+    "path",
+}  # the last three: the reflex studies (studies.reflex)
 INT_COLUMNS = {"run", "diverged_step"}
 
 

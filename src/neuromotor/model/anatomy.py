@@ -77,13 +77,37 @@ def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatom
         if fixed is None and stature is None:
             fixed = auto_scale(_rest_points(clip))
         scale, unit_name, stat = choose_units(found.height, fixed, stature, warnings)
-        return Anatomy(found.segment, found.side, found.mirror, found.up, found.forward, found.reference_frame,
-                       stat, scale, unit_name, tuple(warnings), {})  # generic shapes: the offsets alone
+        return Anatomy(
+            found.segment,
+            found.side,
+            found.mirror,
+            found.up,
+            found.forward,
+            found.reference_frame,
+            stat,
+            scale,
+            unit_name,
+            tuple(warnings),
+            {},
+        )  # generic shapes: the offsets alone
     scale, unit_name, stat = choose_units(found.height, fixed, stature, warnings)
     _translation_warnings(clip, scale, warnings)
-    return Anatomy(found.segment, found.side, found.mirror, found.up, found.forward, found.reference_frame,
-                   stat, scale, unit_name, tuple(warnings), found.limb_chains, found.shape_frame, found.shape_up,
-                   found.shape_forward)
+    return Anatomy(
+        found.segment,
+        found.side,
+        found.mirror,
+        found.up,
+        found.forward,
+        found.reference_frame,
+        stat,
+        scale,
+        unit_name,
+        tuple(warnings),
+        found.limb_chains,
+        found.shape_frame,
+        found.shape_up,
+        found.shape_forward,
+    )
 
 
 def _rest_points(clip: BvhClip) -> np.ndarray:
@@ -102,8 +126,10 @@ def _translation_warnings(clip: BvhClip, scale: float, warnings: list[str]) -> N
         values = clip.motion[:, list(cols)]
         move = float(np.linalg.norm(values - values.mean(axis=0), axis=1).max()) * scale
         if move > 0.01:
-            warnings.append(f"joint {joint.name!r}: translation channels move it by up to {100 * move:.3g} cm; "
-                            f"its mean offset is used")
+            warnings.append(
+                f"joint {joint.name!r}: translation channels move it by up to {100 * move:.3g} cm; "
+                f"its mean offset is used"
+            )
 
 
 def prepare_clip(path_or_clip, units="auto", stature: float | None = None) -> tuple[BvhClip, Anatomy, BvhClip]:
@@ -122,6 +148,7 @@ def prepare_clip(path_or_clip, units="auto", stature: float | None = None) -> tu
     raw, skip_warnings = skip_rest_frames(raw)
     collapsed, _, collapse_warnings = collapse_virtual_root(raw)
     anatomy = analyse(collapsed, units=units, stature=stature)
-    anatomy = dataclasses.replace(anatomy, warnings=tuple(raw.warnings) + skip_warnings + collapse_warnings
-                                  + anatomy.warnings)
+    anatomy = dataclasses.replace(
+        anatomy, warnings=tuple(raw.warnings) + skip_warnings + collapse_warnings + anatomy.warnings
+    )
     return scale_clip(collapsed, anatomy.length_scale), anatomy, scale_clip(raw, anatomy.length_scale)

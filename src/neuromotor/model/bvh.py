@@ -19,15 +19,16 @@ Units
 -----
 Lengths (OFFSETs, End Sites, position channels) are stored in metres: file value times
 ``length_scale``. Rotation channels stay in degrees, as in the file. ``units`` is a key of
-:data:`neuromotor.model.units.UNIT_SCALES` (m, cm, mm, in, cmu = CMU's 1/0.45 inch, ft, dm), a positive float (metres per
-file unit) or ``"auto"``. Humanoid clips get their unit from the stature their long bones give
-(:func:`neuromotor.model.anatomy.prepare_clip`, which reads files with ``units=1.0``); this module's
-own ``"auto"`` rule (:func:`neuromotor.model.units.auto_scale`), used for skeletons that are not
-humanoid: place the skeleton in its rest pose (all rotations zero, the root at the origin, i.e. the
-root OFFSET is ignored), take the diagonal of the bounding box of all joint and End Site positions
-as its size in file units, and choose among m, cm and mm the scale whose size in metres is closest
-to 1.8 m in log ratio (smallest ``|log(size * scale / 1.8)|``; ties go to the larger unit). A
-skeleton of zero size is taken to be in metres. Inches are never guessed: pass ``units="in"``.
+:data:`neuromotor.model.units.UNIT_SCALES` (m, cm, mm, in, cmu = CMU's 1/0.45 inch, ft, dm), a
+positive float (metres per file unit) or ``"auto"``. Humanoid clips get their unit from the stature
+their long bones give (:func:`neuromotor.model.anatomy.prepare_clip`, which reads files with
+``units=1.0``); this module's own ``"auto"`` rule (:func:`neuromotor.model.units.auto_scale`), used
+for skeletons that are not humanoid: place the skeleton in its rest pose (all rotations zero, the
+root at the origin, i.e. the root OFFSET is ignored), take the diagonal of the bounding box of all
+joint and End Site positions as its size in file units, and choose among m, cm and mm the scale
+whose size in metres is closest to 1.8 m in log ratio (smallest ``|log(size * scale / 1.8)|``; ties
+go to the larger unit). A skeleton of zero size is taken to be in metres. Inches are never guessed:
+pass ``units="in"``.
 
 Conventions (this module only stores data; kinematics live elsewhere)
 ---------------------------------------------------------------------
@@ -109,16 +110,20 @@ def _channel_problem(channels: tuple[str, ...] | list[str]) -> str | None:
     for name in channels:
         m = _CHANNEL_RE.match(name)
         if m is None:
-            return (f"unknown channel name {name!r} (expected Xposition, Yposition, Zposition, "
-                    f"Xrotation, Yrotation or Zrotation)")
+            return (
+                f"unknown channel name {name!r} (expected Xposition, Yposition, Zposition, "
+                f"Xrotation, Yrotation or Zrotation)"
+            )
         axis, kind = m.group(1).upper(), m.group(2).lower()
         if axis in seen[kind]:
             return f"duplicate {axis}{kind} channel ({name!r})"
         seen[kind].append(axis)
     for kind, axes in seen.items():
         if len(axes) not in (0, 3):
-            return (f"{len(axes)} {kind} channel{'s' if len(axes) != 1 else ''} "
-                    f"({' '.join(a + kind for a in axes)}); a joint needs 0 or 3 {kind} channels")
+            return (
+                f"{len(axes)} {kind} channel{'s' if len(axes) != 1 else ''} "
+                f"({' '.join(a + kind for a in axes)}); a joint needs 0 or 3 {kind} channels"
+            )
     return None
 
 
@@ -162,14 +167,18 @@ class BvhJoint:
     @property
     def rotation_columns(self) -> tuple[int, ...]:
         """Absolute motion columns of the rotation channels, in file order."""
-        return tuple(self.channel_start + i for i, (_, kind) in enumerate(_channel_kinds(self.channels))
-                     if kind == "rotation")
+        return tuple(
+            self.channel_start + i for i, (_, kind) in enumerate(_channel_kinds(self.channels)) if kind == "rotation"
+        )
 
     @property
     def translation_columns(self) -> tuple[int, ...]:
         """Absolute motion columns of Xposition, Yposition, Zposition in X, Y, Z order; () if none."""
-        cols = {axis: self.channel_start + i for i, (axis, kind) in enumerate(_channel_kinds(self.channels))
-                if kind == "position"}
+        cols = {
+            axis: self.channel_start + i
+            for i, (axis, kind) in enumerate(_channel_kinds(self.channels))
+            if kind == "position"
+        }
         return tuple(cols[a] for a in "XYZ") if cols else ()
 
 
@@ -236,8 +245,7 @@ class BvhClip:
         for k, joint in enumerate(self.joints):
             if joint.name == name:
                 return k
-        raise KeyError(f"no joint named {name!r} in {self.path}; joints: "
-                       f"{', '.join(j.name for j in self.joints)}")
+        raise KeyError(f"no joint named {name!r} in {self.path}; joints: {', '.join(j.name for j in self.joints)}")
 
 
 def _check_joint_layout(joints: tuple[BvhJoint, ...]) -> None:
@@ -260,8 +268,10 @@ def _check_joint_layout(joints: tuple[BvhJoint, ...]) -> None:
             while ancestors and ancestors[-1] != joint.parent:
                 ancestors.pop()
             if not ancestors:
-                raise ValueError(f"joints are not in depth-first order: joint {k} ({joint.name!r}) has "
-                                 f"parent {joint.parent}, which is not the previous joint or one of its ancestors")
+                raise ValueError(
+                    f"joints are not in depth-first order: joint {k} ({joint.name!r}) has "
+                    f"parent {joint.parent}, which is not the previous joint or one of its ancestors"
+                )
         ancestors.append(k)
         if joint.channel_start != column:
             raise ValueError(f"joint {joint.name!r} has channel_start {joint.channel_start}, expected {column}")
@@ -347,8 +357,10 @@ class _HierarchyParser:
             return True
         if stack and not stack[-1].opened:
             if tok != "{":
-                fail(lineno, f"expected '{{' to open {stack[-1].describe(self.nodes)} "
-                             f"(line {stack[-1].line}), got {tok!r}")
+                fail(
+                    lineno,
+                    f"expected '{{' to open {stack[-1].describe(self.nodes)} (line {stack[-1].line}), got {tok!r}",
+                )
             stack[-1].opened = True
             return True
         if tok == "{":
@@ -364,15 +376,17 @@ class _HierarchyParser:
         """Check that MOTION may come here."""
         top = self.stack[-1] if self.stack else None
         if top is not None:
-            self.fail(lineno, f"MOTION inside the hierarchy: {top.describe(self.nodes)} opened at line "
-                              f"{top.line} is missing its closing '}}'")
+            self.fail(
+                lineno,
+                f"MOTION inside the hierarchy: {top.describe(self.nodes)} opened at line "
+                f"{top.line} is missing its closing '}}'",
+            )
         if not self.nodes:
             self.fail(lineno, "MOTION before any ROOT")
         if len(toks) > 1:
             self.fail(lineno, f"unexpected text after MOTION: {_short(' '.join(toks[1:]))!r}")
 
-    def statement(self, word: str, tok: str, args: list[str], toks: list[str], k: int, end: int,
-                  lineno: int) -> None:
+    def statement(self, word: str, tok: str, args: list[str], toks: list[str], k: int, end: int, lineno: int) -> None:
         top = self.stack[-1] if self.stack else None
         if word in ("ROOT", "JOINT"):
             self.joint(word, tok, args, top, lineno)
@@ -390,8 +404,11 @@ class _HierarchyParser:
         fail, nodes = self.fail, self.nodes
         if word == "ROOT":
             if nodes:
-                fail(lineno, f"several ROOTs: only one skeleton per file is supported "
-                             f"(first ROOT {nodes[0].name!r} at line {nodes[0].line})")
+                fail(
+                    lineno,
+                    f"several ROOTs: only one skeleton per file is supported "
+                    f"(first ROOT {nodes[0].name!r} at line {nodes[0].line})",
+                )
             parent = -1
         else:
             if top is None:
@@ -453,8 +470,11 @@ class _HierarchyParser:
         if not self.seen_hierarchy:
             self.fail(last, "empty file: expected 'HIERARCHY'")
         if self.stack:
-            self.fail(last, f"unexpected end of file inside the hierarchy: {self.stack[-1].describe(self.nodes)} "
-                            f"opened at line {self.stack[-1].line} is not closed")
+            self.fail(
+                last,
+                f"unexpected end of file inside the hierarchy: {self.stack[-1].describe(self.nodes)} "
+                f"opened at line {self.stack[-1].line} is not closed",
+            )
         if not self.nodes:
             self.fail(last, "no ROOT in the hierarchy")
         self.fail(last, "missing MOTION section after the hierarchy")
@@ -479,7 +499,7 @@ def _parse_hierarchy(lines: list[str], fail: Callable[[int | None, str], NoRetur
             if tok.upper() == "MOTION":
                 parser.motion(toks, lineno)
                 return parser.nodes, index
-            parser.statement(tok.upper(), tok, toks[k + 1:end], toks, k, end, lineno)
+            parser.statement(tok.upper(), tok, toks[k + 1 : end], toks, k, end, lineno)
             k = end
     parser.no_motion(lines)
 
@@ -564,8 +584,9 @@ def _parse_frame_time(lines: list[str], index: int, fail: _Fail) -> float:
     return frame_time
 
 
-def _parse_frame(toks: list[str], lineno: int, row: int, n_channels: int, n_frames: int, last_line: bool,
-                 fail) -> list[float]:
+def _parse_frame(
+    toks: list[str], lineno: int, row: int, n_channels: int, n_frames: int, last_line: bool, fail
+) -> list[float]:
     """One frame line's values, checked: numbers, one per channel, finite."""
     try:
         values = [float(t) for t in toks]
@@ -576,20 +597,30 @@ def _parse_frame(toks: list[str], lineno: int, row: int, n_channels: int, n_fram
         raise  # unreachable: some token failed above
     if len(values) != n_channels:
         if len(values) < n_channels and last_line and row < n_frames:
-            fail(lineno, f"truncated motion block: data ends here inside frame {row + 1} "
-                         f"({len(values)} of {n_channels} values); expected {n_frames} frames, "
-                         f"found {row} complete")
+            fail(
+                lineno,
+                f"truncated motion block: data ends here inside frame {row + 1} "
+                f"({len(values)} of {n_channels} values); expected {n_frames} frames, "
+                f"found {row} complete",
+            )
         fail(lineno, f"frame {row + 1} has {len(values)} values, expected {n_channels} (one per channel)")
     bad = [c for c, v in enumerate(values) if not math.isfinite(v)]
     if bad:
-        fail(lineno, f"frame {row + 1}, value {bad[0] + 1}: {toks[bad[0]]!r} is not finite "
-                     f"(NaN and infinite values are not allowed)")
+        fail(
+            lineno,
+            f"frame {row + 1}, value {bad[0] + 1}: {toks[bad[0]]!r} is not finite "
+            f"(NaN and infinite values are not allowed)",
+        )
     return values
 
 
-def _parse_motion(lines: list[str], motion_index: int, n_channels: int,
-                  fail: Callable[[int | None, str], NoReturn], path: str = "<string>",
-                  ) -> tuple[float, np.ndarray, tuple[str, ...]]:
+def _parse_motion(
+    lines: list[str],
+    motion_index: int,
+    n_channels: int,
+    fail: Callable[[int | None, str], NoReturn],
+    path: str = "<string>",
+) -> tuple[float, np.ndarray, tuple[str, ...]]:
     """Parse Frames, Frame Time and the frame lines after the MOTION line; values in file units.
     Returns (frame time, motion, warnings)."""
     data_lines = [i for i in range(motion_index + 1, len(lines)) if lines[i].strip()]
@@ -608,21 +639,28 @@ def _parse_motion(lines: list[str], motion_index: int, n_channels: int,
     # Size by the lines present, not by the declared count (a bogus huge Frames must not allocate).
     motion = np.empty((len(frame_indices), n_channels), dtype=np.float64)
     for row, index in enumerate(frame_indices):
-        motion[row] = _parse_frame(lines[index].split(), index + 1, row, n_channels, n_frames,
-                                   index == data_lines[-1], fail)
+        motion[row] = _parse_frame(
+            lines[index].split(), index + 1, row, n_channels, n_frames, index == data_lines[-1], fail
+        )
     if len(frame_indices) < n_frames:
-        fail(last, f"truncated motion block: 'Frames: {n_frames}' (line {frames_index + 1}) declares "
-                   f"{n_frames} frames but the data ends at this line after {len(frame_indices)}")
+        fail(
+            last,
+            f"truncated motion block: 'Frames: {n_frames}' (line {frames_index + 1}) declares "
+            f"{n_frames} frames but the data ends at this line after {len(frame_indices)}",
+        )
     warnings: tuple[str, ...] = ()
     if len(frame_indices) > n_frames:
         extra = len(frame_indices) - n_frames
-        warnings = (f"{path}:{frame_indices[n_frames] + 1}: {extra} more frame line{'s' if extra != 1 else ''} "
-                    f"than 'Frames: {n_frames}' declares; loaded all {len(frame_indices)}",)
+        warnings = (
+            f"{path}:{frame_indices[n_frames] + 1}: {extra} more frame line{'s' if extra != 1 else ''} "
+            f"than 'Frames: {n_frames}' declares; loaded all {len(frame_indices)}",
+        )
     return frame_time, motion, warnings
 
 
-def _rest_points(offsets: np.ndarray, parents: list[int], end_sites: list[np.ndarray | None],
-                 root_at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _rest_points(
+    offsets: np.ndarray, parents: list[int], end_sites: list[np.ndarray | None], root_at: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Rest-pose joint positions (J, 3) and End Site positions (E, 3), root placed at ``root_at``."""
     pos = np.zeros((len(parents), 3), dtype=np.float64)
     for k, parent in enumerate(parents):
@@ -651,8 +689,11 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
     offsets = np.array([n.offset for n in nodes], dtype=np.float64)
     parents = [n.parent for n in nodes]
     end_sites = [None if n.end_site is None else np.array(n.end_site, dtype=np.float64) for n in nodes]
-    scale = fixed_scale if fixed_scale is not None else auto_scale(
-        np.concatenate(_rest_points(offsets, parents, end_sites, np.zeros(3))))
+    scale = (
+        fixed_scale
+        if fixed_scale is not None
+        else auto_scale(np.concatenate(_rest_points(offsets, parents, end_sites, np.zeros(3))))
+    )
 
     joints = []
     column = 0
@@ -662,18 +703,21 @@ def parse_bvh(text: str, path: str = "<string>", units: str | float = "auto") ->
         for i, (_, kind) in enumerate(kinds):
             if kind == "position":
                 motion[:, column + i] *= scale
-        joints.append(BvhJoint(
-            name=node.name,
-            parent=node.parent,
-            offset=np.array(node.offset, dtype=np.float64) * scale,
-            channels=channels,
-            channel_start=column,
-            end_site=None if end_site is None else end_site * scale,
-            line=node.line,
-        ))
+        joints.append(
+            BvhJoint(
+                name=node.name,
+                parent=node.parent,
+                offset=np.array(node.offset, dtype=np.float64) * scale,
+                channels=channels,
+                channel_start=column,
+                end_site=None if end_site is None else end_site * scale,
+                line=node.line,
+            )
+        )
         column += len(channels)
-    return BvhClip(path=path, joints=tuple(joints), frame_time=frame_time, motion=motion, length_scale=scale,
-                   warnings=warnings)
+    return BvhClip(
+        path=path, joints=tuple(joints), frame_time=frame_time, motion=motion, length_scale=scale, warnings=warnings
+    )
 
 
 def read_bvh(path: str | os.PathLike, units: str | float = "auto") -> BvhClip:
@@ -747,8 +791,7 @@ def _atomic_write(path: str | os.PathLike, data: bytes) -> None:
         tmp.write_bytes(data)
 
 
-def write_bvh(path: str | os.PathLike, clip: BvhClip, motion: np.ndarray | None = None,
-              precision: int = 8) -> None:
+def write_bvh(path: str | os.PathLike, clip: BvhClip, motion: np.ndarray | None = None, precision: int = 8) -> None:
     """Write ``clip`` (or its hierarchy with ``motion``, shape (T, C), positions in metres) as BVH.
 
     Lengths are divided by ``clip.length_scale`` back to file units; rotations are written in
@@ -767,8 +810,10 @@ def write_bvh(path: str | os.PathLike, clip: BvhClip, motion: np.ndarray | None 
     for joint in clip.joints:
         name = joint.name
         if not name or " ".join(name.split()) != name or any(c in name for c in "{}"):
-            raise ValueError(f"joint name {name!r} cannot be written to BVH (empty, braces, or "
-                             f"whitespace other than single inner spaces)")
+            raise ValueError(
+                f"joint name {name!r} cannot be written to BVH (empty, braces, or "
+                f"whitespace other than single inner spaces)"
+            )
     text = _format_bvh(clip, values, int(precision))
     _atomic_write(path, text.encode("utf-8"))
 

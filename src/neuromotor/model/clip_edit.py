@@ -62,11 +62,14 @@ def scale_clip(clip: BvhClip, factor: float) -> BvhClip:
     joints = []
     for joint in clip.joints:
         motion[:, list(joint.translation_columns)] *= factor
-        joints.append(dataclasses.replace(
-            joint, offset=joint.offset * factor,
-            end_site=None if joint.end_site is None else joint.end_site * factor))
-    return dataclasses.replace(clip, joints=tuple(joints), motion=motion,
-                               length_scale=clip.length_scale * factor)
+        joints.append(
+            dataclasses.replace(
+                joint,
+                offset=joint.offset * factor,
+                end_site=None if joint.end_site is None else joint.end_site * factor,
+            )
+        )
+    return dataclasses.replace(clip, joints=tuple(joints), motion=motion, length_scale=clip.length_scale * factor)
 
 
 def _continuous_euler(order: str, R: np.ndarray, start: np.ndarray) -> np.ndarray:
@@ -128,8 +131,11 @@ def _collapse_once(clip: BvhClip):
     c = moving[0]
     for o in others:  # anything else on the root must be a zero-length leaf (a marker)
         j = joints[o]
-        if clip.children(o) or np.linalg.norm(j.offset) > 0 or (
-                j.end_site is not None and np.linalg.norm(j.end_site) > 0):
+        if (
+            clip.children(o)
+            or np.linalg.norm(j.offset) > 0
+            or (j.end_site is not None and np.linalg.norm(j.end_site) > 0)
+        ):
             return None
     # Decided on the skeleton alone, not on how far the link moves, so a window of the clip in
     # which the marker stands still is read the same.
@@ -156,13 +162,15 @@ def _collapse_once(clip: BvhClip):
     for old in keep[1:]:
         j = joints[old]
         new_joints.append(dataclasses.replace(j, parent=new_index[j.parent], channel_start=column))
-        blocks.append(clip.motion[:, j.channel_start:j.channel_start + len(j.channels)])
+        blocks.append(clip.motion[:, j.channel_start : j.channel_start + len(j.channels)])
         column += len(j.channels)
     new_clip = dataclasses.replace(clip, joints=tuple(new_joints), motion=np.concatenate(blocks, axis=1))
     removed = (root.name,) + tuple(joints[o].name for o in others)
-    warning = (f"joint {root.name!r} is a virtual root (its only child {child.name!r} carries its own "
-               f"position channels; their length changes by {change:.4g} file units over the clip): removed, "
-               f"{child.name!r} is the root now and carries the composed world motion")
+    warning = (
+        f"joint {root.name!r} is a virtual root (its only child {child.name!r} carries its own "
+        f"position channels; their length changes by {change:.4g} file units over the clip): removed, "
+        f"{child.name!r} is the root now and carries the composed world motion"
+    )
     return new_clip, removed, warning
 
 
@@ -202,7 +210,9 @@ def skip_rest_frames(clip: BvhClip, max_frames: int = 5) -> tuple[BvhClip, tuple
         drop += 1
     if drop == 0:
         return clip, ()
-    msg = (f"{clip.path}: the first {drop} frame{'s' if drop > 1 else ''} jump{'s' if drop == 1 else ''} "
-           f"{turn[drop - 1]:.0f} deg to the next (a bind pose, not motion): skipped, the clip starts at "
-           f"frame {drop + 1}")
+    msg = (
+        f"{clip.path}: the first {drop} frame{'s' if drop > 1 else ''} jump{'s' if drop == 1 else ''} "
+        f"{turn[drop - 1]:.0f} deg to the next (a bind pose, not motion): skipped, the clip starts at "
+        f"frame {drop + 1}"
+    )
     return dataclasses.replace(clip, motion=clip.motion[drop:]), (msg,)

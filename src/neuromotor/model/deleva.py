@@ -29,8 +29,7 @@ import dataclasses
 
 from neuromotor.errors import UserError
 
-__all__ = ["SegmentParameters", "SEX", "segment_parameters", "mass_fractions", "LENGTH_OF_STATURE",
-           "DEFAULT_BMI"]
+__all__ = ["SegmentParameters", "SEX", "segment_parameters", "mass_fractions", "LENGTH_OF_STATURE", "DEFAULT_BMI"]
 
 SEX = ("male", "female", "average")
 

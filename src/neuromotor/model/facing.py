@@ -52,7 +52,7 @@ def facing_from_skeleton(points, edges, up_axis: int = 1) -> np.ndarray:
         while i >= 0:
             out.append(i)
             i = parent[i]
-        return out[::-1]   # root first
+        return out[::-1]  # root first
 
     height = (P @ up).mean(axis=0)
     feet = sorted(leaves, key=lambda i: height[i])[:2]

@@ -147,7 +147,7 @@ def _local_jet(model: Model, q_jet: tuple) -> list:
     derivatives (``jax.jvp`` of the batched quaternion-to-matrix map: elementwise, cheap)."""
     st = model.topology
     n_rot = len(st.rotating)
-    quats = [x[3:3 + 4 * n_rot].reshape(-1, 4) for x in q_jet]
+    quats = [x[3 : 3 + 4 * n_rot].reshape(-1, 4) for x in q_jet]
 
     def rot(u):
         return quat_to_matrix(u / jnp.linalg.norm(u, axis=-1, keepdims=True))
@@ -155,6 +155,7 @@ def _local_jet(model: Model, q_jet: tuple) -> list:
     if len(quats) == 1:
         out = [rot(quats[0])]
     else:
+
         def rate(u, du):
             return jax.jvp(rot, (u,), (du,))
 

@@ -35,8 +35,20 @@ from neuromotor.rotations_np import rotation_angle
 
 __all__ = ["SEGMENTS", "DETAIL_SEGMENTS", "JointLabels", "label_joints"]
 
-SEGMENTS = ("trunk", "head", "upper_arm", "forearm", "hand", "thigh", "shank", "foot", "finger", "toe",
-            "face", "detail")
+SEGMENTS = (
+    "trunk",
+    "head",
+    "upper_arm",
+    "forearm",
+    "hand",
+    "thigh",
+    "shank",
+    "foot",
+    "finger",
+    "toe",
+    "face",
+    "detail",
+)
 DETAIL_SEGMENTS = frozenset({"finger", "toe", "face", "detail"})  # extremity detail, not simulated by default
 
 # de Leva (1996) segment lengths relative to stature (sexes averaged).
@@ -113,16 +125,16 @@ class _Tree:
         self.offsets = offsets
         self.L = np.linalg.norm(offsets, axis=1)
         self.L[0] = 0.0
-        self.end_len = np.array([0.0 if j.end_site is None else float(np.linalg.norm(j.end_site))
-                                 for j in clip.joints])
+        self.end_len = np.array([0.0 if j.end_site is None else float(np.linalg.norm(j.end_site)) for j in clip.joints])
         self.reach = np.zeros(J)
         for k in range(J - 1, -1, -1):
             best = self.end_len[k]
             for c in self.children[k]:
                 best = max(best, self.L[c] + self.reach[c])
             self.reach[k] = best
-        self.size = max(float(self.reach[0] + max((self.L[c] + self.reach[c] for c in self.children[0]),
-                                                  default=0.0)), 1e-12)
+        self.size = max(
+            float(self.reach[0] + max((self.L[c] + self.reach[c] for c in self.children[0]), default=0.0)), 1e-12
+        )
         self.tiny = 1e-4 * self.size
         self.sub_end = [0] * J
         for k in range(J - 1, -1, -1):
@@ -160,8 +172,11 @@ class _Tree:
     def match(self, a: int, b: int) -> dict[int, int] | None:
         """Joint-to-joint map of subtree a onto subtree b if they have the same structure and
         matching lengths, else None."""
-        if not (self.close(self.L[a], self.L[b]) and self.close(self.end_len[a], self.end_len[b])
-                and self.close(self.reach[a], self.reach[b])):
+        if not (
+            self.close(self.L[a], self.L[b])
+            and self.close(self.end_len[a], self.end_len[b])
+            and self.close(self.reach[a], self.reach[b])
+        ):
             return None
         ka, kb = self.children[a], self.children[b]
         if len(ka) != len(kb):
@@ -174,8 +189,7 @@ class _Tree:
                 out.update(m)
             return out
         # Children listed in another order: greedy by length difference.
-        cost = sorted((abs(self.L[x] - self.L[y]) + abs(self.reach[x] - self.reach[y]), x, y)
-                      for x in ka for y in kb)
+        cost = sorted((abs(self.L[x] - self.L[y]) + abs(self.reach[x] - self.reach[y]), x, y) for x in ka for y in kb)
         used_a, used_b = set(), set()
         for _, x, y in cost:
             if x in used_a or y in used_b:
@@ -321,8 +335,11 @@ def _limb_pairs(tree: _Tree, pairs) -> list:
     limbs_pairs: list = []
     for entry in pairs:
         _, a, b, _ = entry
-        if any(a == x or b == x or tree.is_below(a, x) or tree.is_below(b, x) or tree.is_below(x, a)
-               or tree.is_below(x, b) for e in limbs_pairs for x in (e[1], e[2])):
+        if any(
+            a == x or b == x or tree.is_below(a, x) or tree.is_below(b, x) or tree.is_below(x, a) or tree.is_below(x, b)
+            for e in limbs_pairs
+            for x in (e[1], e[2])
+        ):
             continue
         limbs_pairs.append(entry)
         if len(limbs_pairs) == 2:
@@ -355,8 +372,11 @@ def _head_chain(tree: _Tree, pos, ends, arm_branch: int, limb_members: set, pair
     nearest above it), followed upwards; empty when there is none."""
     head0 = None
     for anc in tree.path_to_root(arm_branch):
-        cands = [c for c in tree.children[anc]
-                 if c not in limb_members and not any(tree.is_below(m, c) for m in limb_members)]
+        cands = [
+            c
+            for c in tree.children[anc]
+            if c not in limb_members and not any(tree.is_below(m, c) for m in limb_members)
+        ]
         if cands:
             head0 = max(cands, key=lambda c: (tree.L[c] + tree.reach[c], -c))
             break
@@ -445,16 +465,19 @@ class _SideJudge:
         return None
 
 
-def _label_limbs(labels: _Labels, judge: _SideJudge, tree: _Tree, pos_ref, ends_ref, limb_sets,
-                 warnings: list[str]) -> None:
+def _label_limbs(
+    labels: _Labels, judge: _SideJudge, tree: _Tree, pos_ref, ends_ref, limb_sets, warnings: list[str]
+) -> None:
     """Sides, mirrors, segments and chains of the legs and arms."""
     names = judge.names
     for kind, pair, limb_pair in limb_sets:
         _, a, b, mapping = pair
         sides = judge.decide(a, b)
         if sides is None:
-            warnings.append(f"cannot tell the left {kind} from the right one ({names[a]!r}, {names[b]!r}): "
-                            f"{names[a]!r} is taken as left")
+            warnings.append(
+                f"cannot tell the left {kind} from the right one ({names[a]!r}, {names[b]!r}): "
+                f"{names[a]!r} is taken as left"
+            )
             sides = ("left", "right")
             labels.apply_pair(mapping, None)
             for x, y in mapping.items():
@@ -464,14 +487,17 @@ def _label_limbs(labels: _Labels, judge: _SideJudge, tree: _Tree, pos_ref, ends_
         for limb, s in ((limb_pair[0], sides[0]), (limb_pair[1], sides[1])):
             _label_limb(tree, pos_ref, ends_ref, limb, kind, labels.segment)
             end = limb.hand if limb.hand is not None else (limb.groups[limb.upper + 1] or limb.groups[limb.upper])[-1]
-            labels.chains[f"{kind}_{s}"] = tuple(limb.chain[:limb.chain.index(end) + 1])
+            labels.chains[f"{kind}_{s}"] = tuple(limb.chain[: limb.chain.index(end) + 1])
 
 
 def _label_other_pairs(labels: _Labels, judge: _SideJudge, tree: _Tree, pairs, limb_roots) -> None:
     """Other symmetric pairs outside the limbs (eyes, ...)."""
     for _, a, b, mapping in pairs:
-        if labels.mirror[a] >= 0 or labels.mirror[b] >= 0 or any(
-                tree.is_below(a, m) or tree.is_below(b, m) for m in limb_roots):
+        if (
+            labels.mirror[a] >= 0
+            or labels.mirror[b] >= 0
+            or any(tree.is_below(a, m) or tree.is_below(b, m) for m in limb_roots)
+        ):
             continue
         sides = judge.decide(a, b)
         if sides is not None:
@@ -619,13 +645,14 @@ def label_joints(clip: BvhClip) -> JointLabels:
         all_pos, _, all_ends = forward_kinematics(clip)
         top = all_ends[:, head_chain[-1]] if head_chain else all_pos[:, arm_branch]
         shape_frame = int(np.argmax((top - _ankle_points(legs, all_pos, all_ends).mean(axis=1)) @ up))
-        shape_pos, shape_ends = all_pos[shape_frame:shape_frame + 1], all_ends[shape_frame:shape_frame + 1]
+        shape_pos, shape_ends = all_pos[shape_frame : shape_frame + 1], all_ends[shape_frame : shape_frame + 1]
 
     fwd_t, facing_from = _facing_per_frame(tree, pos, ends, legs, up, len(rows))
     judge = _SideJudge(tree, pos, np.cross(up, fwd_t), facing_from, names)
     labels = _Labels(["detail"] * tree.J, [""] * tree.J, [-1] * tree.J)
-    _label_limbs(labels, judge, tree, shape_pos[0], shape_ends[0], (("leg", legs_pair, legs), ("arm", arms_pair, arms)),
-                 warnings)
+    _label_limbs(
+        labels, judge, tree, shape_pos[0], shape_ends[0], (("leg", legs_pair, legs), ("arm", arms_pair, arms)), warnings
+    )
     _label_other_pairs(labels, judge, tree, pairs, limb_roots)
     _label_head_and_trunk(labels, tree, head_chain, limb_roots, arm_branch)
     forward = _forward_at(ref_i, fwd_t, up, tree, judge, labels.chains, warnings)
@@ -639,8 +666,20 @@ def label_joints(clip: BvhClip) -> JointLabels:
     height = (leg + arm) / (_LEG_RATIO + _ARM_RATIO) if arm > 0 else leg / _LEG_RATIO
     for v in (up, forward, shape_up, shape_forward):
         v.setflags(write=False)
-    return JointLabels(tuple(labels.segment), tuple(labels.side), tuple(labels.mirror), up, forward, int(rows[ref_i]),
-                       height, tuple(warnings), labels.chains, shape_frame, shape_up, shape_forward)
+    return JointLabels(
+        tuple(labels.segment),
+        tuple(labels.side),
+        tuple(labels.mirror),
+        up,
+        forward,
+        int(rows[ref_i]),
+        height,
+        tuple(warnings),
+        labels.chains,
+        shape_frame,
+        shape_up,
+        shape_forward,
+    )
 
 
 def _no_limbs(clip: BvhClip, pos, rows, warnings: list[str]) -> JointLabels:
@@ -651,8 +690,9 @@ def _no_limbs(clip: BvhClip, pos, rows, warnings: list[str]) -> JointLabels:
     extent = pos[:, :, 1].max(1) - pos[:, :, 1].min(1)
     ref = int(rows[int(np.argmax(extent))])
     height = float(extent.max()) or 1.0
-    return JointLabels(("trunk",) * J, ("",) * J, (-1,) * J, up, np.array([0.0, 0.0, 1.0]), ref, height,
-                       tuple(warnings), {})  # generic shapes: the offsets alone
+    return JointLabels(
+        ("trunk",) * J, ("",) * J, (-1,) * J, up, np.array([0.0, 0.0, 1.0]), ref, height, tuple(warnings), {}
+    )  # generic shapes: the offsets alone
 
 
 def _pick_legs(tree: _Tree, pairs, windows, names) -> int:
@@ -675,11 +715,11 @@ def _pick_legs(tree: _Tree, pairs, windows, names) -> int:
     return big
 
 
-def _label_limb(tree: _Tree, pos: np.ndarray, ends: np.ndarray, limb: _Limb, kind: str,
-                segment: list[str]) -> None:
+def _label_limb(tree: _Tree, pos: np.ndarray, ends: np.ndarray, limb: _Limb, kind: str, segment: list[str]) -> None:
     """Labels of one limb's subtree (pos, ends: one frame)."""
     upper_name, lower_name, end_name, below_name = (
-        ("thigh", "shank", "foot", "toe") if kind == "leg" else ("upper_arm", "forearm", "hand", "finger"))
+        ("thigh", "shank", "foot", "toe") if kind == "leg" else ("upper_arm", "forearm", "hand", "finger")
+    )
     member = limb.chain[0]
     for k in tree.subtree(member):
         segment[k] = "detail"
@@ -712,7 +752,7 @@ def _label_limb(tree: _Tree, pos: np.ndarray, ends: np.ndarray, limb: _Limb, kin
                     continue
                 pts = np.concatenate([pos[list(tree.subtree(c))], ends[list(tree.subtree(c))]])
                 if length > 0:
-                    s = np.clip((pts - a) @ seg / length ** 2, 0.0, 1.0)
+                    s = np.clip((pts - a) @ seg / length**2, 0.0, 1.0)
                     dist = np.linalg.norm(pts - (a + s[:, None] * seg), axis=1)
                     along = bool(dist.max() <= 0.1 * length)
                 else:

@@ -19,8 +19,13 @@ def default_clip_path() -> pathlib.Path:
     return pathlib.Path(str(importlib.resources.files("neuromotor") / "data" / DEFAULT_CLIP_NAME))
 
 
-def load_character(path=None, units="auto", up_axis: int | None = None, stature: float | None = None,
-                   options: MassModelOptions | None = None) -> tuple[Character, Trajectory]:
+def load_character(
+    path=None,
+    units="auto",
+    up_axis: int | None = None,
+    stature: float | None = None,
+    options: MassModelOptions | None = None,
+) -> tuple[Character, Trajectory]:
     """Read a clip, understand its skeleton (units, up axis, segments, a virtual root) and build
     the character and its mocap trajectory. ``up_axis`` None: found from the motion."""
     clip, anatomy, source = prepare_clip(path or default_clip_path(), units=units, stature=stature)

@@ -45,16 +45,39 @@ from neuromotor.rotations_np import euler_to_matrix
 # within 0.05 of de Leva's position (thigh 0.39, shank 0.44, upper arm 0.58, forearm 0.46).
 LIMB_SHAPE = {"thigh": (0.0, 0.55), "shank": (0.0, 0.70), "upper_arm": (0.12, 0.85), "forearm": (0.05, 0.67)}
 # Starting radius (of stature) of each kind of shape; the mass match rescales it.
-_START_RADIUS = {"thigh": 0.045, "shank": 0.03, "upper_arm": 0.025, "forearm": 0.02, "girdle": 0.03,
-                 "neck": 0.03, "finger": 0.006, "toe": 0.012, "face": 0.01, "detail": 0.01, "link": 0.015}
+_START_RADIUS = {
+    "thigh": 0.045,
+    "shank": 0.03,
+    "upper_arm": 0.025,
+    "forearm": 0.02,
+    "girdle": 0.03,
+    "neck": 0.03,
+    "finger": 0.006,
+    "toe": 0.012,
+    "face": 0.01,
+    "detail": 0.01,
+    "link": 0.015,
+}
 # Trunk cross-section (half-width, half-depth) of stature at levels along mid-hip -> neck base.
-TRUNK_PROFILE = ((-0.08, 0.075, 0.055), (0.0, 0.092, 0.062), (0.45, 0.080, 0.058),
-                 (0.85, 0.098, 0.066), (1.0, 0.075, 0.050))
+TRUNK_PROFILE = (
+    (-0.08, 0.075, 0.055),
+    (0.0, 0.092, 0.062),
+    (0.45, 0.080, 0.058),
+    (0.85, 0.098, 0.066),
+    (1.0, 0.075, 0.050),
+)
 # Where a detail or girdle body's mass is budgeted.
 _BUDGET = {"finger": "hand", "toe": "foot", "face": "head", "detail": "trunk"}
 # A segment the rig lacks hands its mass to this one.
-_FALLBACK = {"hand": "forearm", "forearm": "upper_arm", "upper_arm": "trunk", "foot": "shank",
-             "shank": "thigh", "thigh": "trunk", "head": "trunk"}
+_FALLBACK = {
+    "hand": "forearm",
+    "forearm": "upper_arm",
+    "upper_arm": "trunk",
+    "foot": "shank",
+    "shank": "thigh",
+    "thigh": "trunk",
+    "head": "trunk",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,11 +108,19 @@ def world_frames(clip: BvhClip, offsets: np.ndarray, frame: int | None) -> tuple
     row = None if frame is None else np.asarray(clip.motion[frame], dtype=np.float64)
     for k, joint in enumerate(clip.joints):
         cols = joint.rotation_columns
-        local = euler_to_matrix(np.deg2rad(row[list(cols)]), joint.rotation_order) if cols and row is not None \
+        local = (
+            euler_to_matrix(np.deg2rad(row[list(cols)]), joint.rotation_order)
+            if cols and row is not None
             else np.eye(3)
+        )
         if joint.parent < 0:
-            t = np.zeros(3) if row is None else \
-                row[list(joint.translation_columns)] if joint.translation_columns else joint.offset
+            t = (
+                np.zeros(3)
+                if row is None
+                else row[list(joint.translation_columns)]
+                if joint.translation_columns
+                else joint.offset
+            )
             pos[k], rot[k] = t, local
         else:
             p = joint.parent
@@ -199,8 +230,11 @@ class _Shaper:
         H = g.H
         seg = g.seg
         thighs = [k for k in range(g.n) if seg[k] == "thigh" and seg[g.clip.joints[k].parent] != "thigh"]
-        necks = [k for k in range(g.n) if seg[k] == "head" and (g.clip.joints[k].parent < 0
-                                                               or seg[g.clip.joints[k].parent] != "head")]
+        necks = [
+            k
+            for k in range(g.n)
+            if seg[k] == "head" and (g.clip.joints[k].parent < 0 or seg[g.clip.joints[k].parent] != "head")
+        ]
         self.trunk_ok = len(thighs) >= 1 and len(necks) >= 1
         if self.trunk_ok:
             self.midhip = g.pos[thighs].mean(0)
@@ -210,9 +244,15 @@ class _Shaper:
             self.axis = _unit(span, g.up)
             self.lat = _perp(g.left, self.axis, g.forward)
             self.fwd = np.cross(self.lat, self.axis)
-            self.pelvis = min((k for k in range(g.n) if seg[k] == "trunk" and is_body[k]
-                               and all(t in g.descendants(k) for t in thighs)),
-                              key=lambda k: -len(self._ancestors(k)), default=None)
+            self.pelvis = min(
+                (
+                    k
+                    for k in range(g.n)
+                    if seg[k] == "trunk" and is_body[k] and all(t in g.descendants(k) for t in thighs)
+                ),
+                key=lambda k: -len(self._ancestors(k)),
+                default=None,
+            )
 
     def _ancestors(self, k):
         out = []
@@ -232,8 +272,7 @@ class _Shaper:
 
     def _trunk_points(self, k, c):
         g = self.g
-        ends = [g.pos[c_] for c_ in g.children[k]
-                if g.seg[c_] in ("trunk", "head") and not _is_girdle(g, c_)]
+        ends = [g.pos[c_] for c_ in g.children[k] if g.seg[c_] in ("trunk", "head") and not _is_girdle(g, c_)]
         pts = [g.pos[k]] + ends
         rings = []
         for p in pts:
@@ -310,8 +349,9 @@ class _Shaper:
         if any(self.is_body[j] for j in g.children[k]):
             length *= 0.5  # fingers simulated as bodies of their own: the palm only
         stations = ((0.0, 0.022, 0.013), (0.4, 0.026, 0.012), (1.0, 0.018, 0.006))
-        rings = [poly.ellipse_ring(g.pos[k] + f * length * d, w, t, a * H * c, b * H * c, self.sides)
-                 for f, a, b in stations]
+        rings = [
+            poly.ellipse_ring(g.pos[k] + f * length * d, w, t, a * H * c, b * H * c, self.sides) for f, a, b in stations
+        ]
         return g.to_body(k, np.concatenate(rings))
 
     def _foot(self, k, c):
@@ -354,8 +394,12 @@ class _Shaper:
         lat = _perp(g.left, d, g.forward)
         fwd = np.cross(lat, d)
         rings = []
-        for s, hw, hd, ahead in ((-0.1, 0.030, 0.035, 0.0), (0.35, 0.044, 0.052, 0.012),
-                                 (0.7, 0.042, 0.050, 0.012), (1.0, 0.020, 0.025, 0.006)):
+        for s, hw, hd, ahead in (
+            (-0.1, 0.030, 0.035, 0.0),
+            (0.35, 0.044, 0.052, 0.012),
+            (0.7, 0.042, 0.050, 0.012),
+            (1.0, 0.020, 0.025, 0.006),
+        ):
             centre = g.pos[k] + s * length * d + ahead * H * fwd
             rings.append(poly.ellipse_ring(centre, lat, fwd, hw * H * c, hd * H * c, self.sides))
         return g.to_body(k, np.concatenate(rings))
@@ -384,8 +428,7 @@ def _is_body(clip: BvhClip, g: _Geometry, simulate_extremities: bool) -> list[bo
         if e is not None:
             tip_len = max(tip_len, float(np.linalg.norm(e - g.pos[k])))
         skull = g.seg[k] == "head" and not any(g.seg[c_] == "head" for c_ in g.children[k])
-        is_body[k] = (tip_len >= 0.01 * H or g.seg[k] in always or skull
-                      or any(is_body[c_] for c_ in g.children[k]))
+        is_body[k] = tip_len >= 0.01 * H or g.seg[k] in always or skull or any(is_body[c_] for c_ in g.children[k])
     if not is_body[0]:
         raise UserError(f"{clip.path}: the root joint {clip.joints[0].name!r} carries no body")
     return is_body
@@ -397,7 +440,7 @@ def _mass_targets(groups: dict[tuple[str, str], list[int]], sex: str, total: flo
     fractions = deleva.mass_fractions(sex)
     target: dict[tuple[str, str], float] = {}
     for seg, frac in fractions.items():
-        for side in (("left", "right") if seg not in ("trunk", "head") else ("",)):
+        for side in ("left", "right") if seg not in ("trunk", "head") else ("",):
             share = frac * total
             key = (seg, side)
             while key not in groups:  # the rig lacks this segment: its parent segment carries it
@@ -430,15 +473,23 @@ def _fit_shapes(groups, target, shaper: _Shaper, density: float) -> tuple[dict, 
             ratio = target[key] / m
             if abs(ratio - 1.0) < 1e-10:
                 break
-            c *= ratio ** 0.5
+            c *= ratio**0.5
         shape_of.update(hulls)
         props.update(got)
     return shape_of, props
 
 
-def plan_bodies(clip: BvhClip, anatomy: Anatomy, offsets: np.ndarray, *, body_mass: float | None = None,
-                sex: str = "average", density: float = 1000.0, simulate_extremities: bool = False,
-                sides: int = 10) -> BodyPlan:
+def plan_bodies(
+    clip: BvhClip,
+    anatomy: Anatomy,
+    offsets: np.ndarray,
+    *,
+    body_mass: float | None = None,
+    sex: str = "average",
+    density: float = 1000.0,
+    simulate_extremities: bool = False,
+    sides: int = 10,
+) -> BodyPlan:
     """Bodies, shapes and mass properties of a clip whose joints ``anatomy`` has labelled."""
     g = _Geometry(clip, anatomy, offsets)
     n, H = g.n, g.H
@@ -457,8 +508,9 @@ def plan_bodies(clip: BvhClip, anatomy: Anatomy, offsets: np.ndarray, *, body_ma
     joint_body = [-1] * n
     for b, k in enumerate(body_joint):
         joint_body[k] = b
-    seg_mass = {f"{s}{'_' + side if side else ''}": float(sum(props[k][0] for k in groups[(s, side)]))
-                for (s, side) in groups}
+    seg_mass = {
+        f"{s}{'_' + side if side else ''}": float(sum(props[k][0] for k in groups[(s, side)])) for (s, side) in groups
+    }
     return BodyPlan(
         joint_body=tuple(joint_body),
         body_joint=body_joint,
@@ -514,23 +566,27 @@ def _tree_span(clip: BvhClip, offsets, children) -> float:
     return best
 
 
-def plan_generic(clip: BvhClip, offsets: np.ndarray, density: float = 1000.0,
-                 rule: GenericShapes = GenericShapes()) -> BodyPlan:
+def plan_generic(
+    clip: BvhClip, offsets: np.ndarray, density: float = 1000.0, rule: GenericShapes = GenericShapes()
+) -> BodyPlan:
     """Bodies of a non-humanoid skeleton by :class:`GenericShapes` at the given density."""
     joints, n = clip.joints, len(clip.joints)
     children: list[list[int]] = [[] for _ in range(n)]
     for k, j in enumerate(joints):
         if j.parent >= 0:
             children[j.parent].append(k)
-    bones = [[offsets[c] for c in children[k]] + ([np.asarray(joints[k].end_site)] if joints[k].end_site is not None
-                                                  else []) for k in range(n)]
+    bones = [
+        [offsets[c] for c in children[k]] + ([np.asarray(joints[k].end_site)] if joints[k].end_site is not None else [])
+        for k in range(n)
+    ]
     bone_len = [max((float(np.linalg.norm(e)) for e in bones[k]), default=0.0) for k in range(n)]
     has_body = [False] * n
     for k in reversed(range(n)):
         has_body[k] = bone_len[k] >= rule.min_bone_length or any(has_body[c] for c in children[k])
     if not has_body[0]:
-        raise UserError(f"{clip.path}: the skeleton has no bone longer than {rule.min_bone_length} m; "
-                         "nothing to simulate")
+        raise UserError(
+            f"{clip.path}: the skeleton has no bone longer than {rule.min_bone_length} m; nothing to simulate"
+        )
     leaves = _leaf_counts(children, [j.end_site is not None for j in joints])
     span = _tree_span(clip, offsets, children)
     body_joint = tuple(k for k in range(n) if has_body[k])
@@ -550,6 +606,14 @@ def plan_generic(clip: BvhClip, offsets: np.ndarray, density: float = 1000.0,
     for b, k in enumerate(body_joint):
         joint_body[k] = b
     mass = np.array([p[0] for p in props])
-    return BodyPlan(tuple(joint_body), body_joint, tuple(shapes), mass, np.stack([p[1] for p in props]),
-                    np.stack([p[2] for p in props]), tuple("trunk" for _ in body_joint), float(mass.sum()),
-                    {"trunk": float(mass.sum())})
+    return BodyPlan(
+        tuple(joint_body),
+        body_joint,
+        tuple(shapes),
+        mass,
+        np.stack([p[1] for p in props]),
+        np.stack([p[2] for p in props]),
+        tuple("trunk" for _ in body_joint),
+        float(mass.sum()),
+        {"trunk": float(mass.sum())},
+    )

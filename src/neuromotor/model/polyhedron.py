@@ -94,9 +94,7 @@ def convex_hull(points) -> Polyhedron:
     if not np.all(np.isfinite(pts)):
         raise ValueError("convex_hull: points must be finite (got NaN or inf)")
     if len(pts) < 4:
-        raise ValueError(
-            f"convex_hull: degenerate input, need at least 4 non-coplanar points, got {len(pts)}"
-        )
+        raise ValueError(f"convex_hull: degenerate input, need at least 4 non-coplanar points, got {len(pts)}")
     extent = float(np.max(pts.max(0) - pts.min(0)))
     try:
         hull = ConvexHull(pts)
@@ -226,12 +224,18 @@ def box(half_extents) -> Polyhedron:
     signs = np.array([[(k >> i & 1) * 2 - 1 for i in range(3)] for k in range(8)], np.float64)
     faces = np.array(
         [
-            [0, 2, 3], [0, 3, 1],  # z = -h  (normal -z)
-            [4, 5, 7], [4, 7, 6],  # z = +h  (normal +z)
-            [0, 1, 5], [0, 5, 4],  # y = -h  (normal -y)
-            [2, 6, 7], [2, 7, 3],  # y = +h  (normal +y)
-            [0, 4, 6], [0, 6, 2],  # x = -h  (normal -x)
-            [1, 3, 7], [1, 7, 5],  # x = +h  (normal +x)
+            [0, 2, 3],
+            [0, 3, 1],  # z = -h  (normal -z)
+            [4, 5, 7],
+            [4, 7, 6],  # z = +h  (normal +z)
+            [0, 1, 5],
+            [0, 5, 4],  # y = -h  (normal -y)
+            [2, 6, 7],
+            [2, 7, 3],  # y = +h  (normal +y)
+            [0, 4, 6],
+            [0, 6, 2],  # x = -h  (normal -x)
+            [1, 3, 7],
+            [1, 7, 5],  # x = +h  (normal +x)
         ],
         dtype=np.int64,
     )
@@ -243,5 +247,8 @@ def ellipse_ring(center, u, v, a: float, b: float, sides: int = 10) -> np.ndarra
     (``u``, ``v`` orthonormal). Convex hulls of such rings make the tapered and flattened body
     shapes of :mod:`neuromotor.model.massmodel`."""
     angle = 2.0 * np.pi * np.arange(int(sides)) / int(sides)
-    return (np.asarray(center, np.float64) + a * np.cos(angle)[:, None] * np.asarray(u, np.float64)
-            + b * np.sin(angle)[:, None] * np.asarray(v, np.float64))
+    return (
+        np.asarray(center, np.float64)
+        + a * np.cos(angle)[:, None] * np.asarray(u, np.float64)
+        + b * np.sin(angle)[:, None] * np.asarray(v, np.float64)
+    )

@@ -153,9 +153,16 @@ def _plan(clip: BvhClip, anatomy: Anatomy, offsets: np.ndarray, options: MassMod
     """Which joints are bodies and their shapes and masses: the anthropometric model for a
     person, generic shapes otherwise."""
     if anatomy.humanoid:
-        return plan_bodies(clip, anatomy, offsets, body_mass=options.body_mass, sex=options.sex,
-                           density=options.density, simulate_extremities=options.simulate_extremities,
-                           sides=options.sides)
+        return plan_bodies(
+            clip,
+            anatomy,
+            offsets,
+            body_mass=options.body_mass,
+            sex=options.sex,
+            density=options.density,
+            simulate_extremities=options.simulate_extremities,
+            sides=options.sides,
+        )
     return plan_generic(clip, offsets, options.density)
 
 
@@ -210,12 +217,16 @@ def _check_channels(clip: BvhClip, joint_body: list[int]) -> None:
     """The root needs 6 channels (driven along the mocap); every body joint three rotations."""
     joints = clip.joints
     if joints[0].rotation_order == "" or len(joints[0].translation_columns) == 0:
-        raise UserError(f"{clip.path}: root joint {joints[0].name!r} needs 3 position and 3 "
-                         "rotation channels to be driven along the mocap path")
+        raise UserError(
+            f"{clip.path}: root joint {joints[0].name!r} needs 3 position and 3 "
+            "rotation channels to be driven along the mocap path"
+        )
     for k, j in enumerate(joints):
         if j.parent >= 0 and joint_body[k] >= 0 and j.rotation_order == "":
-            raise UserError(f"{clip.path}:{j.line}: joint {j.name!r} carries a body but has no "
-                             "rotation channels; ball joints need three")
+            raise UserError(
+                f"{clip.path}:{j.line}: joint {j.name!r} carries a body but has no "
+                "rotation channels; ball joints need three"
+            )
 
 
 def _gravity(anatomy: Anatomy, up_axis: int | None, gravity) -> np.ndarray:
@@ -276,14 +287,22 @@ def build_character(
         gravity=jnp.asarray(_gravity(anatomy, up_axis, gravity)),
     )
     warnings = tuple(getattr(clip, "warnings", ())) + tuple(anatomy.warnings)
-    return Character(model=model, clip=clip, shapes=plan.shapes, radii=radii, options=options,
-                     anatomy=anatomy, body_segment=plan.body_segment, source_clip=source_clip,
-                     warnings=warnings)
+    return Character(
+        model=model,
+        clip=clip,
+        shapes=plan.shapes,
+        radii=radii,
+        options=options,
+        anatomy=anatomy,
+        body_segment=plan.body_segment,
+        source_clip=source_clip,
+        warnings=warnings,
+    )
 
 
 BODY_KEYWORDS = ("pelvis", "chest", "head") + tuple(
-    f"{side}_{seg}" for side in ("left", "right")
-    for seg in ("upper_arm", "forearm", "hand", "thigh", "shank", "foot"))
+    f"{side}_{seg}" for side in ("left", "right") for seg in ("upper_arm", "forearm", "hand", "thigh", "shank", "foot")
+)
 
 
 def keyword_body(character: Character, keyword: str) -> int | None:
@@ -314,6 +333,5 @@ def keyword_body(character: Character, keyword: str) -> int | None:
         heads = [k for k in range(len(seg)) if seg[k] == "head" and model.joint_body[k] >= 0]
         return model.joint_body[heads[-1]] if heads else None
     side, segment = keyword.split("_", 1)
-    found = [k for k in range(len(seg)) if seg[k] == segment and anat.side[k] == side
-             and model.joint_body[k] >= 0]
+    found = [k for k in range(len(seg)) if seg[k] == segment and anat.side[k] == side and model.joint_body[k] >= 0]
     return model.joint_body[found[0]] if found else None

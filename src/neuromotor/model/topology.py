@@ -131,11 +131,16 @@ def _body_tree(body_parent, dof_body, body_orders) -> dict:
     groups = _grouped(body_orders[1:], range(1, n))
     depth = _depths(body_parent)
     return dict(
-        joint_dofs=joint_dofs, child=np.arange(1, n), parent=np.array(body_parent[1:], dtype=np.int64),
+        joint_dofs=joint_dofs,
+        child=np.arange(1, n),
+        parent=np.array(body_parent[1:], dtype=np.int64),
         parent0=np.array([max(p, 0) for p in body_parent], dtype=np.int64),
-        groups=tuple((o, np.array(bs), np.array(bs) - 1) for o, bs in groups.items()), depth=depth,
+        groups=tuple((o, np.array(bs), np.array(bs) - 1) for o, bs in groups.items()),
+        depth=depth,
         contiguous=bool(np.array_equal(joint_dofs.reshape(-1), np.arange(len(dof_body)))),
-        anc=_ancestors(body_parent), levels=_levels(body_parent, depth))
+        anc=_ancestors(body_parent),
+        levels=_levels(body_parent, depth),
+    )
 
 
 def _joint_tree(joint_parent, joint_order) -> dict:
@@ -146,19 +151,35 @@ def _joint_tree(joint_parent, joint_order) -> dict:
     cols = _dof_columns(joint_parent, joint_order)
     moving = [k for k in range(n) if joint_parent[k] >= 0 and joint_order[k]]
     groups = _grouped([joint_order[k] for k in moving], moving)
-    euler = tuple((order, np.array(ks), np.array([cols[k] for k in ks], dtype=np.int64))
-                  for order, ks in groups.items())
-    return dict(rotating=np.array(rotating, dtype=np.int64), local_row=local_row, joint_depth=_depths(joint_parent),
-                all_rotate=len(rotating) == n, euler=euler, n_all=sum(len(c) for c in cols), dof_columns=cols)
+    euler = tuple(
+        (order, np.array(ks), np.array([cols[k] for k in ks], dtype=np.int64)) for order, ks in groups.items()
+    )
+    return dict(
+        rotating=np.array(rotating, dtype=np.int64),
+        local_row=local_row,
+        joint_depth=_depths(joint_parent),
+        all_rotate=len(rotating) == n,
+        euler=euler,
+        n_all=sum(len(c) for c in cols),
+        dof_columns=cols,
+    )
 
 
 @functools.lru_cache(maxsize=64)
-def build(body_parent: tuple[int, ...], dof_body: tuple[int, ...], body_orders: tuple[str, ...],
-          joint_parent: tuple[int, ...], joint_order: tuple[str, ...]) -> Topology:
+def build(
+    body_parent: tuple[int, ...],
+    dof_body: tuple[int, ...],
+    body_orders: tuple[str, ...],
+    joint_parent: tuple[int, ...],
+    joint_order: tuple[str, ...],
+) -> Topology:
     """The :class:`Topology` of these static tuples (cached: one object per skeleton shape)."""
-    return Topology(body_parent=tuple(body_parent), dof_body=tuple(dof_body),
-                    **_body_tree(body_parent, dof_body, body_orders),
-                    **_joint_tree(joint_parent, joint_order))
+    return Topology(
+        body_parent=tuple(body_parent),
+        dof_body=tuple(dof_body),
+        **_body_tree(body_parent, dof_body, body_orders),
+        **_joint_tree(joint_parent, joint_order),
+    )
 
 
 def of(model) -> Topology:

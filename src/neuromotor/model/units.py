@@ -15,8 +15,15 @@ from neuromotor.errors import UserError
 __all__ = ["UNIT_SCALES", "resolve_units", "auto_scale", "check_stature", "choose_units"]
 
 # Metres per file unit. "cmu" is the CMU database's own unit, 1/0.45 inch.
-UNIT_SCALES: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "cmu": 0.0254 / 0.45,
-                                 "ft": 0.3048, "dm": 0.1}
+UNIT_SCALES: dict[str, float] = {
+    "m": 1.0,
+    "cm": 0.01,
+    "mm": 0.001,
+    "in": 0.0254,
+    "cmu": 0.0254 / 0.45,
+    "ft": 0.3048,
+    "dm": 0.1,
+}
 _AUTO_UNITS: tuple[float, ...] = (1.0, 0.01, 0.001)  # m, cm, mm, in this order (ties -> larger unit)
 _AUTO_TARGET_SIZE_M = 1.8
 
@@ -37,8 +44,10 @@ def resolve_units(units: str | float) -> float | None:
         value = float(units)
         if math.isfinite(value) and value > 0:
             return value
-    raise UserError(f"units must be 'auto', one of {', '.join(UNIT_SCALES)} or a positive number of "
-                    f"metres per file unit, got {units!r}")
+    raise UserError(
+        f"units must be 'auto', one of {', '.join(UNIT_SCALES)} or a positive number of "
+        f"metres per file unit, got {units!r}"
+    )
 
 
 def auto_scale(points: np.ndarray) -> float:
@@ -59,8 +68,9 @@ def check_stature(stature: float | None) -> float | None:
     return stature
 
 
-def choose_units(height_raw: float, fixed: float | None, stature: float | None,
-                 warnings: list[str]) -> tuple[float, str, float]:
+def choose_units(
+    height_raw: float, fixed: float | None, stature: float | None, warnings: list[str]
+) -> tuple[float, str, float]:
     """(metres per file unit, units name, stature in metres) of a body ``height_raw`` file units
     tall: the ``fixed`` scale, else the given ``stature``, else the unit of :data:`UNIT_SCALES`
     giving the most typical adult, else scaled to 1.75 m with a warning."""
@@ -79,7 +89,9 @@ def choose_units(height_raw: float, fixed: float | None, stature: float | None,
     if best is not None:
         return best[2], best[1], height_raw * best[2]
     scale = _FALLBACK_M / height_raw
-    warnings.append(f"no unit among {', '.join(UNIT_SCALES)} gives a plausible stature "
-                    f"({_PLAUSIBLE_M[0]}-{_PLAUSIBLE_M[1]} m) for a body {height_raw:.4g} file units tall: "
-                    f"scaled to {_FALLBACK_M} m ({scale:.4g} m per file unit)")
+    warnings.append(
+        f"no unit among {', '.join(UNIT_SCALES)} gives a plausible stature "
+        f"({_PLAUSIBLE_M[0]}-{_PLAUSIBLE_M[1]} m) for a body {height_raw:.4g} file units tall: "
+        f"scaled to {_FALLBACK_M} m ({scale:.4g} m per file unit)"
+    )
     return scale, "scaled", _FALLBACK_M

@@ -39,10 +39,11 @@ def constraint_count(model: Model, driven: tuple[int, ...], free_root: bool) -> 
     return model.n_constraints - (6 if free_root else 0) + 3 * len(driven)
 
 
-def full_constraint_error(model: Model, driven: tuple[int, ...], pos, rot, targets: PoseTargets,
-                          free_root: bool = False) -> Float[Array, " nc"]:
+def full_constraint_error(
+    model: Model, driven: tuple[int, ...], pos, rot, targets: PoseTargets, free_root: bool = False
+) -> Float[Array, " nc"]:
     """C(x) over the rows of :func:`~neuromotor.physics.system.full_constraints`."""
-    err = constraint_error(model, pos, rot, targets.root_origin, targets.root_rot)[6 if free_root else 0:]
+    err = constraint_error(model, pos, rot, targets.root_origin, targets.root_rot)[6 if free_root else 0 :]
     if not driven:
         return err
     drv = jnp.array(driven)
@@ -52,11 +53,12 @@ def full_constraint_error(model: Model, driven: tuple[int, ...], pos, rot, targe
     return jnp.concatenate([err, extra])
 
 
-def constraint_velocity(model: Model, driven: tuple[int, ...], rot, root_vel, root_omega, rel_omega,
-                        free_root: bool = False) -> Float[Array, " nc"]:
+def constraint_velocity(
+    model: Model, driven: tuple[int, ...], rot, root_vel, root_omega, rel_omega, free_root: bool = False
+) -> Float[Array, " nc"]:
     """b of Eq. 2: driven root origin velocity and angular velocity, driven joints' rates."""
     b = jnp.zeros(model.n_constraints, rot.dtype)
-    b = b.at[0:3].set(root_vel).at[3:6].set(root_omega)[6 if free_root else 0:]
+    b = b.at[0:3].set(root_vel).at[3:6].set(root_omega)[6 if free_root else 0 :]
     if not driven:
         return b
     par = jnp.array([model.body_parent[bb] for bb in driven])

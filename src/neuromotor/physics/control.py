@@ -104,7 +104,8 @@ def distal_inertia(model: Model, q0: Float[Array, " Q"], local_axes: Float[Array
     r = pos[None, :, :] - origin[:, None, :]  # (b, c, 3): body c's COM from joint b
     eye = jnp.eye(3, dtype=q0.dtype)
     steiner = model.mass[None, :, None, None] * (
-        jnp.sum(r * r, -1)[..., None, None] * eye - r[..., :, None] * r[..., None, :])
+        jnp.sum(r * r, -1)[..., None, None] * eye - r[..., :, None] * r[..., None, :]
+    )
     total = jnp.einsum("bc,bcij->bij", in_sub, iw[None] + steiner)
     per_body = total[np.array(model.dof_body)]
     return jnp.einsum("ni,nij,nj->n", axes, per_body, axes)
@@ -130,8 +131,9 @@ def make_gains(
     per_dof = distal_inertia(model, q0, local_axes)
     # One value per joint: the mean over its three axes (a third of the trace for the rotation
     # law's orthonormal axes: the same for every Euler order).
-    inertia = per_joint_to_dofs(model, jnp.repeat(jnp.mean(dofs_to_per_joint(model, per_dof), -1, keepdims=True),
-                                                  3, -1))
+    inertia = per_joint_to_dofs(
+        model, jnp.repeat(jnp.mean(dofs_to_per_joint(model, per_dof), -1, keepdims=True), 3, -1)
+    )
     rms = jnp.sqrt(jnp.mean(activation**2, axis=0))
     # A DOF that carries no load at all still gets feedback at a tiny reference torque.
     rms = jnp.maximum(rms, 1e-6 * jnp.max(rms))
@@ -147,8 +149,7 @@ def pd_tracking_gains(gains: Gains) -> Gains:
     torque of DOF i is ``ks I_j (theta_d - theta) + kd I_j (thetadot_d - thetadot)``.
     """
     zero = jnp.zeros_like(gains.ks)
-    return dataclasses.replace(gains, floor=gains.reference_torque, feedforward=zero,
-                               signal_dependence=zero)
+    return dataclasses.replace(gains, floor=gains.reference_torque, feedforward=zero, signal_dependence=zero)
 
 
 def joint_torque_magnitude(model: Model, axes: Float[Array, "T n 3"], tau: Float[Array, "T n"]) -> Float[Array, "T n"]:
@@ -183,8 +184,9 @@ def feedback_multipliers(
     return out if active is None else out * active
 
 
-def rate_feedback_gains(gains: Gains, activation: Float[Array, " n"],
-                        active: Float[Array, " n"] | None = None) -> Float[Array, " n"]:
+def rate_feedback_gains(
+    gains: Gains, activation: Float[Array, " n"], active: Float[Array, " n"] | None = None
+) -> Float[Array, " n"]:
     """d(multiplier_i) / d(rate error_i): the multipliers of :func:`feedback_multipliers` are
     linear in the rate error, with this slope per DOF. The damping block D of Eq. 2 is built
     from it in closed form instead of by a tangent through the controller."""
@@ -203,8 +205,16 @@ def reflex_torque(gains: Gains, history, h: float, axes, inp: ControllerInputs):
     joint and DOF (N m along h_i)."""
     g = inp.gains(gains)
     assert gains.reflex is not None  # called for gains with a reflex
-    r = reflex_multipliers(gains.reflex, history, h, _feedback_magnitude(g, inp.activation), inp.scale, inp.tau,
-                           inp.reference_torque, inp.active)
+    r = reflex_multipliers(
+        gains.reflex,
+        history,
+        h,
+        _feedback_magnitude(g, inp.activation),
+        inp.scale,
+        inp.tau,
+        inp.reference_torque,
+        inp.active,
+    )
     return mv(axes, r), r
 
 
@@ -245,15 +255,38 @@ class ControllerInputs(eqx.Module):
         return dataclasses.replace(gains, scale=self.scale, floor=self.floor, reference_torque=self.reference_torque)
 
 
-def controller_inputs(model: Model, gains: Gains, active: Float[Array, " n"], tau, activation, theta_d,
-                      rel_rot: Float[Array, "B 3 3"], rel_omega: Float[Array, "B 3"], local_axes, rel_quat,
-                      local_pinv=None, drift=None) -> ControllerInputs:
+def controller_inputs(
+    model: Model,
+    gains: Gains,
+    active: Float[Array, " n"],
+    tau,
+    activation,
+    theta_d,
+    rel_rot: Float[Array, "B 3 3"],
+    rel_omega: Float[Array, "B 3"],
+    local_axes,
+    rel_quat,
+    local_pinv=None,
+    drift=None,
+) -> ControllerInputs:
     """Per-DOF (n) and per-body (B) values of one grid step regrouped per joint."""
     per = lambda x: dofs_to_per_joint(model, x)
     c = model.topology.child
-    return ControllerInputs(per(tau), per(activation), per(theta_d), rel_rot[c], rel_omega[c], local_axes,
-                            rel_quat, per(gains.scale), per(gains.floor), per(gains.reference_torque), per(active),
-                            local_pinv, drift)
+    return ControllerInputs(
+        per(tau),
+        per(activation),
+        per(theta_d),
+        rel_rot[c],
+        rel_omega[c],
+        local_axes,
+        rel_quat,
+        per(gains.scale),
+        per(gains.floor),
+        per(gains.reference_torque),
+        per(active),
+        local_pinv,
+        drift,
+    )
 
 
 def damped_pinv(la: Float[Array, "... 3 3"], mu: float = DAMPING) -> Float[Array, "... 3 3"]:
@@ -325,8 +358,11 @@ def joint_affine(gains: Gains, inp: ControllerInputs) -> JointAffine:
     la, p_local = inp.local_axes, inp.pinv()
     stiff = _feedback_magnitude(g, inp.activation) * g.per_dof()[0] * inp.active  # d multiplier / d angle error
     weighted = lambda s: mm(la * s[..., None, :], p_local)
-    return JointAffine(mv(la, g.feedforward * inp.tau * inp.active), weighted(stiff),
-                       weighted(rate_feedback_gains(g, inp.activation, inp.active)))
+    return JointAffine(
+        mv(la, g.feedforward * inp.tau * inp.active),
+        weighted(stiff),
+        weighted(rate_feedback_gains(g, inp.activation, inp.active)),
+    )
 
 
 def affine_torque(aff: JointAffine, q_p, q_c, w_p, w_c, inp: ControllerInputs):

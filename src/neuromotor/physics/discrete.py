@@ -107,8 +107,16 @@ def landing_velocity(model: Model, cfg, p0, q0, p1, q1, targets: PoseTargets):
     return velocity(w), err, it
 
 
-def step_feedforward(model: Model, cfg, local_axes: Float[Array, "C 3 3"], active: Float[Array, "C 3"], pos, quat,
-                     u0: Float[Array, "B 6"], u1: Float[Array, "B 6"]):
+def step_feedforward(
+    model: Model,
+    cfg,
+    local_axes: Float[Array, "C 3 3"],
+    active: Float[Array, "C 3"],
+    pos,
+    quat,
+    u0: Float[Array, "B 6"],
+    u1: Float[Array, "B 6"],
+):
     """``(tau, lam, relative residual)`` of one step: the multipliers that make Eq. 2 at the
     pose (pos, quat) with velocity u0 give v+ = u1 (module docstring)."""
     h, topo = cfg.h, model.topology
@@ -140,8 +148,9 @@ def _landing_block(model: Model, cfg, p0, q0, p1, q1, targets: PoseTargets):
     return jax.lax.map(lambda x: landing_velocity(model, cfg, *x), (p0, q0, p1, q1, targets))
 
 
-def landing_velocities(model: Model, cfg, pos: Float[Array, "S1 B 3"], quat: Float[Array, "S1 B 4"],
-                       targets: PoseTargets):
+def landing_velocities(
+    model: Model, cfg, pos: Float[Array, "S1 B 3"], quat: Float[Array, "S1 B 4"], targets: PoseTargets
+):
     """:func:`landing_velocity` of every step of the grid: ``(u (S, B, 6), rotation left (S,),
     rounds (S,))``. Run in blocks of :data:`LANDING_BLOCK` steps by one program compiled for the
     skeleton and the step's options but not the window's length (the last block padded with
@@ -149,17 +158,32 @@ def landing_velocities(model: Model, cfg, pos: Float[Array, "S1 B 3"], quat: Flo
     n = pos.shape[0] - 1
     key = dataclasses.replace(cfg, n_steps=0)  # the block's program does not depend on the window
     pad = (-n) % LANDING_BLOCK
-    grow = lambda a, lo, hi: jnp.concatenate([a[lo:hi], jnp.repeat(a[hi - 1:hi], pad, 0)], 0)
-    args = (grow(pos, 0, n), grow(quat, 0, n), grow(pos, 1, n + 1), grow(quat, 1, n + 1),
-            jax.tree_util.tree_map(lambda a: grow(a, 1, n + 1), targets))
-    parts = [_landing_block(model, key, *jax.tree_util.tree_map(lambda a: a[i:i + LANDING_BLOCK], args))
-             for i in range(0, n + pad, LANDING_BLOCK)]
+    grow = lambda a, lo, hi: jnp.concatenate([a[lo:hi], jnp.repeat(a[hi - 1 : hi], pad, 0)], 0)
+    args = (
+        grow(pos, 0, n),
+        grow(quat, 0, n),
+        grow(pos, 1, n + 1),
+        grow(quat, 1, n + 1),
+        jax.tree_util.tree_map(lambda a: grow(a, 1, n + 1), targets),
+    )
+    parts = [
+        _landing_block(model, key, *jax.tree_util.tree_map(lambda a: a[i : i + LANDING_BLOCK], args))
+        for i in range(0, n + pad, LANDING_BLOCK)
+    ]
     return tuple(jnp.concatenate(x, 0)[:n] for x in zip(*parts))
 
 
-def discrete_inverse_dynamics(model: Model, cfg, pos: Float[Array, "S1 B 3"], quat: Float[Array, "S1 B 4"],
-                              u_start: Float[Array, "B 6"], targets: PoseTargets, local_axes: Float[Array, "S1 C 3 3"],
-                              active: Float[Array, "C 3"], landed=None) -> DiscreteInverse:
+def discrete_inverse_dynamics(
+    model: Model,
+    cfg,
+    pos: Float[Array, "S1 B 3"],
+    quat: Float[Array, "S1 B 4"],
+    u_start: Float[Array, "B 6"],
+    targets: PoseTargets,
+    local_axes: Float[Array, "S1 C 3 3"],
+    active: Float[Array, "C 3"],
+    landed=None,
+) -> DiscreteInverse:
     """:class:`DiscreteInverse` of the capture's poses on the grid (``targets``: the pose targets
     of every grid time, as post-stabilization reads them; ``u_start``: the velocity at t_0;
     ``landed``: :func:`landing_velocities`' output if already computed, else computed here)."""
@@ -168,5 +192,6 @@ def discrete_inverse_dynamics(model: Model, cfg, pos: Float[Array, "S1 B 3"], qu
     u, landing, rounds = landing_velocities(model, cfg, pos, quat, targets) if landed is None else landed
     velocity = jnp.concatenate([u_start[None], u], 0)
     tau, lam, residual = jax.vmap(lambda la, p, q, a, b: step_feedforward(model, cfg, la, active, p, q, a, b))(
-        local_axes[:-1], pos[:-1], quat[:-1], velocity[:-1], velocity[1:])
+        local_axes[:-1], pos[:-1], quat[:-1], velocity[:-1], velocity[1:]
+    )
     return DiscreteInverse(velocity, tau, lam, residual, landing, rounds)

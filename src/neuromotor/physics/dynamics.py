@@ -223,8 +223,9 @@ def _make_reference(model: Model, traj: Trajectory, t0, cfg: StepOptions, landed
     else:
         active = dofs_to_per_joint(model, active_mask(model, cfg.driven, rot.dtype))
         targets = PoseTargets(root_origin, rot[:, 0], rel)
-        sol = discrete_inverse_dynamics(model, cfg, pos, quat, jnp.concatenate([vel[0], omega[0]], -1), targets,
-                                        local_axes, active, landed)
+        sol = discrete_inverse_dynamics(
+            model, cfg, pos, quat, jnp.concatenate([vel[0], omega[0]], -1), targets, local_axes, active, landed
+        )
         last = lambda a: jnp.concatenate([a, a[-1:]], 0)
         tau, residual, landing = last(sol.tau), last(sol.residual), last(sol.landing)
         u = stored = sol.velocity
@@ -244,8 +245,27 @@ def _make_reference(model: Model, traj: Trajectory, t0, cfg: StepOptions, landed
     activation = joint_torque_magnitude(model, jnp.moveaxis(axes_rows, 0, 1), tau)
     init = State(pos[0], quat[0], vel[0], omega[0])
     rel_quat = matrix_to_quat(rel[:, topo.child])
-    return Reference(times, tau, activation, theta, theta_dot, root_origin, rot[:, 0], root_vel, ref_omega[:, 0],
-                     rel, rel_w, init, local_axes, rel_quat, local_pinv, drive, residual, landing, stored)
+    return Reference(
+        times,
+        tau,
+        activation,
+        theta,
+        theta_dot,
+        root_origin,
+        rot[:, 0],
+        root_vel,
+        ref_omega[:, 0],
+        rel,
+        rel_w,
+        init,
+        local_axes,
+        rel_quat,
+        local_pinv,
+        drive,
+        residual,
+        landing,
+        stored,
+    )
 
 
 # ---------------------------------------------------------------- the step's three pytrees
@@ -298,8 +318,7 @@ class Data(eqx.Module):
 def init_data(sim: SimModel, params: Params) -> Data:
     """Data at t_0: the reference's initial state, zero diagnostics."""
     model, cfg, state = sim.model, sim.options, sim.ref.init
-    _, force, points = pulse_wrenches(params.pulses, sim.ref.time[0], model.n_bodies, state.pos, state.rot,
-                                      model.com)
+    _, force, points = pulse_wrenches(params.pulses, sim.ref.time[0], model.n_bodies, state.pos, state.rot, model.com)
     zero = jnp.zeros((), state.pos.dtype)
     lam = jnp.zeros(constraint_count(model, cfg.driven, cfg.free_root), state.pos.dtype)
     reflex = params.gains.reflex
@@ -328,13 +347,25 @@ def reference_inputs(sim: SimModel, gains: Gains, k) -> ControllerInputs:
     """Stage 1: what the controller reads from the mocap at grid step k, per joint."""
     ref, model = sim.ref, sim.model
     active = active_mask(model, sim.options.driven, ref.tau.dtype)
-    return controller_inputs(model, gains, active, ref.tau[k], ref.activation[k], ref.theta[k], ref.rel_rot[k],
-                             ref.rel_omega[k], ref.local_axes[k], ref.rel_quat[k], ref.local_pinv[k],
-                             ref.drift(model, k, sim.options.h))
+    return controller_inputs(
+        model,
+        gains,
+        active,
+        ref.tau[k],
+        ref.activation[k],
+        ref.theta[k],
+        ref.rel_rot[k],
+        ref.rel_omega[k],
+        ref.local_axes[k],
+        ref.rel_quat[k],
+        ref.local_pinv[k],
+        ref.drift(model, k, sim.options.h),
+    )
 
 
-def stiff_forces(sim: SimModel, gains: Gains, inputs: ControllerInputs, state: State,
-                 tree: bool, unrolled: bool = False) -> StiffBlocks | DenseStiffness:
+def stiff_forces(
+    sim: SimModel, gains: Gains, inputs: ControllerInputs, state: State, tree: bool, unrolled: bool = False
+) -> StiffBlocks | DenseStiffness:
     """Stage 2: the muscle torques (Eq. 4 and Section 5.2) and the gyroscopic term, with their
     K and D in the representation the solver takes (``unrolled``: the batched solver's form)."""
     model = sim.model
@@ -348,8 +379,7 @@ def stiff_forces(sim: SimModel, gains: Gains, inputs: ControllerInputs, state: S
 def applied_forces(sim: SimModel, pulses: ForcePulses, k, state: State):
     """Stage 3: gravity and the perturbation pulses, ``(forces (B, 6), per-body force, points)``."""
     model = sim.model
-    f_pert, per_body, points = pulse_wrenches(pulses, sim.ref.time[k], model.n_bodies, state.pos, state.rot,
-                                              model.com)
+    f_pert, per_body, points = pulse_wrenches(pulses, sim.ref.time[k], model.n_bodies, state.pos, state.rot, model.com)
     return (gravity_forces(model) + f_pert).reshape(-1, 6), per_body, points
 
 
@@ -361,8 +391,9 @@ def delayed_reflex(sim: SimModel, gains: Gains, inputs: ControllerInputs, state:
     rot, omega = state.rot, state.omega
     rot_p = rot[topo.parent]
     axes = mm(rot_p, inputs.local_axes)
-    angle, rate = joint_errors(rot_p, rot[topo.child], omega[topo.parent], omega[topo.child], inputs.pinv(),
-                               inputs.rel_rot, inputs.rel_omega)
+    angle, rate = joint_errors(
+        rot_p, rot[topo.child], omega[topo.parent], omega[topo.child], inputs.pinv(), inputs.rel_rot, inputs.rel_omega
+    )
     history = push(history, angle, rate)
     return *reflex_torque(gains, history, sim.options.h, axes, inputs), history
 
@@ -401,15 +432,23 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
         torque, reflex, history = delayed_reflex(sim, params.gains, inputs, state, data.history)
         applied = applied.at[:, 3:].add(body_torques(model, torque))
     inertia = world_inertia(model, rot)
-    r = momentum_rhs(model, cfg.h, state, inertia, applied + stiff.forces(),
-                     stiff.damping_times(model, state.v.reshape(model.n_bodies, 6)))
-    b = constraint_velocity(model, cfg.driven, rot, ref.root_vel[k + 1], ref.root_omega[k + 1],
-                            ref.drive_omega[k + 1], cfg.free_root)
+    r = momentum_rhs(
+        model,
+        cfg.h,
+        state,
+        inertia,
+        applied + stiff.forces(),
+        stiff.damping_times(model, state.v.reshape(model.n_bodies, 6)),
+    )
+    b = constraint_velocity(
+        model, cfg.driven, rot, ref.root_vel[k + 1], ref.root_omega[k + 1], ref.drive_omega[k + 1], cfg.free_root
+    )
     return Eq2(solver.assemble(model, cfg, rot, inertia, stiff, cfg.h), r, b, per_body, points, reflex, history)
 
 
-def integrate(sim: SimModel, solver: solvers.KKTSolver, k, state: State, dx: Float[Array, "B 6"],
-              v_new: Float[Array, "B 6"]) -> tuple[State, Float[Array, ""]]:
+def integrate(
+    sim: SimModel, solver: solvers.KKTSolver, k, state: State, dx: Float[Array, "B 6"], v_new: Float[Array, "B 6"]
+) -> tuple[State, Float[Array, ""]]:
     """Stages 7 and 8: positions move by dx (quaternions by the exponential map), then
     post-stabilization onto the targets of t_k+1. The new state (velocity ``v_new``) and the
     constraint violation left."""
@@ -427,8 +466,7 @@ def step(sim: SimModel, params: Params, data: Data) -> Data:
     v_new, aux = solver.solve(eq.system, eq.r, eq.b)  # stage 6
     lam, residual = solver.multipliers(eq.system, eq.r, eq.b, v_new, aux)
     new, violation = integrate(sim, solver, data.k, data.state, cfg.h * v_new, v_new)
-    return Data(data.k + 1, new, StepInfo(residual, violation, eq.force, eq.points, lam / cfg.h, eq.reflex),
-                eq.history)
+    return Data(data.k + 1, new, StepInfo(residual, violation, eq.force, eq.points, lam / cfg.h, eq.reflex), eq.history)
 
 
 # ---------------------------------------------------------------- rollout
@@ -453,8 +491,12 @@ class Rollout(eqx.Module):
 def badness(state: State, max_speed: float) -> Float[Array, " B"]:
     """Per body: the larger of its speed and spin over ``max_speed`` (> 1: diverged), inf where
     any of its state is not finite."""
-    finite = (jnp.all(jnp.isfinite(state.pos), -1) & jnp.all(jnp.isfinite(state.quat), -1)
-              & jnp.all(jnp.isfinite(state.vel), -1) & jnp.all(jnp.isfinite(state.omega), -1))
+    finite = (
+        jnp.all(jnp.isfinite(state.pos), -1)
+        & jnp.all(jnp.isfinite(state.quat), -1)
+        & jnp.all(jnp.isfinite(state.vel), -1)
+        & jnp.all(jnp.isfinite(state.omega), -1)
+    )
     speed = jnp.maximum(jnp.linalg.norm(state.vel, axis=-1), jnp.linalg.norm(state.omega, axis=-1))
     score = jnp.where(finite, speed / max_speed, jnp.inf)
     return score
@@ -527,10 +569,19 @@ def rollout_of(sim: SimModel, data0, out, bad_step, bad_body) -> Rollout:
     # Joint angles and rates of all states at once after the scan: the per-step loop keeps
     # only the dynamics, and the observation runs as a few wide vectorized ops.
     theta, theta_dot = jax.vmap(lambda st, k: observe(model, st, ref, k))(states, jnp.arange(n_steps + 1))
-    return Rollout(ref.time[: n_steps + 1], states, theta, theta_dot, out.info.residual, out.info.violation,
-                   stack(data0.info.force, out.info.force), stack(data0.info.points, out.info.points),
-                   bad_step, bad_body,
-                   None if out.info.reflex is None else stack(data0.info.reflex, out.info.reflex))
+    return Rollout(
+        ref.time[: n_steps + 1],
+        states,
+        theta,
+        theta_dot,
+        out.info.residual,
+        out.info.violation,
+        stack(data0.info.force, out.info.force),
+        stack(data0.info.points, out.info.points),
+        bad_step,
+        bad_body,
+        None if out.info.reflex is None else stack(data0.info.reflex, out.info.reflex),
+    )
 
 
 def simulate(sim: SimModel, params: Params) -> Rollout:

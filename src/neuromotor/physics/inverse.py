@@ -72,13 +72,13 @@ def _eq3_layout(topo: Topology) -> np.ndarray:
     index[0:6, 0:6] = block(0, 6, 6)  # driven root: J_root^T on body 0
     for c in range(n_bodies - 1):
         child, parent, col = c + 1, body_parent[c + 1], 6 + 3 * c
-        index[6 * parent:6 * parent + 6, col:col + 3] = block(36 + 36 * c, 6, 3)
-        index[6 * child:6 * child + 6, col:col + 3] = block(36 + 36 * c + 18, 6, 3)
+        index[6 * parent : 6 * parent + 6, col : col + 3] = block(36 + 36 * c, 6, 3)
+        index[6 * child : 6 * child + 6, col : col + 3] = block(36 + 36 * c + 18, 6, 3)
     start = 36 + 36 * (n_bodies - 1)
     for i, child in enumerate(dof_body):  # +h_i on the child's torque rows, -h_i on the parent's
         parent = body_parent[child]
-        index[6 * child + 3:6 * child + 6, nc + i] = start + 6 * i + np.arange(3)
-        index[6 * parent + 3:6 * parent + 6, nc + i] = start + 6 * i + 3 + np.arange(3)
+        index[6 * child + 3 : 6 * child + 6, nc + i] = start + 6 * i + np.arange(3)
+        index[6 * parent + 3 : 6 * parent + 6, nc + i] = start + 6 * i + 3 + np.arange(3)
     return index
 
 
@@ -91,12 +91,14 @@ def eq3_matrix(model: Model, rot: Float[Array, "B 3 3"], axes: Float[Array, "n 3
     # Root rows of J: joint origin velocity v - [r0]x omega, angular velocity omega.
     root = jnp.block([[eye, -skew(root_lever(model, rot))], [zero, eye]])
     blk_parent, blk_child = joint_jacobian_blocks(model, rot)  # (C, 3, 6) rows of J
-    vals = jnp.concatenate([
-        root.T.reshape(-1),
-        jnp.concatenate([jnp.swapaxes(blk_parent, -1, -2), jnp.swapaxes(blk_child, -1, -2)], 1).reshape(-1),
-        jnp.concatenate([axes, -axes], -1).reshape(-1),
-        jnp.zeros((1,), dtype),
-    ])
+    vals = jnp.concatenate(
+        [
+            root.T.reshape(-1),
+            jnp.concatenate([jnp.swapaxes(blk_parent, -1, -2), jnp.swapaxes(blk_child, -1, -2)], 1).reshape(-1),
+            jnp.concatenate([axes, -axes], -1).reshape(-1),
+            jnp.zeros((1,), dtype),
+        ]
+    )
     return vals[model.topology.derived(_eq3_layout)]
 
 
@@ -120,8 +122,9 @@ def solve_eq3(model: Model, q, qd, qdd, theta_sim, local_axes=None):
 
 
 @compiler.jit
-def inverse_dynamics(model: Model, traj: Trajectory, times: Float[Array, " T"],
-                     local_axes: Float[Array, "T C 3 3"] | None = None) -> InverseDynamics:
+def inverse_dynamics(
+    model: Model, traj: Trajectory, times: Float[Array, " T"], local_axes: Float[Array, "T C 3 3"] | None = None
+) -> InverseDynamics:
     """Eq. 3 at every time in ``times`` (vmapped), from the spline of the mocap (``local_axes``:
     see :func:`solve_eq3`)."""
 

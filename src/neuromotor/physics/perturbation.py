@@ -43,8 +43,9 @@ class ForcePulses(eqx.Module):
 
 def no_pulses() -> ForcePulses:
     z = jnp.zeros((0,))
-    return ForcePulses(jnp.zeros((0,), jnp.int32), jnp.zeros((0, 3)), jnp.zeros((0, 3)), z, z, z,
-                       jnp.zeros((0,), jnp.int32))
+    return ForcePulses(
+        jnp.zeros((0,), jnp.int32), jnp.zeros((0, 3)), jnp.zeros((0, 3)), z, z, z, jnp.zeros((0,), jnp.int32)
+    )
 
 
 def build_pulses(specs, model, h: float, body_index) -> ForcePulses:
@@ -59,9 +60,15 @@ def build_pulses(specs, model, h: float, body_index) -> ForcePulses:
         return no_pulses()
     rows = [_pulse(s, model, h, body_index) for s in specs]
     body, point, direction, magnitude, start, duration, shape = zip(*rows)
-    return ForcePulses(jnp.asarray(body, jnp.int32), jnp.asarray(np.stack(point)), jnp.asarray(np.stack(direction)),
-                       jnp.asarray(magnitude), jnp.asarray(start), jnp.asarray(duration),
-                       jnp.asarray([SHAPES.index(x) for x in shape], jnp.int32))
+    return ForcePulses(
+        jnp.asarray(body, jnp.int32),
+        jnp.asarray(np.stack(point)),
+        jnp.asarray(np.stack(direction)),
+        jnp.asarray(magnitude),
+        jnp.asarray(start),
+        jnp.asarray(duration),
+        jnp.asarray([SHAPES.index(x) for x in shape], jnp.int32),
+    )
 
 
 def _pulse(s, model, h: float, body_index) -> tuple:
@@ -86,9 +93,17 @@ def _pulse(s, model, h: float, body_index) -> tuple:
 
 def replace_first(p: ForcePulses, first: ForcePulses) -> ForcePulses:
     """``p`` with pulse 0 replaced by the one pulse ``first`` (the pulse a sweep varies)."""
-    return ForcePulses(**{f.name: np.concatenate([np.asarray(getattr(first, f.name)),  # type: ignore[arg-type]
-                                                  np.asarray(getattr(p, f.name))[1:]])
-                          for f in dataclasses.fields(p)})
+    return ForcePulses(
+        **{
+            f.name: np.concatenate(
+                [
+                    np.asarray(getattr(first, f.name)),  # type: ignore[arg-type]
+                    np.asarray(getattr(p, f.name))[1:],
+                ]
+            )
+            for f in dataclasses.fields(p)
+        }
+    )
 
 
 def unperturbed(p: ForcePulses) -> ForcePulses:
@@ -113,8 +128,9 @@ def pulse_forces(p: ForcePulses, t) -> Float[Array, "P 3"]:
     return (p.magnitude * prof)[:, None] * p.direction
 
 
-def pulse_wrenches(p: ForcePulses, t, n_bodies: int, pos, rot,
-                   com) -> tuple[Float[Array, " 6B"], Float[Array, "B 3"], Float[Array, "P 3"]]:
+def pulse_wrenches(
+    p: ForcePulses, t, n_bodies: int, pos, rot, com
+) -> tuple[Float[Array, " 6B"], Float[Array, "B 3"], Float[Array, "P 3"]]:
     """The pulses' wrenches at time t: as a generalized force (6B: each body's force and torque
     about its COM), the force on each body (B, 3), and the pulses' world points (P, 3)."""
     zeros = jnp.zeros((n_bodies, 6), pos.dtype)

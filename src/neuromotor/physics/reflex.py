@@ -73,13 +73,28 @@ class Reflex(eqx.Module):
     steps: int = eqx.field(static=True)  # grid steps of error history kept (delays up to (steps - 2) h)
 
 
-def make_reflex(h: float, gain=SPINAL_GAIN, delay=SPINAL_DELAY, long_gain=0.0, long_delay=LONG_LATENCY_DELAY,
-                rate_weight=RATE_WEIGHT, one_sided=False, width=RAMP_WIDTH, max_delay=MAX_DELAY) -> Reflex:
+def make_reflex(
+    h: float,
+    gain=SPINAL_GAIN,
+    delay=SPINAL_DELAY,
+    long_gain=0.0,
+    long_delay=LONG_LATENCY_DELAY,
+    rate_weight=RATE_WEIGHT,
+    one_sided=False,
+    width=RAMP_WIDTH,
+    max_delay=MAX_DELAY,
+) -> Reflex:
     """A :class:`Reflex` whose history covers delays up to ``max_delay`` at step ``h``."""
     f = lambda x: jnp.asarray(x, jnp.float64)
     steps = history_steps(h, max_delay)
-    return Reflex(ReflexPath(f(gain), f(delay)), ReflexPath(f(long_gain), f(long_delay)), f(rate_weight),
-                  f(float(one_sided)), f(width), steps)
+    return Reflex(
+        ReflexPath(f(gain), f(delay)),
+        ReflexPath(f(long_gain), f(long_delay)),
+        f(rate_weight),
+        f(float(one_sided)),
+        f(width),
+        steps,
+    )
 
 
 def history_steps(h: float, max_delay: float) -> int:
@@ -125,8 +140,9 @@ def stretch(reflex: Reflex, angle, rate, tau, reference_torque):
     return (1.0 - reflex.one_sided) * u + reflex.one_sided * one
 
 
-def reflex_multipliers(reflex: Reflex, history: History, h: float, magnitude, scale, tau, reference_torque,
-                       active=None) -> Float[Array, "C 3"]:
+def reflex_multipliers(
+    reflex: Reflex, history: History, h: float, magnitude, scale, tau, reference_torque, active=None
+) -> Float[Array, "C 3"]:
     """r_i of the module docstring per joint and DOF, from the history (index 0: this step)."""
     total = jnp.zeros_like(tau)
     for path in (reflex.spinal, reflex.long_latency):

@@ -48,7 +48,7 @@ def _piece(x, start: int, n: int, step: int, axis: int):
     if step == 1:
         return jax.lax.slice_in_dim(x, start, start + n, axis=axis)
     one = jax.lax.slice_in_dim(x, start, start + 1, axis=axis)
-    return jnp.broadcast_to(one, x.shape[:axis] + (n,) + x.shape[axis + 1:])
+    return jnp.broadcast_to(one, x.shape[:axis] + (n,) + x.shape[axis + 1 :])
 
 
 def take(x, idx, axis: int = 0, unrolled: bool = True):
@@ -62,12 +62,12 @@ def take(x, idx, axis: int = 0, unrolled: bool = True):
     if not unrolled and len(runs) > 1:
         return jnp.take(x, idx, axis=axis)
     if flat.size == 0:
-        shape = x.shape[:axis] + (0,) + x.shape[axis + 1:]
+        shape = x.shape[:axis] + (0,) + x.shape[axis + 1 :]
         out = jnp.zeros(shape, x.dtype)
     else:
         parts = [_piece(x, *run, axis) for run in runs]
         out = parts[0] if len(parts) == 1 else jnp.concatenate(parts, axis)
-    return out.reshape(x.shape[:axis] + idx.shape + x.shape[axis + 1:])
+    return out.reshape(x.shape[:axis] + idx.shape + x.shape[axis + 1 :])
 
 
 def gather_sum(x, index, mask, unrolled: bool = True):

@@ -92,8 +92,11 @@ class StiffBlocks(eqx.Module):
 
     def g_blocks(self, h: float):
         """The blocks of ``G = h D + h^2 K`` (A = M - G in Eq. 2): diagonal, up, down."""
-        return (h * self.d_diag + h * h * self.k_diag, h * self.d_up + h * h * self.k_up,
-                h * self.d_down + h * h * self.k_down)
+        return (
+            h * self.d_diag + h * h * self.k_diag,
+            h * self.d_up + h * h * self.k_up,
+            h * self.d_down + h * h * self.k_down,
+        )
 
     def damping_times(self, model: Model, v: Float[Array, "B 6"]) -> Float[Array, "B 6"]:
         """D v."""
@@ -114,14 +117,20 @@ class DenseStiffness(eqx.Module):
         return (self.dmat @ v.reshape(-1)).reshape(-1, 6)
 
 
-def tree_matvec(topo: Topology, diag: Float[Array, "B 3 3"], up: Float[Array, "C 3 3"],
-                down: Float[Array, "C 3 3"], w: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
+def tree_matvec(
+    topo: Topology,
+    diag: Float[Array, "B 3 3"],
+    up: Float[Array, "C 3 3"],
+    down: Float[Array, "C 3 3"],
+    w: Float[Array, "B 3"],
+) -> Float[Array, "B 3"]:
     """An angular block-tree matrix times w: diagonal, body <- parent and parent <- child blocks
     (both one-hot sums in one dot: no scatter under vmap, and a kernel fewer for one trajectory)."""
     c, p = topo.child, topo.parent
     # the one-hot matrices take w's dtype (keeps float32 runs in float32)
-    return mv(diag, w) + static.dot_sum((topo.sel_child.T, topo.sel_parent.T), (mv(up, w[p]), mv(down, w[c])),
-                                        unrolled=False)
+    return mv(diag, w) + static.dot_sum(
+        (topo.sel_child.T, topo.sel_parent.T), (mv(up, w[p]), mv(down, w[c])), unrolled=False
+    )
 
 
 def stiff_jacobians(model: Model, gains: Gains, inputs: ControllerInputs, rot, omega) -> DenseStiffness:
@@ -152,8 +161,9 @@ def _joint_jacobians(model: Model, gains: Gains, inputs: ControllerInputs, quat,
     def one(x, qp, qc, wp, wc, inp):
         # x = [d_parent, d_child]: 6 tangents. The torque depends on w_child - w_parent, and
         # linearly (given the rotations), so its damping block comes in closed form as aux.
-        torque, damping = joint_torque_q(gains, quat_mul(quat_exp(x[0:3]), qp), quat_mul(quat_exp(x[3:6]), qc),
-                                         wp, wc, inp)
+        torque, damping = joint_torque_q(
+            gains, quat_mul(quat_exp(x[0:3]), qp), quat_mul(quat_exp(x[3:6]), qc), wp, wc, inp
+        )
         return torque, (torque, damping)
 
     def val_jac(qp, qc, wp, wc, inp):
@@ -218,8 +228,9 @@ def reference_drift(model: Model, gains: Gains, inputs: ControllerInputs, quat, 
     t_ff = mv(r_p, mv(inputs.local_axes, gains.feedforward * inputs.tau * inputs.active))
     d = inputs.drift
     assert d is not None  # reference_inputs sets it
-    return -(mv(jac[..., 0:3] + skew(t_ff), d[..., 0:3]) + mv(jac[..., 3:6], d[..., 3:6])
-             + mv(jac[..., 6:9], d[..., 6:9]))
+    return -(
+        mv(jac[..., 0:3] + skew(t_ff), d[..., 0:3]) + mv(jac[..., 3:6], d[..., 3:6]) + mv(jac[..., 6:9], d[..., 6:9])
+    )
 
 
 def gyro_blocks(model: Model, rot, omega):
@@ -232,8 +243,14 @@ def gyro_blocks(model: Model, rot, omega):
     return -cross(omega, ang), jnp.concatenate([mm(wx, lx) - mm(wi, wx), lx - wi], -1)
 
 
-def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: State,
-                 jacobians: Jacobians = Jacobians.CLOSED_FORM, unrolled: bool = False) -> StiffBlocks:
+def stiff_blocks(
+    model: Model,
+    gains: Gains,
+    inputs: ControllerInputs,
+    state: State,
+    jacobians: Jacobians = Jacobians.CLOSED_FORM,
+    unrolled: bool = False,
+) -> StiffBlocks:
     """The same K and D as :func:`stiff_jacobians`, as blocks on the body tree, plus the stiff
     torques; orientations enter as quaternions, perturbed as ``exp(d) q`` (the tangent of Eq. 2).
     ``unrolled``: the batched form of the sums over joint ends (:func:`static.dot_sums`)."""
@@ -265,8 +282,9 @@ def stiff_blocks(model: Model, gains: Gains, inputs: ControllerInputs, state: St
     return StiffBlocks(torque, k_diag, jac[:, :, 0:3], -jac[:, :, 3:6], d_diag, jac[:, :, 6:9], -jac[:, :, 9:12])
 
 
-def explicit_forces(model: Model, gains: Gains, inputs: ControllerInputs, state: State,
-                    tree: bool) -> StiffBlocks | DenseStiffness:
+def explicit_forces(
+    model: Model, gains: Gains, inputs: ControllerInputs, state: State, tree: bool
+) -> StiffBlocks | DenseStiffness:
     """The stiff forces with K = D = 0 (``StepOptions.implicit = False``), in either representation."""
     k = muscle_and_gyro(model, gains, inputs, state.rot, state.omega)
     n, dtype = model.n_bodies, k.dtype

@@ -156,14 +156,14 @@ def constraint_jacobian(model: Model, rot) -> Float[Array, "nc 6B"]:
     topo = model.topology
     # One-hot selectors (static) place every joint's two 3x6 blocks in one contraction.
     sel_p, sel_c = jnp.asarray(topo.sel_parent, dtype), jnp.asarray(topo.sel_child, dtype)
-    rows = (jnp.einsum("cb,cij->cibj", sel_p, blk_parent) + jnp.einsum("cb,cij->cibj", sel_c, blk_child))
+    rows = jnp.einsum("cb,cij->cibj", sel_p, blk_parent) + jnp.einsum("cb,cij->cibj", sel_c, blk_child)
     return jnp.concatenate([root.reshape(6, 6 * n), rows.reshape(3 * (n - 1), 6 * n)], 0)
 
 
 def full_constraints(model: Model, driven: tuple[int, ...], rot, free_root: bool = False) -> Float[Array, "nc 6B"]:
     """J with extra rows for driven joints (relative angular velocity of child and parent);
     without the 6 root rows when the root floats free."""
-    jac = constraint_jacobian(model, rot)[6 if free_root else 0:]
+    jac = constraint_jacobian(model, rot)[6 if free_root else 0 :]
     if not driven:
         return jac
     n = model.n_bodies
@@ -171,8 +171,8 @@ def full_constraints(model: Model, driven: tuple[int, ...], rot, free_root: bool
     eye = jnp.eye(3, dtype=rot.dtype)
     for i, b in enumerate(driven):
         p = model.body_parent[b]
-        rows = rows.at[3 * i:3 * i + 3, 6 * b + 3:6 * b + 6].set(eye)
-        rows = rows.at[3 * i:3 * i + 3, 6 * p + 3:6 * p + 6].set(-eye)
+        rows = rows.at[3 * i : 3 * i + 3, 6 * b + 3 : 6 * b + 6].set(eye)
+        rows = rows.at[3 * i : 3 * i + 3, 6 * p + 3 : 6 * p + 6].set(-eye)
     return jnp.concatenate([jac, rows], 0)
 
 
@@ -211,8 +211,9 @@ def joint_angles_and_rates(model: Model, quat, omega, reference: Float[Array, " 
     for order, _bodies, rows in topo.groups:  # usually one order per skeleton
         whole = len(rows) == model.n_bodies - 1
         pick = (lambda x: x) if whole else (lambda x: static.take(x, rows))
-        ang, rate = euler_angles_and_rates(quat_entries(pick(rel)), pick(w_rel), order,
-                                           None if ref is None else pick(ref))
+        ang, rate = euler_angles_and_rates(
+            quat_entries(pick(rel)), pick(w_rel), order, None if ref is None else pick(ref)
+        )
         theta, rates = (ang, rate) if whole else (theta.at[rows].set(ang), rates.at[rows].set(rate))
     return per_joint_to_dofs(model, theta), per_joint_to_dofs(model, rates)
 

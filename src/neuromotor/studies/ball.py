@@ -63,8 +63,9 @@ def _com_at(model: Model, traj, body, t):
     return body_poses(model, traj.q(t))[0][body]
 
 
-def aim_ball(model: Model, traj, position, speed: float, target_body: int, launch: float,
-             iterations: int = 20) -> np.ndarray:
+def aim_ball(
+    model: Model, traj, position, speed: float, target_body: int, launch: float, iterations: int = 20
+) -> np.ndarray:
     """Unit launch direction u so that the ballistic path from ``position`` at ``speed``,
     ``x(T) = position + speed u T + g T^2 / 2``, meets the target body's mocap COM at launch + T.
 
@@ -83,8 +84,10 @@ def aim_ball(model: Model, traj, position, speed: float, target_body: int, launc
     # A ball too slow to reach the target makes the iteration diverge (or crawl): refuse it
     # rather than aim at nothing (a miss of more than 1 mm along the path).
     if not (math.isfinite(flight) and speed * abs(flight - previous) <= 1e-3):
-        raise ValueError(f"is too low: a ball at {speed:g} m/s cannot reach the target from {position.tolist()} "
-                         f"(the aim does not converge)")
+        raise ValueError(
+            f"is too low: a ball at {speed:g} m/s cannot reach the target from {position.tolist()} "
+            f"(the aim does not converge)"
+        )
     return d / np.linalg.norm(d)
 
 
@@ -104,14 +107,29 @@ def ball_from_spec(spec, model: Model, traj, target: int | None = None) -> Ball:
     """The :class:`Ball` of a parsed ``[ball]`` table; aimed at body ``target`` when the table
     names one. Raises ValueError when the aim is impossible (speed <= 0, or too slow to reach it)."""
     if "velocity" in spec:
-        return make_ball(spec["radius"], spec["mass"], spec["position"], velocity=spec["velocity"],
-                         restitution=spec["restitution"], friction=spec["friction"], launch=spec["launch"])
+        return make_ball(
+            spec["radius"],
+            spec["mass"],
+            spec["position"],
+            velocity=spec["velocity"],
+            restitution=spec["restitution"],
+            friction=spec["friction"],
+            launch=spec["launch"],
+        )
     direction = spec.get("direction")
     if _aims(spec):
         assert target is not None, "a [ball] table that names a target needs its body index"
         direction = aim_ball(model, traj, spec["position"], spec["speed"], target, spec["launch"])
-    return make_ball(spec["radius"], spec["mass"], spec["position"], speed=spec["speed"], direction=direction,
-                     restitution=spec["restitution"], friction=spec["friction"], launch=spec["launch"])
+    return make_ball(
+        spec["radius"],
+        spec["mass"],
+        spec["position"],
+        speed=spec["speed"],
+        direction=direction,
+        restitution=spec["restitution"],
+        friction=spec["friction"],
+        launch=spec["launch"],
+    )
 
 
 def ball_setup(spec, character: Character, traj, body_index, source: str = "config") -> BallSetup:
@@ -126,9 +144,13 @@ def ball_setup(spec, character: Character, traj, body_index, source: str = "conf
     except ValueError as e:
         raise ConfigError(f"{source}: field 'ball.speed' {e}") from None
     settings = ContactSettings(
-        friction_directions=spec["friction_directions"], max_contacts=spec["max_contacts"],
-        pgs_iterations=spec["pgs_iterations"], restitution_threshold=spec["restitution_threshold"],
-        ground=spec["ground"], ground_height=spec["ground_height"])
+        friction_directions=spec["friction_directions"],
+        max_contacts=spec["max_contacts"],
+        pgs_iterations=spec["pgs_iterations"],
+        restitution_threshold=spec["restitution_threshold"],
+        ground=spec["ground"],
+        ground_height=spec["ground_height"],
+    )
     return BallSetup(ball, fit_capsules(character), settings, target)
 
 
@@ -169,8 +191,10 @@ def ball_rollouts(setup, base_pulses, check: bool = True) -> tuple[ContactRollou
 def ball_metrics(out: ContactRollout) -> dict:
     """The metrics a ball adds to a run's: peak contact impulse and the first contact's time."""
     hit = np.nonzero(np.asarray(out.contact.normal_impulse).max(-1) > 0)[0]
-    return {"ball_peak_impulse_Ns": float(jnp.max(jnp.linalg.norm(out.contact.impulse, axis=-1))),
-            "ball_first_contact_s": float(out.run.time[hit[0]]) if hit.size else None}
+    return {
+        "ball_peak_impulse_Ns": float(jnp.max(jnp.linalg.norm(out.contact.impulse, axis=-1))),
+        "ball_first_contact_s": float(out.run.time[hit[0]]) if hit.size else None,
+    }
 
 
 def ball_arrays(setup, result) -> dict[str, np.ndarray]:
@@ -185,9 +209,13 @@ def ball_arrays(setup, result) -> dict[str, np.ndarray]:
     impulse = np.asarray(c.impulse)
     model = setup.model
     # Closest points on the bodies (and the ground) to the ball, for drawing the force arrows.
-    points = np.asarray(jax.vmap(lambda p, q, centre: detect(model, bs.capsules, bs.settings, bs.ball.radius,
-                                                             centre, p, quat_to_matrix(q))[2])(
-        out.run.states.pos, out.run.states.quat, out.ball.pos))
+    points = np.asarray(
+        jax.vmap(
+            lambda p, q, centre: detect(model, bs.capsules, bs.settings, bs.ball.radius, centre, p, quat_to_matrix(q))[
+                2
+            ]
+        )(out.run.states.pos, out.run.states.quat, out.ball.pos)
+    )
     return {
         "ball_pos": np.asarray(out.ball.pos),
         "ball_quat": np.asarray(out.ball.quat),

@@ -76,16 +76,20 @@ def machine() -> str:
     dev = jax.devices()[0]
     import os
 
-    return (f"{os.cpu_count()}-core CPU ({cpu_name()}), JAX {jax.__version__} on {dev.platform}, "
-            f"float64" + ("" if dev.platform == "cpu" else f" ({dev.device_kind})"))
+    return f"{os.cpu_count()}-core CPU ({cpu_name()}), JAX {jax.__version__} on {dev.platform}, float64" + (
+        "" if dev.platform == "cpu" else f" ({dev.device_kind})"
+    )
 
 
 def _setup(clip, seconds: float, solver: str, load=None):
     """The default hit on ``clip``; ``load``: keyword arguments of :func:`load_character`
     (units, up_axis, stature, options), as the command line's clip options give them."""
     character, traj = load_character(clip, **(load or {}))
-    config = SimulationConfig(clip=None if clip is None else str(clip), duration=seconds,
-                              perturbations=[dict(DEFAULT_HIT, start=min(0.3, seconds / 2))])  # type: ignore[list-item]
+    config = SimulationConfig(
+        clip=None if clip is None else str(clip),
+        duration=seconds,
+        perturbations=[dataclasses.replace(DEFAULT_HIT, start=min(0.3, seconds / 2))],
+    )
     setup = prepare(config, character, traj)
     return dataclasses.replace(setup, options=dataclasses.replace(setup.options, solver=solvers.Solver(solver)))
 
@@ -99,15 +103,22 @@ def _stages(setup) -> dict:
     sim = lambda ref: dy.SimModel(m, ref, cfg)
 
     def jac(k, st, ref):
-        return dy.stiff_forces(sim(ref), g, dy.reference_inputs(sim(ref), g, k), st, solver.tree_blocks,
-                               solver.unrolled)
+        return dy.stiff_forces(
+            sim(ref), g, dy.reference_inputs(sim(ref), g, k), st, solver.tree_blocks, solver.unrolled
+        )
 
     # Stand-ins for the K, D terms (the solve's cost does not depend on their values).
     if solver.tree_blocks:
         k_off, d_off = jnp.full((n - 1, 3, 3), 1e-3), jnp.zeros((n - 1, 3, 3))
         stiff: StiffBlocks | DenseStiffness = StiffBlocks(
-            jnp.zeros((n, 3)), jnp.broadcast_to(0.01 * jnp.eye(3), (n, 3, 3)), k_off, k_off, jnp.zeros((n, 3, 3)),
-            d_off, d_off)
+            jnp.zeros((n, 3)),
+            jnp.broadcast_to(0.01 * jnp.eye(3), (n, 3, 3)),
+            k_off,
+            k_off,
+            jnp.zeros((n, 3, 3)),
+            d_off,
+            d_off,
+        )
     else:
         stiff = DenseStiffness(jnp.zeros(6 * n), jnp.full((6 * n, 6 * n), 1e-3), jnp.zeros((6 * n, 6 * n)))
     nc = constraint_count(m, cfg.driven, cfg.free_root)
@@ -181,8 +192,9 @@ def batch_split(setup, size: int, repeats: int) -> dict:
     bodies = dict(_stages(setup), step=whole)
     out: dict[str, float] = {"batch": size}
     for name, body in bodies.items():
-        c, _ = _compile(lambda ks, states, ref: _reduce(jax.vmap(body, in_axes=(0, 0, None))(ks, states, ref)),
-                        ks, states, ref)
+        c, _ = _compile(
+            lambda ks, states, ref: _reduce(jax.vmap(body, in_axes=(0, 0, None))(ks, states, ref)), ks, states, ref
+        )
         out[name] = _best(lambda: c(ks, states, ref), repeats) / size * 1e6
     return out
 
@@ -201,12 +213,18 @@ def compiler_options_ab(setup, repeats: int) -> dict:
     """The rollout compiled with :data:`compiler.CPU_COMPILER_OPTIONS` and with XLA's defaults."""
     m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
     fn = lambda m, g, p, ref: dy.simulate(dy.SimModel(m, ref, cfg), dy.Params(g, p))
-    progs = {"tuned": jax.jit(fn).lower(m, g, p, ref).compile(compiler_options=dict(compiler.CPU_COMPILER_OPTIONS)),
-             "default": jax.jit(fn).lower(m, g, p, ref).compile()}
+    progs = {
+        "tuned": jax.jit(fn).lower(m, g, p, ref).compile(compiler_options=dict(compiler.CPU_COMPILER_OPTIONS)),
+        "default": jax.jit(fn).lower(m, g, p, ref).compile(),
+    }
     diff = float(jnp.max(jnp.abs(progs["tuned"](m, g, p, ref).theta - progs["default"](m, g, p, ref).theta)))
     best = _interleaved({k: (lambda c=c: c(m, g, p, ref)) for k, c in progs.items()}, repeats)
-    return {"tuned_us": best["tuned"] / cfg.n_steps * 1e6, "default_us": best["default"] / cfg.n_steps * 1e6,
-            "speedup": best["default"] / best["tuned"], "max_theta_diff_rad": diff}
+    return {
+        "tuned_us": best["tuned"] / cfg.n_steps * 1e6,
+        "default_us": best["default"] / cfg.n_steps * 1e6,
+        "speedup": best["default"] / best["tuned"],
+        "max_theta_diff_rad": diff,
+    }
 
 
 def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
@@ -222,17 +240,30 @@ def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
     runs = {n: progs[n](m, g, p, ref) for n in steps}
     best = _interleaved({k: (lambda c=c: c(m, g, p, ref)) for k, c in progs.items()}, repeats)
     last = runs[steps[-1]]
-    return [{"stabilization_steps": n, "step_us": best[n] / cfg.n_steps * 1e6,
-             "max_violation": float(runs[n].violation.max()),
-             "max_theta_diff_rad": float(jnp.max(jnp.abs(runs[n].theta - last.theta)))} for n in steps]
+    return [
+        {
+            "stabilization_steps": n,
+            "step_us": best[n] / cfg.n_steps * 1e6,
+            "max_violation": float(runs[n].violation.max()),
+            "max_theta_diff_rad": float(jnp.max(jnp.abs(runs[n].theta - last.theta))),
+        }
+        for n in steps
+    ]
 
 
 def scaled_pulses(setup, factors):
     """The config's perturbations at each of ``factors`` times their magnitudes, stacked (one
     leading run axis), through the one pulse builder."""
     specs, h = setup.config.perturbations, setup.config.h
-    rows = [build_pulses([dataclasses.replace(s, magnitude=s.magnitude * float(f)) for s in specs], setup.model, h,
-                         setup.window.index) for f in factors]
+    rows = [
+        build_pulses(
+            [dataclasses.replace(s, magnitude=s.magnitude * float(f)) for s in specs],
+            setup.model,
+            h,
+            setup.window.index,
+        )
+        for f in factors
+    ]
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *rows)
 
 
@@ -249,20 +280,33 @@ def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str
     out = []
     for size in sizes:
         mags = scaled_pulses(setup, np.linspace(0.5, 1.5, size))
-        cfg = dataclasses.replace(setup.options, solver=solvers.Solver(setup.options.solver).batched() if size > 1
-                                  else setup.options.solver, dtype=dtype)
-        one = lambda pulses, shared, cfg=cfg: dy.simulate(dy.SimModel(m, shared[1], cfg),
-                                                          dy.Params(shared[0], pulses)).theta
+        cfg = dataclasses.replace(
+            setup.options,
+            solver=solvers.Solver(setup.options.solver).batched() if size > 1 else setup.options.solver,
+            dtype=dtype,
+        )
+        one = lambda pulses, shared, cfg=cfg: (
+            dy.simulate(dy.SimModel(m, shared[1], cfg), dy.Params(shared[0], pulses)).theta
+        )
         meshes = {"": batch_mesh(size, cfg) if size > 1 else None}
         if meshes[""] is not None:
             meshes["_one_device"] = None
-        calls, row = {}, {"batch": size, "dtype": dtype, "steps": cfg.n_steps,
-                          "devices": 1 if meshes[""] is None else meshes[""].devices.size}
+        calls, row = (
+            {},
+            {
+                "batch": size,
+                "dtype": dtype,
+                "steps": cfg.n_steps,
+                "devices": 1 if meshes[""] is None else meshes[""].devices.size,
+            },
+        )
         for suffix, mesh in meshes.items():
             args = (mags, (g, ref))
             if mesh is not None:  # placed once: the timed calls move nothing
-                args = (jax.device_put(mags, NamedSharding(mesh, P(AXIS))),
-                        jax.device_put((g, ref), NamedSharding(mesh, P())))
+                args = (
+                    jax.device_put(mags, NamedSharding(mesh, P(AXIS))),
+                    jax.device_put((g, ref), NamedSharding(mesh, P())),
+                )
             comp, compile_s = _compile(shard_vmap(one, mesh), *args)
             calls[suffix] = lambda comp=comp, args=args: comp(*args)
             row["compile_s" if not suffix else "one_device_compile_s"] = compile_s
@@ -294,8 +338,14 @@ def gain_jacobian(setup, repeats: int, programs: dict | None = None) -> dict:
     t_jac = _best(lambda: jac(x, g, ref), repeats)
     if programs is not None:
         programs.update(jacfwd=lambda: jac(x, g, ref), jacfwd_rollout=lambda: fwd(x, g, ref))
-    return {"seconds_simulated": cfg.n_steps * cfg.h, "rollout_s": t_fwd, "jacfwd_s": t_jac,
-            "ratio": t_jac / t_fwd, "compile_rollout_s": c1, "compile_jacfwd_s": c2}
+    return {
+        "seconds_simulated": cfg.n_steps * cfg.h,
+        "rollout_s": t_fwd,
+        "jacfwd_s": t_jac,
+        "ratio": t_jac / t_fwd,
+        "compile_rollout_s": c1,
+        "compile_jacfwd_s": c2,
+    }
 
 
 def inverse(clips, repeats: int, load=None) -> list[dict]:
@@ -308,8 +358,15 @@ def inverse(clips, repeats: int, load=None) -> list[dict]:
         jax.block_until_ready(inverse_dynamics(character.model, traj, times))
         first = time.perf_counter() - t
         best = _best(lambda: inverse_dynamics(character.model, traj, times), repeats)
-        out.append({"clip": pathlib.Path(str(character.clip.path)).name, "frames": int(times.shape[0]),
-                    "first_call_s": first, "seconds": best, "us_per_frame": best / times.shape[0] * 1e6})
+        out.append(
+            {
+                "clip": pathlib.Path(str(character.clip.path)).name,
+                "frames": int(times.shape[0]),
+                "first_call_s": first,
+                "seconds": best,
+                "us_per_frame": best / times.shape[0] * 1e6,
+            }
+        )
     return out
 
 
@@ -335,13 +392,24 @@ def mujoco_reference(setup, steps: int, repeats: int, ours=None) -> dict | None:
         return np.zeros(())
 
     t = _best(lambda: run(steps), repeats)
-    out = {"version": mujoco.__version__, "nv": int(mj.nv), "nu": int(mj.nu), "steps": steps,
-           "step_us": t / steps * 1e6, "steps_per_s": steps / t, "real_time_factor": steps * setup.options.h / t}
+    out = {
+        "version": mujoco.__version__,
+        "nv": int(mj.nv),
+        "nu": int(mj.nu),
+        "steps": steps,
+        "step_us": t / steps * 1e6,
+        "steps_per_s": steps / t,
+        "real_time_factor": steps * setup.options.h / t,
+    }
     if ours is not None:
         n = setup.options.n_steps
         best = _interleaved({"ours": ours, "mujoco": lambda: run(n)}, max(3 * repeats, 10))
-        out["interleaved"] = {"steps": n, "ours_us": best["ours"] / n * 1e6, "mujoco_us": best["mujoco"] / n * 1e6,
-                              "ratio": best["ours"] / best["mujoco"]}
+        out["interleaved"] = {
+            "steps": n,
+            "ours_us": best["ours"] / n * 1e6,
+            "mujoco_us": best["mujoco"] / n * 1e6,
+            "ratio": best["ours"] / best["mujoco"],
+        }
     return out
 
 
@@ -357,7 +425,7 @@ def mujoco_start(character, h: float, theta0):
     theta0 = np.asarray(theta0)
     if mj.nq == 7 + theta0.shape[0]:  # hinges are our DOFs, in our order (see mjcf.py)
         data.qpos[7:] = theta0
-    data.ctrl[:] = data.qpos[7:7 + mj.nu]
+    data.ctrl[:] = data.qpos[7 : 7 + mj.nu]
     mujoco.mj_forward(mj, data)
     return mj, data
 
@@ -373,8 +441,12 @@ def mjx_beside(setup, batch_setup, programs: dict, res: dict, repeats: int, log=
         log(f"MJX: skipped ({why})")
         return {"skipped": why}
     size = max(r["batch"] for r in res["batch"])
-    ours = {"rollout": programs["rollout"], "batch": programs[f"batch{size}"],
-            "jacfwd": programs["jacfwd"], "jacfwd_rollout": programs["jacfwd_rollout"]}
+    ours = {
+        "rollout": programs["rollout"],
+        "batch": programs[f"batch{size}"],
+        "jacfwd": programs["jacfwd"],
+        "jacfwd_rollout": programs["jacfwd_rollout"],
+    }
     if f"batch{size}_float32" in programs:
         ours["batch_float32"] = programs[f"batch{size}_float32"]
     if size > 1 and "batch1" in programs:
@@ -383,11 +455,21 @@ def mjx_beside(setup, batch_setup, programs: dict, res: dict, repeats: int, log=
         ours["batch_one_device"] = programs[f"batch{size}_one_device"]
     mj, data = mujoco_start(setup.character, setup.options.h, setup.ref.theta[0])
     # MJX gets the XLA options ours is compiled with (on the CPU they cut its jacfwd time ~5x).
-    out = bench_mjx.compare(mj, data, ours, steps=setup.options.n_steps, batch=size,
-                            batch_steps=batch_setup.options.n_steps, rounds=max(2 * repeats, 7),
-                            compiler_options=compiler.compiler_options() if jax.default_backend() == "cpu" else None)
-    out["ours_compile_s"] = {"rollout": res["single"]["compile_s"], "jacfwd": res["jacfwd"]["compile_jacfwd_s"],
-                             "batch": next(r["compile_s"] for r in res["batch"] if r["batch"] == size)}
+    out = bench_mjx.compare(
+        mj,
+        data,
+        ours,
+        steps=setup.options.n_steps,
+        batch=size,
+        batch_steps=batch_setup.options.n_steps,
+        rounds=max(2 * repeats, 7),
+        compiler_options=compiler.compiler_options() if jax.default_backend() == "cpu" else None,
+    )
+    out["ours_compile_s"] = {
+        "rollout": res["single"]["compile_s"],
+        "jacfwd": res["jacfwd"]["compile_jacfwd_s"],
+        "batch": next(r["compile_s"] for r in res["batch"] if r["batch"] == size),
+    }
     bench_mjx.log_figures(out, log, out["ours_compile_s"])
     return out
 
@@ -416,9 +498,19 @@ def plot_throughput(rows: list[dict], mujoco_sps: float | None, path) -> None:
     plt.close(fig)
 
 
-def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_seconds: float = 0.25,
-            repeats: int = 5, idyn_clips=(), plot=None, log=print, dense_too: bool = True, load=None,
-            mjx: bool = True) -> dict:
+def run_all(
+    clip=None,
+    solver: str = "nullspace",
+    sizes=(1, 8, 64, 256),
+    batch_seconds: float = 0.25,
+    repeats: int = 5,
+    idyn_clips=(),
+    plot=None,
+    log=print,
+    dense_too: bool = True,
+    load=None,
+    mjx: bool = True,
+) -> dict:
     """Run every benchmark and print the figures as they come (``mjx``: MuJoCo MJX beside
     MuJoCo C, when mujoco-mjx is installed)."""
     log(f"machine: {machine()}")
@@ -434,51 +526,70 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
                 _log_single(res[f"single_{other}"], log)
     res["compiler_options"] = compiler_options_ab(setup, 2 * repeats)
     ab = res["compiler_options"]
-    log(f"compiler options (interleaved): {ab['tuned_us']:.1f} us/step tuned vs {ab['default_us']:.1f} us/step "
-        f"with XLA defaults -> {ab['speedup']:.2f}x; max |theta difference| {ab['max_theta_diff_rad']:.1e} rad")
+    log(
+        f"compiler options (interleaved): {ab['tuned_us']:.1f} us/step tuned vs {ab['default_us']:.1f} us/step "
+        f"with XLA defaults -> {ab['speedup']:.2f}x; max |theta difference| {ab['max_theta_diff_rad']:.1e} rad"
+    )
     res["stabilization"] = stabilization_ab(setup, 2 * repeats)
     for r in res["stabilization"]:
-        log(f"post-stabilization, {r['stabilization_steps']} Newton step(s): {r['step_us']:.1f} us/step, max violation "
-            f"{r['max_violation']:.1e} m, max |theta - theta(2 steps)| {r['max_theta_diff_rad']:.1e} rad")
+        log(
+            f"post-stabilization, {r['stabilization_steps']} Newton step(s): {r['step_us']:.1f} us/step, max violation "
+            f"{r['max_violation']:.1e} m, max |theta - theta(2 steps)| {r['max_theta_diff_rad']:.1e} rad"
+        )
     programs = {"rollout": ours}  # compiled programs of ours, for the interleaved MJX rounds
     res["jacfwd"] = gain_jacobian(setup, repeats, programs)
     j = res["jacfwd"]
-    log(f"jacfwd over (ks, kd), {j['seconds_simulated']:.2f} s rollout: {j['jacfwd_s'] * 1e3:.1f} ms vs "
-        f"{j['rollout_s'] * 1e3:.1f} ms -> {j['ratio']:.2f}x (compile {j['compile_jacfwd_s']:.1f} s)")
+    log(
+        f"jacfwd over (ks, kd), {j['seconds_simulated']:.2f} s rollout: {j['jacfwd_s'] * 1e3:.1f} ms vs "
+        f"{j['rollout_s'] * 1e3:.1f} ms -> {j['ratio']:.2f}x (compile {j['compile_jacfwd_s']:.1f} s)"
+    )
     res["mujoco"] = mujoco_reference(setup, 2000, repeats, ours=ours)
     if res["mujoco"] is None:
         log("MuJoCo: not installed (pip install mujoco); skipped")
     else:
         mj = res["mujoco"]
-        log(f"MuJoCo {mj['version']}: {mj['step_us']:.1f} us/step, {mj['steps_per_s']:.0f} steps/s, "
+        log(
+            f"MuJoCo {mj['version']}: {mj['step_us']:.1f} us/step, {mj['steps_per_s']:.0f} steps/s, "
             f"RTF {mj['real_time_factor']:.0f}; ours/MuJoCo per-step time: "
-            f"{res['single']['step_us'] / mj['step_us']:.2f}x")
+            f"{res['single']['step_us'] / mj['step_us']:.2f}x"
+        )
         if "interleaved" in mj:
             il = mj["interleaved"]
-            log(f"interleaved, {il['steps']} steps each: ours {il['ours_us']:.1f} us/step, MuJoCo "
+            log(
+                f"interleaved, {il['steps']} steps each: ours {il['ours_us']:.1f} us/step, MuJoCo "
                 f"{il['mujoco_us']:.1f} us/step -> ours/MuJoCo {il['ratio']:.2f}x (real-time factor "
-                f"{H / il['ours_us'] * 1e6:.0f} at that moment)")
+                f"{H / il['ours_us'] * 1e6:.0f} at that moment)"
+            )
     bsetup = _setup(clip, batch_seconds, solver, load)
     res["batch"] = batched(bsetup, sizes, max(2, repeats // 2), programs)
     res["batch_float32"] = batched(bsetup, [max(sizes)], max(2, repeats // 2), programs, dtype="float32")
     for r in res["batch"] + res["batch_float32"]:
         ratio = "" if res["mujoco"] is None else f" ({r['steps_per_s'] / res['mujoco']['steps_per_s']:.2f}x MuJoCo)"
-        split = "" if r["devices"] == 1 else (f" over {r['devices']} devices (one device: "
-                                              f"{r['one_device_steps_per_s']:.0f} steps/s, interleaved)")
-        log(f"batch {r['batch']:4d} ({r['dtype']}): {r['steps_per_s']:10.0f} steps/s{ratio}{split}, "
-            f"compile {r['compile_s']:.1f} s")
+        split = (
+            ""
+            if r["devices"] == 1
+            else (f" over {r['devices']} devices (one device: {r['one_device_steps_per_s']:.0f} steps/s, interleaved)")
+        )
+        log(
+            f"batch {r['batch']:4d} ({r['dtype']}): {r['steps_per_s']:10.0f} steps/s{ratio}{split}, "
+            f"compile {r['compile_s']:.1f} s"
+        )
     res["batch_split"] = batch_split(setup, max(sizes), max(2, repeats // 2))
     bs = res["batch_split"]
     mj_us = "" if res["mujoco"] is None else f"; one MuJoCo step {res['mujoco']['step_us']:.1f} us"
-    log(f"batch {bs['batch']} split (us per trajectory-step): Jacobians {bs['jacobians']:.1f}, KKT solve "
-        f"{bs['kkt_solve']:.1f}, post-stabilization {bs['post_stabilization']:.1f}, whole step {bs['step']:.1f}{mj_us}")
+    log(
+        f"batch {bs['batch']} split (us per trajectory-step): Jacobians {bs['jacobians']:.1f}, KKT solve "
+        f"{bs['kkt_solve']:.1f}, post-stabilization {bs['post_stabilization']:.1f}, whole step {bs['step']:.1f}{mj_us}"
+    )
     if mjx:
         res["mjx"] = mjx_beside(setup, bsetup, programs, res, repeats, log)
     if idyn_clips:
         res["inverse_dynamics"] = inverse(idyn_clips, repeats, load)
         for r in res["inverse_dynamics"]:
-            log(f"inverse dynamics {r['clip']}: {r['frames']} frames in {r['seconds'] * 1e3:.1f} ms "
-                f"({r['us_per_frame']:.1f} us/frame); first call (compile) {r['first_call_s']:.1f} s")
+            log(
+                f"inverse dynamics {r['clip']}: {r['frames']} frames in {r['seconds'] * 1e3:.1f} ms "
+                f"({r['us_per_frame']:.1f} us/frame); first call (compile) {r['first_call_s']:.1f} s"
+            )
     if plot:
         plot_throughput(res["batch"], None if res["mujoco"] is None else res["mujoco"]["steps_per_s"], plot)
         log(f"wrote {plot}")
@@ -487,10 +598,14 @@ def run_all(clip=None, solver: str = "nullspace", sizes=(1, 8, 64, 256), batch_s
 
 def _log_single(s: dict, log) -> None:
     sp = s["split_us"]
-    log(f"[{s['solver']}] one trajectory: {s['step_us']:.1f} us/step, {s['steps_per_s']:.0f} steps/s, "
-        f"real-time factor {s['real_time_factor']:.1f}, compile {s['compile_s']:.1f} s")
-    log(f"[{s['solver']}]   split (us/step): Jacobians {sp['jacobians']:.1f}, KKT solve {sp['kkt_solve']:.1f}, "
-        f"post-stabilization {sp['post_stabilization']:.1f}, rest {sp['rest']:.1f}")
+    log(
+        f"[{s['solver']}] one trajectory: {s['step_us']:.1f} us/step, {s['steps_per_s']:.0f} steps/s, "
+        f"real-time factor {s['real_time_factor']:.1f}, compile {s['compile_s']:.1f} s"
+    )
+    log(
+        f"[{s['solver']}]   split (us/step): Jacobians {sp['jacobians']:.1f}, KKT solve {sp['kkt_solve']:.1f}, "
+        f"post-stabilization {sp['post_stabilization']:.1f}, rest {sp['rest']:.1f}"
+    )
 
 
 def main(argv=None) -> int:
@@ -518,11 +633,25 @@ def run_from_args(args) -> int:
     if hasattr(args, "units"):  # the command line's clip options
         from neuromotor.model.skeleton import MassModelOptions
 
-        load = dict(units=args.units, up_axis=args.up_axis, stature=args.stature,
-                    options=MassModelOptions(body_mass=args.body_mass, sex=args.sex,
-                                             simulate_extremities=args.simulate_extremities))
-    res = run_all(args.clip, args.solver, tuple(args.sizes), repeats=args.repeats, idyn_clips=tuple(args.idyn),
-                  plot=args.plot, dense_too=not args.no_dense, load=load, mjx=not getattr(args, "no_mjx", False))
+        load = dict(
+            units=args.units,
+            up_axis=args.up_axis,
+            stature=args.stature,
+            options=MassModelOptions(
+                body_mass=args.body_mass, sex=args.sex, simulate_extremities=args.simulate_extremities
+            ),
+        )
+    res = run_all(
+        args.clip,
+        args.solver,
+        tuple(args.sizes),
+        repeats=args.repeats,
+        idyn_clips=tuple(args.idyn),
+        plot=args.plot,
+        dense_too=not args.no_dense,
+        load=load,
+        mjx=not getattr(args, "no_mjx", False),
+    )
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps(res, indent=2, default=float))
     return 0

@@ -59,8 +59,7 @@ def unavailable() -> str | None:
 
 def cast(tree, dtype):
     """``tree`` with its floating leaves in ``dtype`` (integer and boolean leaves kept)."""
-    return jax.tree_util.tree_map(
-        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, tree)
+    return jax.tree_util.tree_map(lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, tree)
 
 
 def put(mj, d0, dtype: str = "float64"):
@@ -103,8 +102,9 @@ def compile_in(fn, args, dtype: str, compiler_options: dict | None = None):
     return compiled, time.perf_counter() - t
 
 
-def programs(mj, d0, dtype: str, steps: int, batch: int, batch_steps: int, seed: int = 0,
-             compiler_options: dict | None = None):
+def programs(
+    mj, d0, dtype: str, steps: int, batch: int, batch_steps: int, seed: int = 0, compiler_options: dict | None = None
+):
     """MJX's three programs in ``dtype`` as zero-argument callables (``rollout``, ``batch``,
     ``jacfwd``), their cold compile seconds, and the trajectory's last ``qpos`` (float64 numpy)."""
     m, d = put(mj, d0, dtype)
@@ -117,8 +117,11 @@ def programs(mj, d0, dtype: str, steps: int, batch: int, batch_steps: int, seed:
         return jax.vmap(lambda qv: short(x, m, d.replace(qvel=qv)))(qvels)
 
     built, compile_s = {}, {}
-    for name, fn, args in (("rollout", one, (x, m, d)), ("batch", many, (x, m, d, qvels)),
-                           ("jacfwd", jax.jacfwd(one), (x, m, d))):
+    for name, fn, args in (
+        ("rollout", one, (x, m, d)),
+        ("batch", many, (x, m, d, qvels)),
+        ("jacfwd", jax.jacfwd(one), (x, m, d)),
+    ):
         compiled, compile_s[name] = compile_in(fn, args, dtype, compiler_options)
         built[name] = lambda compiled=compiled, args=args: compiled(*args)
     last = np.asarray(built["rollout"]()[-1], np.float64)
@@ -162,8 +165,10 @@ def _median(a) -> float:
 
 def _figures(t: dict, key: str, steps: int, batch: int, batch_steps: int) -> dict:
     """Medians over rounds for one engine (``key`` prefix of its program names)."""
-    out = {"step_us": _median(t[f"{key}.rollout"]) / steps * 1e6,
-           "batch_steps_per_s": batch * batch_steps / _median(t[f"{key}.batch"])}
+    out = {
+        "step_us": _median(t[f"{key}.rollout"]) / steps * 1e6,
+        "batch_steps_per_s": batch * batch_steps / _median(t[f"{key}.batch"]),
+    }
     if f"{key}.jacfwd" in t:
         out["jacfwd_over_rollout"] = _median(t[f"{key}.jacfwd"] / t[f"{key}.jacfwd_rollout"])
     if f"{key}.batch_float32" in t:
@@ -179,8 +184,12 @@ def _ratios(t: dict, dtype: str, steps: int, batch: int, batch_steps: int) -> di
     """Per-round ratios, median: MJX against MuJoCo C and ours against MJX. Time ratios for the
     trajectory and jacfwd (above 1: the first is slower), throughput ratios for the batch."""
     mjx, c_step = f"mjx_{dtype}", t["c.rollout"] / steps
-    out = {"mjx_over_c": {"step_time": _median(t[f"{mjx}.rollout"] / steps / c_step),
-                          "batch_throughput": _median(c_step * batch * batch_steps / t[f"{mjx}.batch"])}}
+    out = {
+        "mjx_over_c": {
+            "step_time": _median(t[f"{mjx}.rollout"] / steps / c_step),
+            "batch_throughput": _median(c_step * batch * batch_steps / t[f"{mjx}.batch"]),
+        }
+    }
     ours = {}
     if "ours.rollout" in t:
         ours["step_time"] = _median(t["ours.rollout"] / t[f"{mjx}.rollout"])
@@ -196,8 +205,17 @@ def _ratios(t: dict, dtype: str, steps: int, batch: int, batch_steps: int) -> di
     return out
 
 
-def compare(mj, d0, ours: dict[str, Callable], steps: int, batch: int, batch_steps: int, rounds: int,
-            dtypes=DTYPES, compiler_options: dict | None = None) -> dict:
+def compare(
+    mj,
+    d0,
+    ours: dict[str, Callable],
+    steps: int,
+    batch: int,
+    batch_steps: int,
+    rounds: int,
+    dtypes=DTYPES,
+    compiler_options: dict | None = None,
+) -> dict:
     """MJX in each of ``dtypes`` beside MuJoCo C and ``ours``, timed in interleaved rounds.
 
     ``mj``, ``d0``: the MuJoCo model and its start state (``mj_forward`` done, ``ctrl`` set).
@@ -215,19 +233,26 @@ def compare(mj, d0, ours: dict[str, Callable], steps: int, batch: int, batch_ste
     c_run, c_last = c_rollout(mj, d0, steps)
     progs = {f"ours.{k}": fn for k, fn in ours.items()}
     progs["c.rollout"] = c_run
-    out = {"version": importlib.metadata.version("mujoco-mjx"), "mujoco_version": mujoco.__version__, "impl": "jax",
-           "compiler_options": dict(compiler_options or {}), "nv": int(mj.nv), "nu": int(mj.nu),
-           "h": float(mj.opt.timestep), "steps": steps, "batch": batch, "batch_steps": batch_steps,
-           "rounds": rounds}
+    out = {
+        "version": importlib.metadata.version("mujoco-mjx"),
+        "mujoco_version": mujoco.__version__,
+        "impl": "jax",
+        "compiler_options": dict(compiler_options or {}),
+        "nv": int(mj.nv),
+        "nu": int(mj.nu),
+        "h": float(mj.opt.timestep),
+        "steps": steps,
+        "batch": batch,
+        "batch_steps": batch_steps,
+        "rounds": rounds,
+    }
     for dtype in dtypes:
-        built, compile_s, last = programs(mj, d0, dtype, steps, batch, batch_steps,
-                                          compiler_options=compiler_options)
+        built, compile_s, last = programs(mj, d0, dtype, steps, batch, batch_steps, compiler_options=compiler_options)
         progs.update({f"mjx_{dtype}.{k}": fn for k, fn in built.items()})
         progs[f"mjx_{dtype}.jacfwd_rollout"] = built["rollout"]
         out[dtype] = {"compile_s": compile_s, "max_qpos_diff_vs_c": float(np.max(np.abs(last - c_last)))}
     t = timed_rounds(progs, rounds)
-    out["c"] = {"step_us": _median(t["c.rollout"]) / steps * 1e6,
-                "steps_per_s": steps / _median(t["c.rollout"])}
+    out["c"] = {"step_us": _median(t["c.rollout"]) / steps * 1e6, "steps_per_s": steps / _median(t["c.rollout"])}
     if {"ours.rollout", "ours.batch"} <= set(t):
         out["ours"] = _figures(t, "ours", steps, batch, batch_steps)
     for dtype in dtypes:
@@ -243,31 +268,49 @@ def log_figures(r: dict, log=print, ours_compile: dict | None = None) -> None:
     ratio = lambda key, sub: ", ".join(f"{r[d][key].get(sub, nan):.2f} ({d})" for d in dts)
     mjx = lambda field, fmt: ", ".join(f"{format(r[d][field], fmt)} ({d})" for d in dts)
     xla = "XLA options as ours" if r.get("compiler_options") else "XLA defaults"
-    log(f"MJX {r['version']} (impl {r['impl']}, {xla}; the exported MJCF, h = {r['h']:.6f} s, {r['nu']} servos) "
-        f"beside MuJoCo C {r['mujoco_version']}, {r['rounds']} interleaved rounds, medians of per-round ratios:")
-    log(f"  one trajectory ({r['steps']} steps), us/step: ours {ours.get('step_us', nan):.1f}, "
+    log(
+        f"MJX {r['version']} (impl {r['impl']}, {xla}; the exported MJCF, h = {r['h']:.6f} s, {r['nu']} servos) "
+        f"beside MuJoCo C {r['mujoco_version']}, {r['rounds']} interleaved rounds, medians of per-round ratios:"
+    )
+    log(
+        f"  one trajectory ({r['steps']} steps), us/step: ours {ours.get('step_us', nan):.1f}, "
         f"MJX {mjx('step_us', '.1f')}, MuJoCo C {c['step_us']:.1f}; time ours/MJX {ratio('ours_over_mjx', 'step_time')}"
-        f"; time MJX/C {ratio('mjx_over_c', 'step_time')}")
-    log(f"  batch {r['batch']} x {r['batch_steps']} steps, steps/s: ours {ours.get('batch_steps_per_s', nan):.0f}, "
+        f"; time MJX/C {ratio('mjx_over_c', 'step_time')}"
+    )
+    log(
+        f"  batch {r['batch']} x {r['batch_steps']} steps, steps/s: ours {ours.get('batch_steps_per_s', nan):.0f}, "
         f"MJX {mjx('batch_steps_per_s', '.0f')}, MuJoCo C one thread {c['steps_per_s']:.0f}; throughput ours/MJX "
         f"{ratio('ours_over_mjx', 'batch_throughput')}; throughput MJX/C {ratio('mjx_over_c', 'batch_throughput')}; "
-        f"ours/C {ours.get('batch_steps_per_s', nan) / c['steps_per_s']:.2f}")
+        f"ours/C {ours.get('batch_steps_per_s', nan) / c['steps_per_s']:.2f}"
+    )
     if "batch_one_device_steps_per_s" in ours:
-        log(f"  ours on one device (the batch unsplit, as MJX's vmap runs): {ours['batch_one_device_steps_per_s']:.0f} "
-            f"steps/s; throughput ours/MJX {ratio('ours_over_mjx', 'batch_throughput_one_device')}")
+        log(
+            f"  ours on one device (the batch unsplit, as MJX's vmap runs): {ours['batch_one_device_steps_per_s']:.0f} "
+            f"steps/s; throughput ours/MJX {ratio('ours_over_mjx', 'batch_throughput_one_device')}"
+        )
     if "batch_over_one" in ours:
-        log(f"  a trajectory-step in the batch of {r['batch']} costs {ours['batch_over_one']:.2f} of one in a "
-            "batch of 1 (interleaved)")
+        log(
+            f"  a trajectory-step in the batch of {r['batch']} costs {ours['batch_over_one']:.2f} of one in a "
+            "batch of 1 (interleaved)"
+        )
     if "batch_float32_steps_per_s" in ours and "float32" in r:
-        log(f"  batch in float32, steps/s: ours {ours['batch_float32_steps_per_s']:.0f}, MJX "
+        log(
+            f"  batch in float32, steps/s: ours {ours['batch_float32_steps_per_s']:.0f}, MJX "
             f"{r['float32']['batch_steps_per_s']:.0f}; throughput ours/MJX "
-            f"{r['float32']['ours_over_mjx'].get('batch_throughput_same_dtype', nan):.2f}")
+            f"{r['float32']['ours_over_mjx'].get('batch_throughput_same_dtype', nan):.2f}"
+        )
     if "jacfwd_over_rollout" in ours:
-        log(f"  jacfwd over 2 gains / rollout ({r['steps']} steps): ours {ours['jacfwd_over_rollout']:.2f}x, "
-            f"MJX {mjx('jacfwd_over_rollout', '.2f')}; jacfwd time ours/MJX {ratio('ours_over_mjx', 'jacfwd_time')}")
+        log(
+            f"  jacfwd over 2 gains / rollout ({r['steps']} steps): ours {ours['jacfwd_over_rollout']:.2f}x, "
+            f"MJX {mjx('jacfwd_over_rollout', '.2f')}; jacfwd time ours/MJX {ratio('ours_over_mjx', 'jacfwd_time')}"
+        )
     comp = lambda cs: " / ".join(f"{cs[k]:.1f}" for k in ("rollout", "batch", "jacfwd"))
     ours_c = f"ours {comp(ours_compile)}, " if ours_compile else ""
-    log(f"  cold compile s (rollout / batch / jacfwd): {ours_c}"
-        + ", ".join(f"MJX {comp(r[d]['compile_s'])} ({d})" for d in dts))
-    log(f"  MJX vs MuJoCo C after {r['steps']} steps, max |qpos difference|: "
-        + ", ".join(f"{r[d]['max_qpos_diff_vs_c']:.1e} ({d})" for d in dts))
+    log(
+        f"  cold compile s (rollout / batch / jacfwd): {ours_c}"
+        + ", ".join(f"MJX {comp(r[d]['compile_s'])} ({d})" for d in dts)
+    )
+    log(
+        f"  MJX vs MuJoCo C after {r['steps']} steps, max |qpos difference|: "
+        + ", ".join(f"{r[d]['max_qpos_diff_vs_c']:.1e} ({d})" for d in dts)
+    )

@@ -54,8 +54,19 @@ from neuromotor.studies import metrics as mx
 from neuromotor.studies.gains import gains_for
 from neuromotor.viz.figures import pyplot, save_png as save_figure
 
-__all__ = ["DEFAULT_CONTRAST", "KINDS", "RUNNERS", "arm", "contrast", "experiment_spec", "full_body", "load_experiment",
-           "run_experiment", "write_json"]
+__all__ = [
+    "DEFAULT_CONTRAST",
+    "KINDS",
+    "RUNNERS",
+    "arm",
+    "contrast",
+    "experiment_spec",
+    "full_body",
+    "load_experiment",
+    "run_experiment",
+    "write_json",
+]
+
 
 def write_json(obj: Any, path) -> pathlib.Path:
     """metrics.json: indented, NaN kept as NaN (a recovery time that never came)."""
@@ -80,8 +91,9 @@ def _hit(cfg: SimulationConfig) -> tuple[dict, str]:
     return {"kind": "ball", **dict(cfg.ball)}, cfg.ball.label() + aim
 
 
-def _simulate(cfg: SimulationConfig, out: pathlib.Path, name: str = "run.npz", setting: GainSetting | None = None,
-              setup=None):
+def _simulate(
+    cfg: SimulationConfig, out: pathlib.Path, name: str = "run.npz", setting: GainSetting | None = None, setup=None
+):
     """One perturbed + unperturbed pair, saved as RUN.npz; returns (setup, result, npz path)."""
     from neuromotor.studies.record import run_arrays
     from neuromotor.studies.simulate import prepare, run, save_npz_atomic
@@ -103,8 +115,9 @@ def _render(npz, out: pathlib.Path, exp: ExperimentSpec, video: bool) -> dict[st
     except ImportError as e:  # renderer not installed in this environment
         return {"render_skipped": str(e)}
     try:
-        files["filmstrip"] = str(render_run(npz, out / "filmstrip.png", frames=exp.frames, progress=False) or
-                                 out / "filmstrip.png")
+        files["filmstrip"] = str(
+            render_run(npz, out / "filmstrip.png", frames=exp.frames, progress=False) or out / "filmstrip.png"
+        )
         if video and exp.video:
             files["video"] = str(render_run(npz, out / exp.video, progress=False) or out / exp.video)
     except Exception as e:  # e.g. no off-screen OpenGL: keep the numbers and plots
@@ -136,8 +149,9 @@ def arm(cfg: SimulationConfig, exp: ExperimentSpec) -> dict:
     if cfg.metric == "euler":  # the largest change of one Euler angle
         peak_of = lambda dofs: float(np.rad2deg(np.abs(pert[:, dofs] - base[:, dofs]).max()))
     else:  # the largest rotation change of one of the joints turned by these DOFs
-        change = np.asarray(mx.joint_angle_changes_deg(model, result.perturbed.states.quat,
-                                                       result.unperturbed.states.quat))
+        change = np.asarray(
+            mx.joint_angle_changes_deg(model, result.perturbed.states.quat, result.unperturbed.states.quat)
+        )
         peak_of = lambda dofs: float(change[:, mx.joint_rows(model, mx.dof_joints(model, dofs))].max())
     numbers = {
         "arm": mx.recovery_metrics(t, dev_arm, start),
@@ -191,8 +205,11 @@ def full_body(cfg: SimulationConfig, exp: ExperimentSpec) -> dict:
     hit, title = _hit(cfg)
     ax.set_title(f"Full body, {title}", fontsize=10)
     fig.tight_layout()
-    numbers = {"metrics": result.metrics, "hit": hit,
-               "files": {"run": str(npz), "deviation": str(save_figure(fig, out / "deviation.png"))}}
+    numbers = {
+        "metrics": result.metrics,
+        "hit": hit,
+        "files": {"run": str(npz), "deviation": str(save_figure(fig, out / "deviation.png"))},
+    }
     numbers["files"].update(_render(npz, out, exp, video=True))
     write_json(numbers, out / "metrics.json")
     return numbers
@@ -213,8 +230,16 @@ def contrast(cfg: SimulationConfig, exp: ExperimentSpec, progress: bool = True) 
         dev = deviation_curve(setup, result.perturbed, result.unperturbed)
         track = tracking_curve(setup, result.unperturbed)
         curves.append((setting, t, dev, track))
-        numbers["controllers"].append({"label": setting.name, "controller": setting.controller, "ks": setting.ks,
-                                       "kd": setting.kd, **result.metrics, "run": str(npz)})
+        numbers["controllers"].append(
+            {
+                "label": setting.name,
+                "controller": setting.controller,
+                "ks": setting.ks,
+                "kd": setting.kd,
+                **result.metrics,
+                "run": str(npz),
+            }
+        )
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.4), dpi=90)
     for setting, t, dev, track in curves:
@@ -236,8 +261,9 @@ def contrast(cfg: SimulationConfig, exp: ExperimentSpec, progress: bool = True) 
         spec = SweepSpec(list(exp.magnitudes), list(exp.controllers), kind="force" if cfg.perturbations else "ball")
         res = simulate_grid(cfg, spec, base_setup, chunk=len(spec.magnitudes) * len(spec.gains), progress=progress)
         numbers["files"]["sweep_csv"] = str(write_csv(res.rows, out / "sweep.csv"))
-        numbers["files"]["sweep_plot"] = str(plot_sweep(res.rows, out / "contrast_sweep.png",
-                                                        title="same hit, growing magnitude"))
+        numbers["files"]["sweep_plot"] = str(
+            plot_sweep(res.rows, out / "contrast_sweep.png", title="same hit, growing magnitude")
+        )
     write_json(numbers, out / "metrics.json")
     return numbers
 

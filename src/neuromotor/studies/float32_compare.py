@@ -58,23 +58,29 @@ class PrecisionComparison:
     def row(self) -> dict:
         """One line of the docs/float32.md table."""
         m64, m32 = self.of("float64"), self.of("float32")
-        return {"run": self.name, "h_s": self.h,
-                "peak64_deg": m64["peak_deviation_deg"], "peak32_deg": m32["peak_deviation_deg"],
-                "peak_rel_diff": self.peak_rel_diff,
-                "recovery64_s": m64["recovery_time_s"], "recovery32_s": m32["recovery_time_s"],
-                "recovery_diff_steps": self.recovery_diff_steps,
-                "kkt64": m64["max_kkt_residual"], "kkt32": m32["max_kkt_residual"],
-                "violation64": m64["max_constraint_violation"], "violation32": m32["max_constraint_violation"],
-                "diverged64": m64["diverged"], "diverged32": m32["diverged"]}
+        return {
+            "run": self.name,
+            "h_s": self.h,
+            "peak64_deg": m64["peak_deviation_deg"],
+            "peak32_deg": m32["peak_deviation_deg"],
+            "peak_rel_diff": self.peak_rel_diff,
+            "recovery64_s": m64["recovery_time_s"],
+            "recovery32_s": m32["recovery_time_s"],
+            "recovery_diff_steps": self.recovery_diff_steps,
+            "kkt64": m64["max_kkt_residual"],
+            "kkt32": m32["max_kkt_residual"],
+            "violation64": m64["max_constraint_violation"],
+            "violation32": m32["max_constraint_violation"],
+            "diverged64": m64["diverged"],
+            "diverged32": m32["diverged"],
+        }
 
 
 def run_both(config: SimulationConfig) -> dict[Precision, RunResult]:
     """The config's hit run in float64 and in float32 (one character for both; no divergence
     check: divergence is part of what is compared)."""
-    character, traj = load_character(config.clip, config.units, config.up_axis, config.stature,
-                                     config.mass_options())
-    return {p: run(prepare(dataclasses.replace(config, dtype=p), character, traj), check=False)
-            for p in Precision}
+    character, traj = load_character(config.clip, config.units, config.up_axis, config.stature, config.mass_options())
+    return {p: run(prepare(dataclasses.replace(config, dtype=p), character, traj), check=False) for p in Precision}
 
 
 def compare(config: SimulationConfig, name: str = "") -> PrecisionComparison:
@@ -85,8 +91,16 @@ def compare(config: SimulationConfig, name: str = "") -> PrecisionComparison:
 
 # A 300 N half-sine push on the chest for 0.1 s at t = 1 s: a segment keyword, so one hit serves
 # every rig (the hit of experiments/every_clip.py and tests/studies/test_every_clip.py).
-CHEST_PUSH = dict(kind="force", body="chest", point=None, direction=[1.0, 0.0, 0.0], magnitude=300.0,
-                  start=1.0, duration=0.1, shape="half_sine")
+CHEST_PUSH = dict(
+    kind="force",
+    body="chest",
+    point=None,
+    direction=[1.0, 0.0, 0.0],
+    magnitude=300.0,
+    start=1.0,
+    duration=0.1,
+    shape="half_sine",
+)
 # Clips whose driven root turns too fast for h = 1/120 s (see studies.simulate.step_warnings).
 CLIP_STEP = {"bandai_kick_22joint_6ch": 1.0 / 360.0}
 
@@ -94,8 +108,13 @@ CLIP_STEP = {"bandai_kick_22joint_6ch": 1.0 / 360.0}
 def clip_config(path, duration: float = 3.0) -> SimulationConfig:
     """The chest push on a clip, at the step the clip needs."""
     h = CLIP_STEP.get(pathlib.Path(path).stem, 1.0 / 120.0)
-    return SimulationConfig(clip=str(path), h=h, duration=duration, perturbations=[dict(CHEST_PUSH)],  # type: ignore[list-item]  # specs made in __post_init__
-                            source=pathlib.Path(path).stem)
+    return SimulationConfig(
+        clip=str(path),
+        h=h,
+        duration=duration,
+        perturbations=[dict(CHEST_PUSH)],  # type: ignore[list-item]  # specs made in __post_init__
+        source=pathlib.Path(path).stem,
+    )
 
 
 def default_hit_config() -> SimulationConfig:

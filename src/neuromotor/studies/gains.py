@@ -25,17 +25,29 @@ from neuromotor.physics.control import Gains, pd_tracking_gains
 from neuromotor.physics.reflex import Reflex
 
 # The unit of each named parameter (by name: the order of PARAMETERS does not matter).
-UNITS = MappingProxyType({"ks": "1/s^2", "kd": "1/s", "reflex_gain": "1/s^2", "reflex_delay": "s",
-                          "long_latency_gain": "1/s^2", "long_latency_delay": "s"})
+UNITS = MappingProxyType(
+    {
+        "ks": "1/s^2",
+        "kd": "1/s",
+        "reflex_gain": "1/s^2",
+        "reflex_delay": "s",
+        "long_latency_gain": "1/s^2",
+        "long_latency_delay": "s",
+    }
+)
 # Where a named reflex parameter lives in Gains.reflex: (path, leaf).
-_REFLEX = MappingProxyType({"reflex_gain": ("spinal", "gain"), "reflex_delay": ("spinal", "delay"),
-                            "long_latency_gain": ("long_latency", "gain"),
-                            "long_latency_delay": ("long_latency", "delay")})
+_REFLEX = MappingProxyType(
+    {
+        "reflex_gain": ("spinal", "gain"),
+        "reflex_delay": ("spinal", "delay"),
+        "long_latency_gain": ("long_latency", "gain"),
+        "long_latency_delay": ("long_latency", "delay"),
+    }
+)
 assert set(UNITS) == set(PARAMETERS) == {"ks", "kd", *_REFLEX}
 
 
-def gains_for(template: Gains, setting: GainSetting | None = None, *, reflex: Reflex | None = None,
-              **values) -> Gains:
+def gains_for(template: Gains, setting: GainSetting | None = None, *, reflex: Reflex | None = None, **values) -> Gains:
     """The controller made from ``template``, in this order:
 
     * ``setting``: its controller (the paper's feedforward + low-gain feedback, ``neuromotor``,

@@ -61,7 +61,7 @@ def deviation(theta, theta_ref, dofs=None) -> Float[Array, " T"]:
 def rms_error_deg(theta, theta_ref) -> float:
     """RMS of the wrapped angle differences over all samples and DOFs, degrees (Euler form)."""
     diff = wrap_angle_np(np.asarray(theta) - np.asarray(theta_ref))
-    return float(np.rad2deg(np.sqrt(np.mean(diff ** 2))))
+    return float(np.rad2deg(np.sqrt(np.mean(diff**2))))
 
 
 # ---------------------------------------------------------------- geodesic joint errors
@@ -85,8 +85,9 @@ def joint_quats(model_or_topology, quat: Float[Array, "... B 4"]) -> Float[Array
     return quat_mul(quat_conj(quat[..., topo.parent, :]), quat[..., topo.child, :])
 
 
-def joint_rates(model_or_topology, quat: Float[Array, "... B 4"],
-                omega: Float[Array, "... B 3"]) -> Float[Array, "... C 3"]:
+def joint_rates(
+    model_or_topology, quat: Float[Array, "... B 4"], omega: Float[Array, "... B 3"]
+) -> Float[Array, "... C 3"]:
     """Each joint's relative angular velocity R_child^T (w_child - w_parent) (rad/s, in the
     child's frame, like :func:`rotation_vector`) from body quaternions and world angular velocities."""
     topo = _topology(model_or_topology)
@@ -162,8 +163,9 @@ def rms_joint_angle_deg(local_a, local_b, rows=None) -> Float[Array, ...]:
     return jnp.rad2deg(safe_sqrt(jnp.mean(ang**2, axis=-1)))
 
 
-def joint_deviation(model_or_topology, quat_a: Float[Array, "T B 4"], quat_b: Float[Array, "T B 4"],
-                    joints=None) -> Float[Array, " T"]:
+def joint_deviation(
+    model_or_topology, quat_a: Float[Array, "T B 4"], quat_b: Float[Array, "T B 4"], joints=None
+) -> Float[Array, " T"]:
     """The geodesic deviation d(t) (deg) of two runs' body quaternions (``Rollout.states.quat``):
     per sample, the RMS over the simulated joints (``joints``: body indices; None: all) of the
     angle of R_a^T R_b of each joint's local rotations. Jittable, vmappable, differentiable."""
@@ -198,8 +200,9 @@ def run_deviation(metric: str, model_or_topology, run_a, run_b, joints=None) -> 
     raise ValueError(f"metric must be one of {DEVIATION_METRICS}, got {metric!r}")
 
 
-def recovery_metrics(time, dev, start: float, fraction: float = RECOVERY_FRACTION,
-                     floor_deg: float = RECOVERY_FLOOR_DEG) -> dict[str, float]:
+def recovery_metrics(
+    time, dev, start: float, fraction: float = RECOVERY_FRACTION, floor_deg: float = RECOVERY_FLOOR_DEG
+) -> dict[str, float]:
     """Exact (non-smooth) metrics of a deviation signal, as plain floats."""
     time, dev = np.asarray(time), np.asarray(dev)
     ipk = int(np.argmax(dev))

@@ -41,6 +41,7 @@ def up_axis_of(model: Model) -> int:
 # Skeleton points of simulated states
 # ----------------------------------------------------------------------------------------------
 
+
 def joint_frames_from_state(model: Model, pos, rot, local_ref):
     """World origin and rotation of every joint: bodies from the state, massless joints from
     their parent frame and the mocap's local rotations ``local_ref`` (J, 3, 3)."""
@@ -68,6 +69,7 @@ def joint_frames_from_state(model: Model, pos, rot, local_ref):
 @compiler.jit
 def _skeleton_points(model: Model, traj: Trajectory, time, pos, quat):
     """Skeleton points of states (leading time axis), as one compiled program."""
+
     def one(pos, quat, qr):
         o, r = joint_frames_from_state(model, pos, quat_to_matrix(quat), local_rotations(model, qr))
         return skeleton_points(model, o, r)
@@ -83,6 +85,7 @@ def rollout_points(setup: Setup, run_: Rollout) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 # RUN.npz arrays
 # ----------------------------------------------------------------------------------------------
+
 
 @functools.partial(compiler.jit, static_argnames=("metric",))
 def _deviation(metric: str, model: Model, pert, base):
@@ -195,12 +198,17 @@ def anatomy_forward(setup: Setup, base_quat) -> np.ndarray | None:
 def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
     """The arrays of RUN.npz (the contract of :mod:`neuromotor.io.runfile`), the ball's included
     when the run has one."""
-    arrays = {**_motion_arrays(setup, result), **_skeleton_arrays(setup, result),
-              **_source_arrays(setup, result), **shape_arrays(setup)}
+    arrays = {
+        **_motion_arrays(setup, result),
+        **_skeleton_arrays(setup, result),
+        **_source_arrays(setup, result),
+        **shape_arrays(setup),
+    }
     # Horizontal facing direction: the anatomy's forward, else estimated from the skeleton.
     forward = anatomy_forward(setup, result.unperturbed.states.quat)
-    arrays["facing"] = facing_direction(arrays["skeleton_points_unperturbed"], arrays["skeleton_edges"],
-                                        int(arrays["up_axis"]), forward)
+    arrays["facing"] = facing_direction(
+        arrays["skeleton_points_unperturbed"], arrays["skeleton_edges"], int(arrays["up_axis"]), forward
+    )
     if getattr(result, "ball", None) is not None:
         from neuromotor.studies.ball import ball_arrays
 
@@ -211,6 +219,7 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
 # ----------------------------------------------------------------------------------------------
 # Provenance
 # ----------------------------------------------------------------------------------------------
+
 
 def file_sha256(path) -> str:
     """Hex SHA-256 of a file's bytes."""
@@ -244,20 +253,22 @@ def _perturbation_records(setup: Setup) -> list[dict]:
     for i, spec in enumerate(setup.config.perturbations):
         b = int(np.asarray(p.body)[i])
         impulse = spec.kind == "impulse"
-        perts.append({
-            "kind": spec.kind,
-            "body_requested": spec.body,
-            "body": names[b],
-            "body_index": b,
-            "point": _floats(np.asarray(p.point)[i]),
-            "point_given": spec.point is not None,
-            "direction": _floats(np.asarray(p.direction)[i]),
-            "magnitude": float(spec.magnitude),
-            "unit": "N s" if impulse else "N",
-            "start": float(spec.start),
-            "duration": float(spec.span),  # an impulse: 0 (it acts within one step)
-            "shape": None if impulse else spec.shape,
-        })
+        perts.append(
+            {
+                "kind": spec.kind,
+                "body_requested": spec.body,
+                "body": names[b],
+                "body_index": b,
+                "point": _floats(np.asarray(p.point)[i]),
+                "point_given": spec.point is not None,
+                "direction": _floats(np.asarray(p.direction)[i]),
+                "magnitude": float(spec.magnitude),
+                "unit": "N s" if impulse else "N",
+                "start": float(spec.start),
+                "duration": float(spec.span),  # an impulse: 0 (it acts within one step)
+                "shape": None if impulse else spec.shape,
+            }
+        )
     return perts
 
 
@@ -290,12 +301,17 @@ def _body_record(setup: Setup) -> dict:
     cfg, model, character = setup.config, setup.model, setup.character
     anat = getattr(character, "anatomy", None)
     return {
-        "units": {"requested": cfg.units, "resolved": getattr(anat, "units", None),
-                  "length_scale": float(character.clip.length_scale)},
-        "up_axis": {"requested": cfg.up_axis, "resolved": up_axis_of(model),
-                    "up": _floats(anat.up) if anat is not None else None},
-        "stature": {"requested": cfg.stature,
-                    "resolved": float(anat.stature) if anat is not None else None},
+        "units": {
+            "requested": cfg.units,
+            "resolved": getattr(anat, "units", None),
+            "length_scale": float(character.clip.length_scale),
+        },
+        "up_axis": {
+            "requested": cfg.up_axis,
+            "resolved": up_axis_of(model),
+            "up": _floats(anat.up) if anat is not None else None,
+        },
+        "stature": {"requested": cfg.stature, "resolved": float(anat.stature) if anat is not None else None},
         "body_mass": {"requested": cfg.body_mass, "total": float(np.sum(np.asarray(model.mass)))},
         "sex": cfg.sex,
         "simulate_extremities": bool(cfg.simulate_extremities),

@@ -33,8 +33,16 @@ from neuromotor.studies.sweep.stability import (  # noqa: F401
     map_options,
 )
 
-METRICS = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg", "final_error_deg",
-           "unperturbed_rms_error_deg", "peak_reflex_Nm", "diverged")
+METRICS = (
+    "peak_deviation_deg",
+    "time_to_peak_s",
+    "recovery_time_s",
+    "overshoot_deg",
+    "final_error_deg",
+    "unperturbed_rms_error_deg",
+    "peak_reflex_Nm",
+    "diverged",
+)
 PATH_NAMES = ("muscle feedback only", "+ spinal reflex", "+ spinal and long-latency")
 
 
@@ -55,8 +63,16 @@ def path_configs(cfg: SimulationConfig) -> dict[str, SimulationConfig]:
     long-latency path off; the config's ``[reflex]`` as given (defaults: :class:`ReflexSpec`)."""
     rx = cfg.reflex or ReflexSpec()
     spinal = dataclasses.replace(rx, long_latency_gain=0.0)
-    return dict(zip(PATH_NAMES, (dataclasses.replace(cfg, reflex=None), dataclasses.replace(cfg, reflex=spinal),
-                                 dataclasses.replace(cfg, reflex=rx))))
+    return dict(
+        zip(
+            PATH_NAMES,
+            (
+                dataclasses.replace(cfg, reflex=None),
+                dataclasses.replace(cfg, reflex=spinal),
+                dataclasses.replace(cfg, reflex=rx),
+            ),
+        )
+    )
 
 
 def compare_paths(cfg: SimulationConfig, character=None, traj=None) -> PathComparison:
@@ -74,10 +90,22 @@ def compare_paths(cfg: SimulationConfig, character=None, traj=None) -> PathCompa
         curves[name] = deviation_curve(setup, r.perturbed, r.unperturbed)
         m = r.metrics
         reflex = 0.0 if r.perturbed.reflex is None else float(np.max(np.abs(np.asarray(r.perturbed.reflex))))
-        table[name] = {**{k: m[k] for k in ("peak_deviation_deg", "time_of_peak_s", "recovery_time_s",
-                                            "overshoot_deg", "final_error_deg", "unperturbed_rms_error_deg")},
-                       "time_to_peak_s": m["time_of_peak_s"] - start, "peak_reflex_Nm": reflex,
-                       "diverged": bool(m["diverged"])}
+        table[name] = {
+            **{
+                k: m[k]
+                for k in (
+                    "peak_deviation_deg",
+                    "time_of_peak_s",
+                    "recovery_time_s",
+                    "overshoot_deg",
+                    "final_error_deg",
+                    "unperturbed_rms_error_deg",
+                )
+            },
+            "time_to_peak_s": m["time_of_peak_s"] - start,
+            "peak_reflex_Nm": reflex,
+            "diverged": bool(m["diverged"]),
+        }
     assert time is not None  # path_configs gives three configs
     return PathComparison(time, curves, table, start, configs)
 
@@ -101,9 +129,10 @@ def paths_from_config(path, output, figure=None) -> tuple[PathComparison, dict[s
     comp = compare_paths(cfg)
     out = pathlib.Path(output)
     rows = [dict(path=name, **comp.metrics[name]) for name in comp.curves]
-    files = {"csv": tables.write_csv(rows, out / "paths.csv", ("path", *METRICS)),
-             "json": tables.write_json(out / "paths.json", tables.json_safe({"hit_start_s": comp.hit_start,
-                                                                              "runs": rows}))}
+    files = {
+        "csv": tables.write_csv(rows, out / "paths.csv", ("path", *METRICS)),
+        "json": tables.write_json(out / "paths.json", tables.json_safe({"hit_start_s": comp.hit_start, "runs": rows})),
+    }
     labels = {_path_label(n, comp.configs[n]): n for n in comp.curves}
     curves = {label: comp.curves[n] for label, n in labels.items()}
     metrics = {label: comp.metrics[n] for label, n in labels.items()}
@@ -118,21 +147,43 @@ def paths_from_config(path, output, figure=None) -> tuple[PathComparison, dict[s
 # ----------------------------------------------------------------------------- stability
 
 
-def stability_grid(cfg: SimulationConfig, gains, delays, *, setup=None, chunk: int = 64, inner_batch: int = 1,
-                   bound_deg: float = STABLE_PEAK_DEG, progress: bool = False) -> list[dict]:
+def stability_grid(
+    cfg: SimulationConfig,
+    gains,
+    delays,
+    *,
+    setup=None,
+    chunk: int = 64,
+    inner_batch: int = 1,
+    bound_deg: float = STABLE_PEAK_DEG,
+    progress: bool = False,
+) -> list[dict]:
     """The hit of ``cfg`` (perturbation[0]) at every spinal reflex gain (1/s^2) x delay (s) over
     the config's ``[reflex]`` (default :class:`ReflexSpec`), muscle feedback at ``cfg``'s gains;
     one classified row per cell, gain outermost."""
     cfg = cfg if cfg.reflex is not None else dataclasses.replace(cfg, reflex=ReflexSpec())
     assert cfg.reflex is not None
-    spec = SweepSpec([cfg.perturbations[0].magnitude], [cfg.gains], chunk=chunk, inner_batch=inner_batch,
-                     reflexes=reflex_grid(cfg.reflex, reflex_gain=list(gains), reflex_delay=list(delays)))
+    spec = SweepSpec(
+        [cfg.perturbations[0].magnitude],
+        [cfg.gains],
+        chunk=chunk,
+        inner_batch=inner_batch,
+        reflexes=reflex_grid(cfg.reflex, reflex_gain=list(gains), reflex_delay=list(delays)),
+    )
     result = simulate_grid(cfg, spec, setup or prepare(cfg), progress=progress)
     return classified(result.rows, bound_deg)
 
 
-def implicit_reference(cfg: SimulationConfig, gains, *, setup=None, chunk: int = 64, inner_batch: int = 1,
-                       bound_deg: float = STABLE_PEAK_DEG, progress: bool = False) -> list[dict]:
+def implicit_reference(
+    cfg: SimulationConfig,
+    gains,
+    *,
+    setup=None,
+    chunk: int = 64,
+    inner_batch: int = 1,
+    bound_deg: float = STABLE_PEAK_DEG,
+    progress: bool = False,
+) -> list[dict]:
     """The same extra feedback without delay, inside K and D of Eq. 2 (implicit, like the muscle
     feedback): for every gain g the muscle gains ``(ks + g, kd + g c)`` and no reflex, which is
     what a reflex of gain g and rate weight c at zero delay adds, evaluated explicitly
@@ -142,9 +193,17 @@ def implicit_reference(cfg: SimulationConfig, gains, *, setup=None, chunk: int =
     settings = [GainSetting(cfg.ks + g, cfg.kd + g * c, label=f"implicit +{g:g}") for g in gains]
     spec = SweepSpec([cfg.perturbations[0].magnitude], settings, chunk=chunk, inner_batch=inner_batch)
     rows = simulate_grid(base, spec, setup or prepare(base), progress=progress).rows
-    return [dict(r, reflex_gain=float(g), reflex_delay=0.0, long_latency_gain=0.0, long_latency_delay=0.0,
-                 feedback="implicit")
-            for r, g in zip(classified(rows, bound_deg), gains)]
+    return [
+        dict(
+            r,
+            reflex_gain=float(g),
+            reflex_delay=0.0,
+            long_latency_gain=0.0,
+            long_latency_delay=0.0,
+            feedback="implicit",
+        )
+        for r, g in zip(classified(rows, bound_deg), gains)
+    ]
 
 
 def stability_boundary(rows: list[dict]) -> list[dict]:
@@ -155,13 +214,19 @@ def stability_boundary(rows: list[dict]) -> list[dict]:
         cells = sorted((r for r in rows if r["reflex_delay"] == d), key=lambda r: r["reflex_gain"])
         bad = [r["reflex_gain"] for r in cells if r["stability"] != "stable"]
         ok = [r["reflex_gain"] for r in cells if r["stability"] == "stable" and (not bad or r["reflex_gain"] < bad[0])]
-        out.append({"delay_s": d, "largest_stable_gain": max(ok) if ok else None,
-                    "smallest_unstable_gain": bad[0] if bad else None})
+        out.append(
+            {
+                "delay_s": d,
+                "largest_stable_gain": max(ok) if ok else None,
+                "smallest_unstable_gain": bad[0] if bad else None,
+            }
+        )
     return out
 
 
-def stability_from_config(path, output, figure=None, *, bound_deg: float = STABLE_PEAK_DEG, inner_batch=None,
-                          progress: bool = True) -> tuple[list[dict], dict[str, pathlib.Path]]:
+def stability_from_config(
+    path, output, figure=None, *, bound_deg: float = STABLE_PEAK_DEG, inner_batch=None, progress: bool = True
+) -> tuple[list[dict], dict[str, pathlib.Path]]:
     """The stability map of a sweep config whose ``[sweep]`` varies ``reflex_gain`` and
     ``reflex_delay`` (one gain setting, one magnitude), with the :func:`implicit_reference` row:
     ``stability.csv`` (every cell classified, column ``feedback``: delayed or implicit),
@@ -175,27 +240,42 @@ def stability_from_config(path, output, figure=None, *, bound_deg: float = STABL
     rx = spec.reflexes or ()
     one_setting = len(spec.runs(cfg.perturbations[0])) == len(rx)  # one gain setting, one magnitude
     if len({r.gain for r in rx}) < 2 or len({r.delay for r in rx}) < 2 or not one_setting:
-        raise ConfigError(f"{cfg.source}: field 'sweep': the stability map needs reflex_gain and reflex_delay lists "
-                          "of two or more values each, one gain setting and one magnitude")
+        raise ConfigError(
+            f"{cfg.source}: field 'sweep': the stability map needs reflex_gain and reflex_delay lists "
+            "of two or more values each, one gain setting and one magnitude"
+        )
     setup = prepare(cfg)
-    sizes: dict[str, Any] = dict(chunk=spec.chunk, inner_batch=inner_batch or spec.inner_batch, bound_deg=bound_deg,
-                                 progress=progress)
+    sizes: dict[str, Any] = dict(
+        chunk=spec.chunk, inner_batch=inner_batch or spec.inner_batch, bound_deg=bound_deg, progress=progress
+    )
     result = simulate_grid(cfg, spec, setup, inner_batch=sizes["inner_batch"], progress=progress)
     rows = [dict(r, feedback="delayed") for r in classified(result.rows, bound_deg)]
     implicit = implicit_reference(cfg, sorted({r.gain for r in rx}), **sizes)
     out = pathlib.Path(out_dir)
     boundary = stability_boundary(rows)
     columns = (*with_reflex_columns(COLUMNS), "feedback", "stability")
-    files = {"csv": tables.write_csv(rows + implicit, out / "stability.csv", columns),
-             "json": tables.write_json(out / "boundary.json", tables.json_safe(
-                 {"bound_deg": bound_deg, "muscle_ks": cfg.ks, "muscle_kd": cfg.kd, "boundary": boundary,
-                  "implicit_unstable_gains": [r["reflex_gain"] for r in implicit if r["stability"] != "stable"]}))}
+    files = {
+        "csv": tables.write_csv(rows + implicit, out / "stability.csv", columns),
+        "json": tables.write_json(
+            out / "boundary.json",
+            tables.json_safe(
+                {
+                    "bound_deg": bound_deg,
+                    "muscle_ks": cfg.ks,
+                    "muscle_kd": cfg.kd,
+                    "boundary": boundary,
+                    "implicit_unstable_gains": [r["reflex_gain"] for r in implicit if r["stability"] != "stable"],
+                }
+            ),
+        ),
+    }
     hit = cfg.perturbations[0]
     assert cfg.reflex is not None  # the config's reflex axes need a [reflex] table (config.parse)
-    title = (f"{hit.label()} on {hit.body} at {hit.start:g} s; muscle feedback ks={cfg.ks:g}, "
-             f"kd={cfg.kd:g} beside the delayed path (rate weight {cfg.reflex.rate_weight:g} s)")
+    title = (
+        f"{hit.label()} on {hit.body} at {hit.start:g} s; muscle feedback ks={cfg.ks:g}, "
+        f"kd={cfg.kd:g} beside the delayed path (rate weight {cfg.reflex.rate_weight:g} s)"
+    )
     for key, target in (("plot", out / "stability.png"), ("figure", figure)):
         if target is not None:
-            files[key] = plot_stability_map(rows, target, implicit=implicit, title=title,
-                                            **map_options(cfg, bound_deg))
+            files[key] = plot_stability_map(rows, target, implicit=implicit, title=title, **map_options(cfg, bound_deg))
     return rows + implicit, files

@@ -1,8 +1,8 @@
 """The end-to-end pipeline: clip -> model -> inverse dynamics -> perturbed and unperturbed rollouts.
 
-    setup = prepare(SimulationConfig())          # embedded clip, default gains, no hit
-    result = run(setup)
-    result.metrics["peak_deviation_deg"]
+setup = prepare(SimulationConfig())          # embedded clip, default gains, no hit
+result = run(setup)
+result.metrics["peak_deviation_deg"]
 """
 
 from __future__ import annotations
@@ -89,20 +89,25 @@ def step_warnings(ref: Reference, h: float, feedforward: Feedforward | str = Fee
     if omega * h <= MAX_ROOT_TURN_PER_STEP:
         return ()
     h_good = MAX_ROOT_TURN_PER_STEP / omega
-    return (f"the root turns at up to {omega:.1f} rad/s, {omega * h:.3f} rad per step of h = {h:.4g} s: the "
-            f"replay may drift by degrees; sim.h <= {h_good:.4g} s keeps it within about a degree "
-            f"(or sim.feedforward = \"discrete\", which replays it exactly)",)
+    return (
+        f"the root turns at up to {omega:.1f} rad/s, {omega * h:.3f} rad per step of h = {h:.4g} s: the "
+        f"replay may drift by degrees; sim.h <= {h_good:.4g} s keeps it within about a degree "
+        f'(or sim.feedforward = "discrete", which replays it exactly)',
+    )
 
 
 def body_lookup(model: Model, source: str = "config", character: Character | None = None):
     """Name -> body index: a body (joint) name, or a segment keyword such as ``chest``."""
+
     def index(name: str) -> int:
         if name in model.body_names:
             return model.body_names.index(name)
         b = keyword_body(character, name) if character is not None else None
         if b is None:
-            raise ConfigError(f"{source}: unknown body {name!r}; bodies are {', '.join(model.body_names)}"
-                              f" (or one of {', '.join(BODY_KEYWORDS)})")
+            raise ConfigError(
+                f"{source}: unknown body {name!r}; bodies are {', '.join(model.body_names)}"
+                f" (or one of {', '.join(BODY_KEYWORDS)})"
+            )
         return b
 
     return index
@@ -129,32 +134,41 @@ class ActingWindow:
     def check(self, p, body_field: str, start_field: str) -> None:
         """ConfigError (naming the field) when perturbation ``p`` cannot act."""
         if self.index(p["body"]) in self.driven:
-            raise ConfigError(f"{self.source}: field '{body_field}' = {p['body']!r} is a driven body (the root "
-                              f"always is; [sim] driven_joints adds more): a push on it does nothing")
+            raise ConfigError(
+                f"{self.source}: field '{body_field}' = {p['body']!r} is a driven body (the root "
+                f"always is; [sim] driven_joints adds more): a push on it does nothing"
+            )
         start = float(p["start"])
         end = start + (0.5 * self.h if p["kind"] == "impulse" else float(p["duration"]))  # impulse: centred
         if start >= self.t1 - 1e-9:
-            raise ConfigError(f"{self.source}: field '{start_field}' = {start:g} s is at or after the end of "
-                              f"{self.text}")
+            raise ConfigError(
+                f"{self.source}: field '{start_field}' = {start:g} s is at or after the end of {self.text}"
+            )
         if end <= self.t0:
-            raise ConfigError(f"{self.source}: field '{start_field}' = {start:g} s: the perturbation is over "
-                              f"before {self.text} begins")
+            raise ConfigError(
+                f"{self.source}: field '{start_field}' = {start:g} s: the perturbation is over "
+                f"before {self.text} begins"
+            )
 
 
-def prepare(config: SimulationConfig, character: Character | None = None,
-            traj: Trajectory | None = None) -> Setup:
+def prepare(config: SimulationConfig, character: Character | None = None, traj: Trajectory | None = None) -> Setup:
     if config.dtype is Precision.FLOAT64 and not jax.config.jax_enable_x64:  # type: ignore[attr-defined]
-        raise ConfigError(f"{config.source}: field 'sim.dtype' is float64 but JAX runs with x64 off "
-                          "(JAX_ENABLE_X64 is set to false): unset it, or set [sim] dtype = \"float32\"")
+        raise ConfigError(
+            f"{config.source}: field 'sim.dtype' is float64 but JAX runs with x64 off "
+            '(JAX_ENABLE_X64 is set to false): unset it, or set [sim] dtype = "float32"'
+        )
     if character is None:
-        character, traj = load_character(config.clip, config.units, config.up_axis, config.stature,
-                                         config.mass_options())
+        character, traj = load_character(
+            config.clip, config.units, config.up_axis, config.stature, config.mass_options()
+        )
     assert traj is not None, "prepare: a character comes with its trajectory"
     model, clip = character.model, character.clip
     duration = clip.duration - config.start if config.duration is None else config.duration
     if config.start + duration > clip.duration + 1e-9:
-        raise ConfigError(f"{config.source}: sim.start + sim.duration = {config.start + duration:.3f} s "
-                          f"runs past the clip's end ({clip.duration:.3f} s)")
+        raise ConfigError(
+            f"{config.source}: sim.start + sim.duration = {config.start + duration:.3f} s "
+            f"runs past the clip's end ({clip.duration:.3f} s)"
+        )
     # Rounded down when rounding up would run past the clip's end (by less than a step).
     n_steps = min(int(round(duration / config.h)), int(np.floor((clip.duration - config.start) / config.h + 1e-9)))
     if n_steps < 1:
@@ -167,19 +181,30 @@ def prepare(config: SimulationConfig, character: Character | None = None,
             raise ConfigError(f"{config.source}: sim.driven_joints: the root is always driven")
         driven_list.append(b)
     driven = tuple(sorted(driven_list))
-    window = ActingWindow(config.source, config.start, config.start + n_steps * config.h, config.h, clip.duration,
-                          (0, *driven), index)
+    window = ActingWindow(
+        config.source, config.start, config.start + n_steps * config.h, config.h, clip.duration, (0, *driven), index
+    )
     for i, p in enumerate(config.perturbations):
         window.check(p, f"perturbation[{i}].body", f"perturbation[{i}].start")
     if config.ball is not None and float(config.ball.get("launch", 0.0)) >= window.t1 - 1e-9:
-        raise ConfigError(f"{config.source}: field 'ball.launch' = {float(config.ball['launch']):g} s is at "
-                          f"or after the end of {window.text}")
-    options = StepOptions(h=config.h, n_steps=n_steps, driven=driven, implicit=config.implicit,
-                          stabilization_steps=config.stabilization_steps, dtype=config.dtype,
-                          feedforward=config.feedforward, joint_law=config.joint_law)
+        raise ConfigError(
+            f"{config.source}: field 'ball.launch' = {float(config.ball['launch']):g} s is at "
+            f"or after the end of {window.text}"
+        )
+    options = StepOptions(
+        h=config.h,
+        n_steps=n_steps,
+        driven=driven,
+        implicit=config.implicit,
+        stabilization_steps=config.stabilization_steps,
+        dtype=config.dtype,
+        feedforward=config.feedforward,
+        joint_law=config.joint_law,
+    )
     ref = make_reference(model, traj, config.start, options)
-    template = _initial_gains(model, traj, jnp.asarray(config.start), ref.local_axes[0], ref.activation,
-                              config.tau_floor)
+    template = _initial_gains(
+        model, traj, jnp.asarray(config.start), ref.local_axes[0], ref.activation, config.tau_floor
+    )
     gains = gains_for(template, config.gains, reflex=None if config.reflex is None else config.reflex.build(config.h))
     ball = ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
@@ -248,9 +273,12 @@ def _metric_arrays(metric: str, model: Model, pert: Rollout, base: Rollout, ref:
     else:  # the simulated joints' local rotations against the mocap's on the grid
         local = mx.joint_quats(model, base.states.quat)
         track = mx.geodesic_angle(local, ref.rel_quat[: local.shape[0]])
-    return (dev, jnp.rad2deg(jnp.sqrt(jnp.mean(track**2))),
-            jnp.maximum(jnp.max(pert.residual), jnp.max(base.residual)),
-            jnp.maximum(jnp.max(pert.violation), jnp.max(base.violation)))
+    return (
+        dev,
+        jnp.rad2deg(jnp.sqrt(jnp.mean(track**2))),
+        jnp.maximum(jnp.max(pert.residual), jnp.max(base.residual)),
+        jnp.maximum(jnp.max(pert.violation), jnp.max(base.violation)),
+    )
 
 
 def deviation_curve(setup: Setup, pert: Rollout, base: Rollout, joints=None) -> np.ndarray:
@@ -276,4 +304,3 @@ def _tracking(metric, model, run_, ref):
         return mx.deviation(run_.theta, ref.theta[: run_.theta.shape[0]])
     local = mx.joint_quats(model, run_.states.quat)
     return mx.rms_joint_angle_deg(local, ref.rel_quat[: local.shape[0]])
-

@@ -74,7 +74,7 @@ FEATURES = {
     "recovery_time_s": "time after the start until d(t) stays below the threshold (s)",
     "overshoot_deg": "largest deviation after d(t) first returns below the threshold (deg)",
     "peak_acceleration_deg_s2": "largest a(t), the RMS over the joints of d/dt of the relative angular velocity "
-                                "difference (deg/s^2)",
+    "difference (deg/s^2)",
 }
 AXES = ("x", "y", "z")
 SD_SUFFIX = ".sd"  # corridor columns: NAME (mean over subjects) and NAME.sd (their standard deviation)
@@ -125,8 +125,11 @@ def read_target(path, quantity: str = "joint_angles", time_offset: float = 0.0) 
         _fail(src, "values", "contains NaN or infinite entries")
     if table.sd is not None and not (np.all(np.isfinite(table.sd)) and np.all(table.sd > 0)):
         c, t, k = np.argwhere(~(np.isfinite(table.sd) & (table.sd > 0)))[0]
-        _fail(src, f"{table.names[k]}.sd", f"must be finite and > 0 (case {c}, time {table.time[t]:g} s: "
-                                           f"{table.sd[c, t, k]!r})")
+        _fail(
+            src,
+            f"{table.names[k]}.sd",
+            f"must be finite and > 0 (case {c}, time {table.time[t]:g} s: {table.sd[c, t, k]!r})",
+        )
     if len(set(table.names)) != len(table.names):
         _fail(src, "names", "contains duplicates")
     return table
@@ -239,7 +242,7 @@ def _read_bvh(path, quantity: str, time_offset: float) -> TargetTable:
 
     src = str(path)
     if quantity != "joint_angles":
-        raise ConfigError(f"{src}: a BVH target gives joint angles; use kind = \"joint_angles\"")
+        raise ConfigError(f'{src}: a BVH target gives joint angles; use kind = "joint_angles"')
     clip = read_bvh(path, units=1.0)  # file units: compared with the clip's own in match_trial
     names, cols = [], []
     for j in clip.joints[1:]:
@@ -285,8 +288,11 @@ def match_trial(table: TargetTable, character, h: float) -> TargetTable:
     missing, extra = [n for n in b if n not in a], [n for n in a if n not in b]
     moved = [f"{n} (parent {a[n]} in the trial, {b[n]} in the clip)" for n in b if n in a and a[n] != b[n]]
     if missing or extra or moved:
-        parts = ([f"joints missing {missing[:4]}"] if missing else []) + \
-                ([f"joints not in the clip {extra[:4]}"] if extra else []) + moved[:2]
+        parts = (
+            ([f"joints missing {missing[:4]}"] if missing else [])
+            + ([f"joints not in the clip {extra[:4]}"] if extra else [])
+            + moved[:2]
+        )
         raise ConfigError(f"{where}: {'; '.join(parts)}")
     # Units: the median ratio of bone lengths, file units of both.
     tj = {j.name: j for j in trial.joints}
@@ -301,8 +307,10 @@ def match_trial(table: TargetTable, character, h: float) -> TargetTable:
     ft = trial.frame_time
     k = ft / h if ft >= h else h / ft
     if abs(k - round(k)) > FRAME_RATIO_TOL * k:
-        raise ConfigError(f"{src}: frame time {ft:.7g} s and the simulation step h = {h:.7g} s are not "
-                          f"multiples of one another; set [sim] h to the trial's frame time or a whole fraction of it")
+        raise ConfigError(
+            f"{src}: frame time {ft:.7g} s and the simulation step h = {h:.7g} s are not "
+            f"multiples of one another; set [sim] h to the trial's frame time or a whole fraction of it"
+        )
     # Reference branch: the clip's own (unwrapped) angles at the trial's frames.
     ref_motion = np.unwrap(np.deg2rad(np.asarray(clip.motion)), axis=0)
     clip_t = clip.frame_time * np.arange(clip.n_frames)
@@ -315,8 +323,9 @@ def match_trial(table: TargetTable, character, h: float) -> TargetTable:
     for name in dof_joints:
         cj, t = clip.joints[clip.joint_index(name)], tj[name]
         if not t.rotation_order:
-            raise ConfigError(f"{where}: joint {name} has no rotation channels in the trial (simulated DOFs "
-                              f"{cj.rotation_order})")
+            raise ConfigError(
+                f"{where}: joint {name} has no rotation channels in the trial (simulated DOFs {cj.rotation_order})"
+            )
         raw = np.deg2rad(np.asarray(trial.motion)[:, list(t.rotation_columns)])
         ref = ref_at(cj.rotation_columns)
         if t.rotation_order == cj.rotation_order:
@@ -327,8 +336,9 @@ def match_trial(table: TargetTable, character, h: float) -> TargetTable:
             rot = np.asarray(euler_to_matrix(raw, t.rotation_order))
             ang = np.unwrap(np.asarray(matrix_to_euler(rot, cj.rotation_order, ref)), axis=0)  # type: ignore[arg-type]  # numpy in: jnp converts it
         else:
-            raise ConfigError(f"{where}: joint {name} rotates by {t.rotation_order} in the trial, "
-                              f"{cj.rotation_order} in the clip")
+            raise ConfigError(
+                f"{where}: joint {name} rotates by {t.rotation_order} in the trial, {cj.rotation_order} in the clip"
+            )
         per_joint[name] = dict(zip(cj.rotation_order, ang.T))
     names = tuple(model.dof_names)
     values = np.stack([per_joint[n.rsplit(".", 1)[0]][n.rsplit(".", 1)[1][0]] for n in names], -1)
@@ -337,13 +347,14 @@ def match_trial(table: TargetTable, character, h: float) -> TargetTable:
     n_left = sum(len(j.channels) for j in left)
     note, converted = "", ""
     if left:
-        note = (f"not fitted: {n_left} channel(s) of {len(left)} joint(s) the model does not simulate "
-                f"({', '.join(j.name for j in left[:4])}{', ...' if len(left) > 4 else ''})")
+        note = (
+            f"not fitted: {n_left} channel(s) of {len(left)} joint(s) the model does not simulate "
+            f"({', '.join(j.name for j in left[:4])}{', ...' if len(left) > 4 else ''})"
+        )
     if reordered:
         more = f" (and {len(reordered) - 3} more)" if len(reordered) > 3 else ""
         converted = f"Euler orders converted (trial->clip): {', '.join(reordered[:3])}{more}"
-    return dataclasses.replace(table, names=names, values=values[None], bvh=None, not_fitted=note,
-                               converted=converted)
+    return dataclasses.replace(table, names=names, values=values[None], bvh=None, not_fitted=note, converted=converted)
 
 
 def window_indices(sim_time: np.ndarray, window, source: str, field: str) -> tuple[int, int]:
@@ -353,8 +364,7 @@ def window_indices(sim_time: np.ndarray, window, source: str, field: str) -> tup
     if not t1 > t0:
         _fail(source, field, f"must be [t0, t1] with t1 > t0, got {list(window)}")
     if t0 < sim_time[0] - tol or t1 > sim_time[-1] + tol:
-        _fail(source, field, f"{list(window)} is outside the simulated span "
-                             f"[{sim_time[0]:.4f}, {sim_time[-1]:.4f}] s")
+        _fail(source, field, f"{list(window)} is outside the simulated span [{sim_time[0]:.4f}, {sim_time[-1]:.4f}] s")
     inside = np.nonzero((sim_time >= t0 - tol) & (sim_time <= t1 + tol))[0]
     if inside.size < 2:
         _fail(source, field, f"{list(window)} holds fewer than 2 simulation samples")
@@ -365,8 +375,12 @@ def resample(table: TargetTable, times: np.ndarray, field: str = "window") -> np
     """Linear interpolation of every column onto ``times`` (which must lie inside the file)."""
     tol = 1e-9
     if times[0] < table.time[0] - tol or times[-1] > table.time[-1] + tol:
-        _fail(table.source, field, f"[{times[0]:.4f}, {times[-1]:.4f}] s is outside the target's time "
-                                   f"span [{table.time[0]:.4f}, {table.time[-1]:.4f}] s")
+        _fail(
+            table.source,
+            field,
+            f"[{times[0]:.4f}, {times[-1]:.4f}] s is outside the target's time "
+            f"span [{table.time[0]:.4f}, {table.time[-1]:.4f}] s",
+        )
     flat = table.values.reshape(table.values.shape[0], table.time.size, -1)
     out = np.stack([[np.interp(times, table.time, col) for col in case.T] for case in flat])  # (C, k', T)
     out = np.swapaxes(out, 1, 2)

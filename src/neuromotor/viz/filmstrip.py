@@ -30,8 +30,12 @@ def _write_png(path, img):
 def _framing(scene: Scene, ks, aspect):
     """Per column focal point (centre of both characters, horizontal; one height for all) and
     the one parallel scale that fits every panel."""
-    heights = np.concatenate([np.concatenate([scene.extent_points(k, "perturbed"),
-                                              scene.extent_points(k, "original")]) for k in ks]) @ scene.up
+    heights = (
+        np.concatenate(
+            [np.concatenate([scene.extent_points(k, "perturbed"), scene.extent_points(k, "original")]) for k in ks]
+        )
+        @ scene.up
+    )
     z_mid = 0.5 * (scene.ground + heights.max())
     focals = []
     half_w = half_h = 0.0
@@ -61,11 +65,9 @@ def _draw_perturbed(pl, scene: Scene, k, geom, ghost):
         arrow = ArrowGeometry()
         arrow.update(*scene.arrow(k))
         pl.add_mesh(arrow.mesh, color=COLOR_FORCE, smooth_shading=False)
-        pl.add_text(scene.force_label(k), position="lower_right", font_size=9,
-                    color=COLOR_FORCE)
+        pl.add_text(scene.force_label(k), position="lower_right", font_size=9, color=COLOR_FORCE)
     if scene.has_ball:
-        pl.add_mesh(pv.Sphere(radius=float(scene.d["ball_radius"]),
-                              center=scene.d["ball_pos"][k]), color=COLOR_BALL)
+        pl.add_mesh(pv.Sphere(radius=float(scene.d["ball_radius"]), center=scene.d["ball_pos"][k]), color=COLOR_BALL)
 
 
 def _draw_panel(pl, scene: Scene, k, which, col, ghost):
@@ -106,8 +108,8 @@ def render_filmstrip(scene: Scene, out_tmp, frames: int, ghost: bool = True):
         pl.close()
     # Thin separators between panels.
     sep = np.array([190, 190, 190], np.uint8)
-    img[ph - 1:ph + 1, :, :3] = sep
+    img[ph - 1 : ph + 1, :, :3] = sep
     for c in range(1, frames):
-        img[:, c * pw - 1:c * pw + 1, :3] = sep
+        img[:, c * pw - 1 : c * pw + 1, :3] = sep
     _write_png(out_tmp, img)
     return img

@@ -43,8 +43,10 @@ def _columns(cal, ev_start, ev_fit, max_columns: int) -> list[int]:
 
 
 def _title(res) -> str:
-    return (f"{res.solver}: ks = {res.ks:.4g} ± {res.se_ks:.2g} 1/s², kd = {res.kd:.4g} ± {res.se_kd:.2g} 1/s\n"
-            f"(start ks = {res.ks0:.4g}, kd = {res.kd0:.4g}; {res.status}, {res.iterations} iterations)")
+    return (
+        f"{res.solver}: ks = {res.ks:.4g} ± {res.se_ks:.2g} 1/s², kd = {res.kd:.4g} ± {res.se_kd:.2g} 1/s\n"
+        f"(start ks = {res.ks0:.4g}, kd = {res.kd0:.4g}; {res.status}, {res.iterations} iterations)"
+    )
 
 
 def plot_fit(cal, ev_start, ev_fit, path, res=None, max_columns: int = 4) -> pathlib.Path:
@@ -55,8 +57,9 @@ def plot_fit(cal, ev_start, ev_fit, path, res=None, max_columns: int = 4) -> pat
     feats = kind == "features"
     cols = _columns(cal, ev_start, ev_fit, max_columns)
     tgt = None if feats else cal.target_curves()
-    fig, axes = plt.subplots(n_cases, len(cols), figsize=(max(3.6 * len(cols), 7.0), 2.7 * n_cases + 0.6),
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        n_cases, len(cols), figsize=(max(3.6 * len(cols), 7.0), 2.7 * n_cases + 0.6), squeeze=False
+    )
     scale = 1.0 if feats or kind == "body_positions" else 180.0 / np.pi
     unit = "deg" if feats or kind == "joint_angles" else "m"
     for c in range(n_cases):

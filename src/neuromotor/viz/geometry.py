@@ -62,8 +62,7 @@ class SkeletonGeometry:
 
         # Quads and triangles in one PolyData: split the cylinder quads into triangles.
         cyl_tris = np.concatenate([cyl_faces[:, [0, 1, 2]], cyl_faces[:, [0, 2, 3]]])
-        self.bones = poly(np.zeros((cap_base + 2 * E * nv, 3)),
-                           np.concatenate([cyl_tris, spheres(2 * E, cap_base)]), 3)
+        self.bones = poly(np.zeros((cap_base + 2 * E * nv, 3)), np.concatenate([cyl_tris, spheres(2 * E, cap_base)]), 3)
         self.cap_normals = np.tile(self.sph_dirs, (2 * E, 1))
         J = len(self.joint_idx)
         self.joints = poly(np.zeros((max(J, 1) * nv, 3)), spheres(max(J, 1), 0), 3)
@@ -83,14 +82,15 @@ class SkeletonGeometry:
         e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
         e2 = np.cross(axis, e1)
         normal = self.cos[None, :, None] * e1[:, None, :] + self.sin[None, :, None] * e2[:, None, :]
-        ring = self.radii[:, None, None] * normal                                  # (E, S, 3)
-        cyl = np.concatenate([a[:, None] + ring, b[:, None] + ring], axis=1)      # (E, 2S, 3)
-        ends = np.concatenate([a, b])                                             # (2E, 3)
+        ring = self.radii[:, None, None] * normal  # (E, S, 3)
+        cyl = np.concatenate([a[:, None] + ring, b[:, None] + ring], axis=1)  # (E, 2S, 3)
+        ends = np.concatenate([a, b])  # (2E, 3)
         rr = np.concatenate([self.radii, self.radii])
         caps = ends[:, None] + rr[:, None, None] * self.sph_dirs[None]
         self.bones.points = np.concatenate([cyl.reshape(-1, 3), caps.reshape(-1, 3)])
         self.bones.point_data["Normals"] = np.concatenate(
-            [np.concatenate([normal, normal], axis=1).reshape(-1, 3), self.cap_normals])
+            [np.concatenate([normal, normal], axis=1).reshape(-1, 3), self.cap_normals]
+        )
         self.bones.point_data.active_normals_name = "Normals"
         if len(self.joint_idx):
             c = points[self.joint_idx]
@@ -112,10 +112,14 @@ class ArrowGeometry:
         j = np.arange(S)
         jn = (j + 1) % S
         # Rings: 0 shaft tail, 1 shaft top, 2 head base (wide); then tip and tail-centre points.
-        quads = [np.stack([j, jn, S + jn, S + j], 1),            # shaft side
-                 np.stack([S + j, S + jn, 2 * S + jn, 2 * S + j], 1)]  # head base annulus
-        tris = [np.stack([2 * S + j, 2 * S + jn, np.full(S, 3 * S)], 1),   # cone
-                np.stack([jn, j, np.full(S, 3 * S + 1)], 1)]               # tail cap
+        quads = [
+            np.stack([j, jn, S + jn, S + j], 1),  # shaft side
+            np.stack([S + j, S + jn, 2 * S + jn, 2 * S + j], 1),
+        ]  # head base annulus
+        tris = [
+            np.stack([2 * S + j, 2 * S + jn, np.full(S, 3 * S)], 1),  # cone
+            np.stack([jn, j, np.full(S, 3 * S + 1)], 1),
+        ]  # tail cap
         cells = [np.hstack([np.full((S, 1), 4), q]) for q in quads]
         cells += [np.hstack([np.full((S, 1), 3), t]) for t in tris]
         self.mesh = pv.PolyData(np.zeros((3 * S + 2, 3)), np.concatenate([c.ravel() for c in cells]))
@@ -132,8 +136,9 @@ class ArrowGeometry:
         lh = min(self.lh, 0.5 * L)
         ring = self.cs[:, None] * e1 + self.sn[:, None] * e2
         head_base = tip - lh * u
-        pts = np.concatenate([tail + self.rs * ring, head_base + self.rs * ring,
-                              head_base + self.rh * ring, tip[None], tail[None]])
+        pts = np.concatenate(
+            [tail + self.rs * ring, head_base + self.rs * ring, head_base + self.rh * ring, tip[None], tail[None]]
+        )
         self.mesh.points = pts
 
 
@@ -142,10 +147,14 @@ def quat_matrices(q):
     q = np.asarray(q, float)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
 
 
 class BodyGeometry:
@@ -163,8 +172,13 @@ class BodyGeometry:
 
         vertices = np.asarray(vertices, float)
         base = poly(vertices, np.asarray(faces, int), 3)
-        split = base.compute_normals(cell_normals=False, split_vertices=True, consistent_normals=False,
-                                     auto_orient_normals=False, feature_angle=feature_angle)
+        split = base.compute_normals(
+            cell_normals=False,
+            split_vertices=True,
+            consistent_normals=False,
+            auto_orient_normals=False,
+            feature_angle=feature_angle,
+        )
         ids = np.asarray(split.point_data["pyvistaOriginalPointIds"], int)
         self.local = vertices[ids]
         self.local_normals = np.asarray(split.point_data["Normals"], float)
@@ -211,13 +225,15 @@ class FigureGeometry:
 
     def add(self, pl, color, joint_color, specular=0.25):
         if self.bodies is not None:
-            actor = pl.add_mesh(self.bodies.mesh, color=color, smooth_shading=False, specular=specular,
-                                specular_power=20)
+            actor = pl.add_mesh(
+                self.bodies.mesh, color=color, smooth_shading=False, specular=specular, specular_power=20
+            )
             actor.prop.interpolation = "phong"
         if self.capsules is not None:
             # Detail bones beside bodies are drawn in the darker joint colour.
-            add_skeleton(pl, self.capsules, joint_color if self.bodies is not None else color,
-                         joint_color, specular=specular)
+            add_skeleton(
+                pl, self.capsules, joint_color if self.bodies is not None else color, joint_color, specular=specular
+            )
 
 
 def add_skeleton(pl, geom, color, joint_color, specular=0.25):

@@ -74,6 +74,7 @@ _MODULES = {
 # The run's arrays, in the page's frame
 # ----------------------------------------------------------------------------------------------
 
+
 def yup_order(up_axis: int) -> list[int]:
     """Index order taking world axes to three.js's (X, Y, Z) with ``up_axis`` as Y: the cyclic
     permutation ``new[i] = old[(i + up_axis - 1) % 3]`` (a rotation, so handedness is kept)."""
@@ -92,7 +93,7 @@ def deviation_deg(theta, theta_unperturbed) -> np.ndarray:
     :func:`neuromotor.studies.metrics.deviation`)."""
     diff = np.asarray(theta, float) - np.asarray(theta_unperturbed, float)
     diff = np.arctan2(np.sin(diff), np.cos(diff))
-    return np.degrees(np.sqrt(np.mean(diff ** 2, axis=-1)))
+    return np.degrees(np.sqrt(np.mean(diff**2, axis=-1)))
 
 
 def _packed(a, dtype="float32") -> dict:
@@ -113,17 +114,21 @@ def _shape_part(d, order) -> dict:
     ranges: list[list[int]] = []
     for b in range(B):
         ids = np.flatnonzero(owner == b)
-        faces = f[(owner[f] == b).all(axis=1)]   # a face spanning bodies has no one frame: left out
+        faces = f[(owner[f] == b).all(axis=1)]  # a face spanning bodies has no one frame: left out
         local = np.full(len(v), -1)
         local[ids] = np.arange(len(ids))
         ranges.append([sum(len(x) for x in verts), len(ids), sum(len(x) for x in index), faces.size])
         verts.append(v[ids])
         index.append(local[faces].ravel())
-    return {"vertices": _packed(np.concatenate(verts)), "index": _packed(np.concatenate(index), "uint32"),
-            "ranges": ranges,
-            "pos": _packed(d["body_pos"][..., order]), "quat": _packed(xyzw(d["body_quat"], order)),
-            "pos_u": _packed(d["body_pos_unperturbed"][..., order]),
-            "quat_u": _packed(xyzw(d["body_quat_unperturbed"], order))}
+    return {
+        "vertices": _packed(np.concatenate(verts)),
+        "index": _packed(np.concatenate(index), "uint32"),
+        "ranges": ranges,
+        "pos": _packed(d["body_pos"][..., order]),
+        "quat": _packed(xyzw(d["body_quat"], order)),
+        "pos_u": _packed(d["body_pos_unperturbed"][..., order]),
+        "quat_u": _packed(xyzw(d["body_quat_unperturbed"], order)),
+    }
 
 
 def _capsule_part(scene: Scene, order) -> dict | None:
@@ -133,8 +138,12 @@ def _capsule_part(scene: Scene, order) -> dict | None:
     if len(edges) == 0:
         return None
     used, local = np.unique(edges, return_inverse=True)
-    return {"edges": _packed(local.reshape(-1, 2), "uint32"), "radii": _packed(radii),
-            "points": _packed(scene.P[:, used][..., order]), "points_u": _packed(scene.U[:, used][..., order])}
+    return {
+        "edges": _packed(local.reshape(-1, 2), "uint32"),
+        "radii": _packed(radii),
+        "points": _packed(scene.P[:, used][..., order]),
+        "points_u": _packed(scene.U[:, used][..., order]),
+    }
 
 
 def _force_part(scene: Scene, order) -> dict:
@@ -145,8 +154,12 @@ def _force_part(scene: Scene, order) -> dict:
         tail[k], tip[k] = scene.arrow(int(k))
     on = np.flatnonzero(scene.force_on)
     label = scene.force_label(int(on[np.argmax(scene.fmag[on])])) if len(on) else ""
-    return {"tail": _packed(tail[:, order]), "tip": _packed(tip[:, order]),
-            "on": _packed(scene.force_on, "uint8"), "label": label}
+    return {
+        "tail": _packed(tail[:, order]),
+        "tip": _packed(tip[:, order]),
+        "on": _packed(scene.force_on, "uint8"),
+        "label": label,
+    }
 
 
 def _framing(scene: Scene, order) -> dict:
@@ -160,10 +173,16 @@ def _framing(scene: Scene, order) -> dict:
     span = float(np.linalg.norm((hi - lo)[[0, 2]])) + 2 * size
     tiles = 2 * int(np.ceil(span / (2 * GROUND_TILE_M)))
     centre = np.round(target / GROUND_TILE_M) * GROUND_TILE_M
-    return {"target": target.tolist(), "position": (target + distance * scene.view[order]).tolist(),
-            "fov": fov,
-            "grid": {"center": [float(centre[0]), scene.ground, float(centre[2])],
-                     "size": tiles * GROUND_TILE_M, "divisions": tiles}}
+    return {
+        "target": target.tolist(),
+        "position": (target + distance * scene.view[order]).tolist(),
+        "fov": fov,
+        "grid": {
+            "center": [float(centre[0]), scene.ground, float(centre[2])],
+            "size": tiles * GROUND_TILE_M,
+            "divisions": tiles,
+        },
+    }
 
 
 def _meta(d, scene: Scene) -> dict:
@@ -173,11 +192,14 @@ def _meta(d, scene: Scene) -> dict:
     on = np.concatenate([[0], scene.hit_on.astype(int), [0]])
     starts, ends = np.flatnonzero(np.diff(on) == 1), np.flatnonzero(np.diff(on) == -1) - 1
     t = scene.time
-    return {"title": f"neuromotor run{': ' + clip if clip else ''}", "clip": clip, "up_axis": scene.up_axis,
-            "hits": [[float(t[a]), float(t[b])] for a, b in zip(starts, ends)],
-            "metrics": _strict_json(json_field(d, "metrics_json")),
-            "colors": {"perturbed": COLOR_PERTURBED, "ghost": COLOR_GHOST, "force": COLOR_FORCE,
-                       "ball": COLOR_BALL}}
+    return {
+        "title": f"neuromotor run{': ' + clip if clip else ''}",
+        "clip": clip,
+        "up_axis": scene.up_axis,
+        "hits": [[float(t[a]), float(t[b])] for a, b in zip(starts, ends)],
+        "metrics": _strict_json(json_field(d, "metrics_json")),
+        "colors": {"perturbed": COLOR_PERTURBED, "ghost": COLOR_GHOST, "force": COLOR_FORCE, "ball": COLOR_BALL},
+    }
 
 
 def _strict_json(value):
@@ -197,10 +219,16 @@ def viewer_data(d: Mapping[str, np.ndarray]) -> dict:
     base64 float32 (``time`` float64), positions in the Y-up frame."""
     scene = Scene(d)
     order = yup_order(scene.up_axis)
-    out = {"meta": _meta(d, scene), "time": _packed(scene.time, "float64"), "view": _framing(scene, order),
-           "shapes": _shape_part(d, order) if scene.has_shapes else None,
-           "capsules": _capsule_part(scene, order), "force": _force_part(scene, order),
-           "deviation": None, "ball": None}
+    out = {
+        "meta": _meta(d, scene),
+        "time": _packed(scene.time, "float64"),
+        "view": _framing(scene, order),
+        "shapes": _shape_part(d, order) if scene.has_shapes else None,
+        "capsules": _capsule_part(scene, order),
+        "force": _force_part(scene, order),
+        "deviation": None,
+        "ball": None,
+    }
     if "deviation" in d:  # the curve the run's metrics came from ([sim] metric)
         out["deviation"] = _packed(d["deviation"])
     elif "theta" in d and "theta_unperturbed" in d:  # older files: the Euler-DOF form
@@ -213,6 +241,7 @@ def viewer_data(d: Mapping[str, np.ndarray]) -> dict:
 # ----------------------------------------------------------------------------------------------
 # The page
 # ----------------------------------------------------------------------------------------------
+
 
 def _inline_text(name: str, text: str) -> str:
     """Text safe inside a raw-text ``<script>`` element (no end tag, no comment opener)."""
@@ -258,9 +287,12 @@ def viewer_html(run) -> str:
     _, d = _run_arrays(run)
     data = viewer_data(d)
     # '<' escaped so that no string in the JSON can end the <script> element holding it.
-    parts = {"DATA": json.dumps(data, separators=(",", ":"), allow_nan=False).replace("<", "\\u003c"),
-             "TITLE": html.escape(data["meta"]["title"]), "THREE_VERSION": THREE_VERSION,
-             **{block.upper().replace("-", "_"): text for block, text in _modules().items()}}
+    parts = {
+        "DATA": json.dumps(data, separators=(",", ":"), allow_nan=False).replace("<", "\\u003c"),
+        "TITLE": html.escape(data["meta"]["title"]),
+        "THREE_VERSION": THREE_VERSION,
+        **{block.upper().replace("-", "_"): text for block, text in _modules().items()},
+    }
     template = TEMPLATE.read_text(encoding="utf-8")
     # One pass, so that nothing inserted is scanned for markers again.
     return re.sub(r"@@([A-Z_]+)@@", lambda m: parts[m.group(1)], template)
@@ -285,8 +317,10 @@ class Viewer:
         self.html, self.height = page, int(height)
 
     def _repr_html_(self) -> str:
-        return (f'<iframe srcdoc="{html.escape(self.html, quote=True)}" style="width:100%;'
-                f'height:{self.height}px;border:1px solid #ddd" title="neuromotor viewer"></iframe>')
+        return (
+            f'<iframe srcdoc="{html.escape(self.html, quote=True)}" style="width:100%;'
+            f'height:{self.height}px;border:1px solid #ddd" title="neuromotor viewer"></iframe>'
+        )
 
     def save(self, path) -> pathlib.Path:
         """Write the page to ``path`` (atomically)."""

@@ -30,9 +30,10 @@ def _deviation_title(ax, d) -> str:
     m = json_field(d, "metrics_json") or {}
     bits = []
     if _number(m, "peak_deviation_deg") is not None:
-        bits.append(f"peak {_number(m, 'peak_deviation_deg'):.2f} deg"
-                    + (f" at {_number(m, 'time_of_peak_s'):.2f} s"
-                       if _number(m, "time_of_peak_s") is not None else ""))
+        bits.append(
+            f"peak {_number(m, 'peak_deviation_deg'):.2f} deg"
+            + (f" at {_number(m, 'time_of_peak_s'):.2f} s" if _number(m, "time_of_peak_s") is not None else "")
+        )
     if _number(m, "recovery_time_s") is not None:
         recovery = _number(m, "recovery_time_s")
         bits.append(f"recovered after {recovery:.2f} s" if np.isfinite(recovery) else "not recovered in the window")
@@ -93,7 +94,7 @@ def plot_run(run_path, out_png, n_joints: int = 4) -> pathlib.Path:
     t = d["time"]
     dev = np.degrees(_wrap(d["theta"] - d["theta_unperturbed"]))
     # The curve the metrics came from (geodesic by default); older files: the Euler-DOF RMS.
-    rms = np.asarray(d["deviation"]) if "deviation" in d else np.sqrt(np.mean(dev ** 2, axis=1))
+    rms = np.asarray(d["deviation"]) if "deviation" in d else np.sqrt(np.mean(dev**2, axis=1))
     names = [str(n) for n in d["dof_names"]]
     n_show = min(n_joints, len(names))
     order = np.argsort(-np.abs(dev).max(axis=0))[:n_show]

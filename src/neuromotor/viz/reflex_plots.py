@@ -9,18 +9,22 @@ import numpy as np
 
 from neuromotor.viz.figures import pyplot, save_png
 
-STATUS_MARKERS = {"diverged": ("x", "red", "diverged"), "large": ("^", "darkorange", "peak beyond the bound"),
-                  "sustained": ("s", "purple", "not decaying (end >= half the peak)")}
+STATUS_MARKERS = {
+    "diverged": ("x", "red", "diverged"),
+    "large": ("^", "darkorange", "peak beyond the bound"),
+    "sustained": ("s", "purple", "not decaying (end >= half the peak)"),
+}
 
 
-def plot_deviation_paths(time, curves: dict[str, np.ndarray], path, hit_start: float, title: str = "",
-                         table: dict[str, dict] | None = None) -> pathlib.Path:
+def plot_deviation_paths(
+    time, curves: dict[str, np.ndarray], path, hit_start: float, title: str = "", table: dict[str, dict] | None = None
+) -> pathlib.Path:
     """d(t) of each run against its own unperturbed twin, one line per feedback configuration;
     ``table`` (name -> recovery metrics) marks each curve's peak and recovery time."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 3.8), dpi=100)
     for name, d in curves.items():
-        line, = ax.plot(time, d, lw=1.6, label=name)
+        (line,) = ax.plot(time, d, lw=1.6, label=name)
         m = (table or {}).get(name)
         if m is None:
             continue
@@ -28,8 +32,11 @@ def plot_deviation_paths(time, curves: dict[str, np.ndarray], path, hit_start: f
         if np.isfinite(m["recovery_time_s"]):
             ax.axvline(hit_start + m["recovery_time_s"], color=line.get_color(), ls=":", lw=1)
     ax.axvline(hit_start, color="0.5", lw=0.8)
-    ax.set(xlabel="clip time (s)", ylabel="deviation d(t) (deg)",
-           xlim=(max(float(time[0]), hit_start - 0.2), float(time[-1])))
+    ax.set(
+        xlabel="clip time (s)",
+        ylabel="deviation d(t) (deg)",
+        xlim=(max(float(time[0]), hit_start - 0.2), float(time[-1])),
+    )
     ax.set_title("dot: peak; dotted: recovered (within max(20 % of peak, 0.5 deg) from then on)", fontsize=7)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
@@ -85,9 +92,16 @@ def _layers(rows: list[dict], implicit: list[dict] | None, col: str):
     return gains, value, status, labels
 
 
-def plot_stability_map(rows: list[dict], path, *, criterion: str = "", paper: tuple[float, float] | None = None,
-                       paper_label: str = "the paper's controller", implicit: list[dict] | None = None,
-                       title: str = "") -> pathlib.Path:
+def plot_stability_map(
+    rows: list[dict],
+    path,
+    *,
+    criterion: str = "",
+    paper: tuple[float, float] | None = None,
+    paper_label: str = "the paper's controller",
+    implicit: list[dict] | None = None,
+    title: str = "",
+) -> pathlib.Path:
     """Recovery time and peak deviation over the delayed path's gain (columns) x delay (rows),
     for rows classified by :func:`neuromotor.studies.reflex.classify` (key ``stability``);
     ``implicit`` (optional) is a bottom row: the same gains added without delay inside K and D.
@@ -98,14 +112,19 @@ def plot_stability_map(rows: list[dict], path, *, criterion: str = "", paper: tu
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.8), dpi=100)
     y0 = 1 if implicit else 0
-    for ax, (col, name) in zip(axes, (("recovery_time_s", "recovery time (s)"),
-                                      ("peak_deviation_deg", "peak deviation (deg)"))):
+    for ax, (col, name) in zip(
+        axes, (("recovery_time_s", "recovery time (s)"), ("peak_deviation_deg", "peak deviation (deg)"))
+    ):
         gains, z, status, labels = _layers(rows, implicit, col)
         stable = status == "stable"
         rec = _layers(rows, implicit, "recovery_time_s")[1]
-        mesh = ax.pcolormesh(np.arange(len(gains) + 1) - 0.5, np.arange(len(labels) + 1) - 0.5,
-                             np.ma.masked_invalid(np.where(stable, z, np.nan)),
-                             cmap=plt.get_cmap("viridis").with_extremes(bad="0.85"), shading="flat")
+        mesh = ax.pcolormesh(
+            np.arange(len(gains) + 1) - 0.5,
+            np.arange(len(labels) + 1) - 0.5,
+            np.ma.masked_invalid(np.where(stable, z, np.nan)),
+            cmap=plt.get_cmap("viridis").with_extremes(bad="0.85"),
+            shading="flat",
+        )
         fig.colorbar(mesh, ax=ax, label=name + ", stable cells")
         for s, (marker, colour, label) in STATUS_MARKERS.items():
             yy, xx = np.nonzero(status == s)
@@ -125,10 +144,21 @@ def plot_stability_map(rows: list[dict], path, *, criterion: str = "", paper: tu
         ax.set_xticks(range(len(gains)), [f"{g:g}" for g in gains], fontsize=7)
         ax.set_yticks(range(len(labels)), labels, fontsize=7)
         ax.set(xlabel="added feedback gain g (1/s$^2$)", ylabel="loop delay (ms)", title=name)
-    fig.legend(*axes[0].get_legend_handles_labels(), loc="lower center", ncol=4, fontsize=8, frameon=False,
-               bbox_to_anchor=(0.5, 0.04))
-    fig.text(0.5, 0.005, f"stable: {criterion}; the thick line is the stability boundary of the delayed path",
-             ha="center", fontsize=8)
+    fig.legend(
+        *axes[0].get_legend_handles_labels(),
+        loc="lower center",
+        ncol=4,
+        fontsize=8,
+        frameon=False,
+        bbox_to_anchor=(0.5, 0.04),
+    )
+    fig.text(
+        0.5,
+        0.005,
+        f"stable: {criterion}; the thick line is the stability boundary of the delayed path",
+        ha="center",
+        fontsize=8,
+    )
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0, 0.1, 1, 1))

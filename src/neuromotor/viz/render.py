@@ -67,8 +67,9 @@ from neuromotor.viz.style import (  # noqa: F401
 from neuromotor.viz.video import render_video, video_sample_times
 
 
-def render_run(run_path, out_path, frames: int = 6, progress: bool = True,
-               ghost: bool = True, stage=None) -> pathlib.Path:
+def render_run(
+    run_path, out_path, frames: int = 6, progress: bool = True, ghost: bool = True, stage=None
+) -> pathlib.Path:
     """Render a RUN.npz by the extension of ``out_path``.
 
     ``.png``: a Figure-2 filmstrip, ``frames`` panels per row (top: original motion, bottom:
@@ -83,8 +84,10 @@ def render_run(run_path, out_path, frames: int = 6, progress: bool = True,
     out = pathlib.Path(out_path)
     ext = out.suffix.lower()
     if ext not in IMAGE_EXTENSIONS + VIDEO_EXTENSIONS:
-        raise RenderError(f"{out}: unknown output extension {out.suffix!r}; "
-                          f"use one of {', '.join(IMAGE_EXTENSIONS + VIDEO_EXTENSIONS)}")
+        raise RenderError(
+            f"{out}: unknown output extension {out.suffix!r}; "
+            f"use one of {', '.join(IMAGE_EXTENSIONS + VIDEO_EXTENSIONS)}"
+        )
     if ext == ".png" and (int(frames) != frames or frames < 1):
         raise RenderError(f"{out}: frames must be a positive integer, got {frames!r}")
     stage(f"loading run {run_path}")

@@ -64,10 +64,11 @@ class Scene:
             return
         self.shape_v = d["shape_vertices"].astype(float)
         self.shape_b = d["shape_body"].astype(int)
-        self.body_pos = {"perturbed": d["body_pos"].astype(float),
-                         "original": d["body_pos_unperturbed"].astype(float)}
-        self.body_rot = {"perturbed": quat_matrices(d["body_quat"]),
-                         "original": quat_matrices(d["body_quat_unperturbed"])}
+        self.body_pos = {"perturbed": d["body_pos"].astype(float), "original": d["body_pos_unperturbed"].astype(float)}
+        self.body_rot = {
+            "perturbed": quat_matrices(d["body_quat"]),
+            "original": quat_matrices(d["body_quat_unperturbed"]),
+        }
         # Face planes per vertex-owner for the convex-body queries (arrow tip, detail bones).
         f = d["shape_faces"].astype(int)
         self.face_body = self.shape_b[f[:, 0]]
@@ -85,9 +86,8 @@ class Scene:
         axes: a three-quarter front view."""
         fmag = self.fmag
         self.hit_dir = horizontal(self.F[int(np.argmax(fmag))], self.up) if fmag.max() > 0 else None
-        self.facing = facing_direction(self.U, self.d["skeleton_edges"].astype(int), self.up_axis,
-                                       self.d.get("facing"))
-        self.view = camera_view(self.facing, self.up, self.hit_dir)   # from the scene to the camera
+        self.facing = facing_direction(self.U, self.d["skeleton_edges"].astype(int), self.up_axis, self.d.get("facing"))
+        self.view = camera_view(self.facing, self.up, self.hit_dir)  # from the scene to the camera
         self.right = unit(np.cross(self.up, self.view), np.roll(self.up, 2))
         self.screen_up = np.cross(self.view, self.right)
         self.screen_up /= np.linalg.norm(self.screen_up)
@@ -99,12 +99,13 @@ class Scene:
         for which in ("perturbed", "original"):
             if self.has_shapes:
                 pos, rot = self.body_pos[which], self.body_rot[which]
-                h = (pos[:, self.shape_b] @ self.up
-                     + np.einsum("tvj,vj->tv", rot[:, self.shape_b, self.up_axis, :], self.shape_v))
+                h = pos[:, self.shape_b] @ self.up + np.einsum(
+                    "tvj,vj->tv", rot[:, self.shape_b, self.up_axis, :], self.shape_v
+                )
                 low = min(low, float(h.min()))
             if len(self.capsule_edges):
                 e, r = self.capsule_edges, self.capsule_radii
-                h = self.points(which) @ self.up                           # (T, P)
+                h = self.points(which) @ self.up  # (T, P)
                 low = min(low, float((np.minimum(h[:, e[:, 0]], h[:, e[:, 1]]) - r).min()))
         if "ball_pos" in self.d:
             hb = self.d["ball_pos"] @ self.up - float(self.d["ball_radius"])
@@ -216,7 +217,7 @@ class Scene:
         if win is None:
             return None
         t_on, t_off = t[win[0]], t[win[1]]
-        t_hit = float(t[win[0] + int(np.argmax(self.hit_mag[win[0]:win[1] + 1]))])
+        t_hit = float(t[win[0] + int(np.argmax(self.hit_mag[win[0] : win[1] + 1]))])
         dev = np.linalg.norm(self.P - self.U, axis=2).max(axis=1)
         after = np.flatnonzero(t >= t_on)
         kpk = after[int(np.argmax(dev[after]))]
@@ -246,7 +247,7 @@ class Scene:
             return np.asarray([t_hit, t_pk, t_end][:n], float)
         t_on = t[self.hit_window()[0]]
         span = max(t_end - t_on, 1e-9)
-        t_start = max(t[0], t_on - span / (n - 1))   # one panel before the hit
+        t_start = max(t[0], t_on - span / (n - 1))  # one panel before the hit
         times = np.linspace(t_start, t_end, n)
         free = list(range(1, n - 1))  # the first (before) and last (recovery) panels stay
         for key in (t_hit, t_pk):

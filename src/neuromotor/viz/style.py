@@ -16,14 +16,14 @@ from neuromotor.io.palette import (  # noqa: F401  (re-exported: the pictures' c
     GROUND_COLORS,
 )
 
-FORCE_SCALE_N_PER_M = 500.0   # arrow length: 1 m per 500 N
+FORCE_SCALE_N_PER_M = 500.0  # arrow length: 1 m per 500 N
 FORCE_VISIBLE_FRACTION = 0.01  # draw the arrow while |F| > 1% of its peak
 CAMERA_ELEVATION_DEG = 12.0  # camera raised above the horizontal
-CAMERA_AZIMUTH_DEG = 40.0    # camera turned this far from the character's facing direction
-DETAIL_RADIUS_M = 0.015      # thickest capsule drawn for a bone that carries no body
-GHOST_DEPTH_M = 0.05         # the pale original sits this far behind the perturbed figure
-VIDEO_SIZE = (640, 360)        # pixels per video frame (width, height)
-PANEL_SIZE = (300, 420)        # pixels per filmstrip panel (width, height)
+CAMERA_AZIMUTH_DEG = 40.0  # camera turned this far from the character's facing direction
+DETAIL_RADIUS_M = 0.015  # thickest capsule drawn for a bone that carries no body
+GHOST_DEPTH_M = 0.05  # the pale original sits this far behind the perturbed figure
+VIDEO_SIZE = (640, 360)  # pixels per video frame (width, height)
+PANEL_SIZE = (300, 420)  # pixels per filmstrip panel (width, height)
 VIDEO_FPS = {".mp4": 30.0, ".gif": 25.0}  # GIF delays are whole centiseconds: 40 ms is exact
 
 IMAGE_EXTENSIONS = (".png",)

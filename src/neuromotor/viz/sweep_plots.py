@@ -56,18 +56,36 @@ def plot_sweep(rows: list[dict], path, title: str = "", xlabel: str | None = Non
         bad = np.array([r["diverged"] for r in rs])
         for ax, col in zip(axes, ("peak_deviation_deg", "recovery_time_s")):
             y = np.array([r[col] for r in rs], float)
-            line, = ax.plot(m[~bad], y[~bad], "o-", ms=3, label=label)
+            (line,) = ax.plot(m[~bad], y[~bad], "o-", ms=3, label=label)
             # Runs still outside the recovery band at the window's end: open triangles on top.
             late = ~bad & ~np.isfinite(y)
             if late.any():
-                ax.plot(m[late], np.ones(late.sum()), "^", mfc="none", color=line.get_color(), ms=7,
-                        clip_on=False, transform=ax.get_xaxis_transform())
+                ax.plot(
+                    m[late],
+                    np.ones(late.sum()),
+                    "^",
+                    mfc="none",
+                    color=line.get_color(),
+                    ms=7,
+                    clip_on=False,
+                    transform=ax.get_xaxis_transform(),
+                )
             if bad.any():
-                ax.plot(m[bad], np.zeros(bad.sum()), "x", color="red", ms=7, clip_on=False,
-                        transform=ax.get_xaxis_transform(), label="diverged" if ax is axes[0] else None)
+                ax.plot(
+                    m[bad],
+                    np.zeros(bad.sum()),
+                    "x",
+                    color="red",
+                    ms=7,
+                    clip_on=False,
+                    transform=ax.get_xaxis_transform(),
+                    label="diverged" if ax is axes[0] else None,
+                )
     if xlabel is None:
-        xlabel = MAGNITUDE_LABELS.get(rows[0].get("kind") if rows else None,  # type: ignore[arg-type]  # None: default
-                                      MAGNITUDE_LABELS["force"])
+        xlabel = MAGNITUDE_LABELS.get(
+            rows[0].get("kind") if rows else None,  # type: ignore[arg-type]  # None: default
+            MAGNITUDE_LABELS["force"],
+        )
     axes[0].set(xlabel=xlabel, ylabel="peak deviation (deg)")
     axes[1].set(xlabel=xlabel, ylabel="recovery time (s)")
     axes[1].set_title("open triangle: not recovered by the window's end; red x: diverged", fontsize=7)
@@ -98,8 +116,9 @@ def plot_gains_map(rows: list[dict], path, fitted: tuple[float, float] | None = 
         mid = 0.5 * (lv[1:] + lv[:-1])
         return np.exp(np.concatenate([[2 * lv[0] - mid[0]], mid, [2 * lv[-1] - mid[-1]]]))
 
-    for ax, col, name in zip(axes, ("recovery_time_s", "peak_deviation_deg"),
-                             ("recovery time (s)", "peak deviation (deg)")):
+    for ax, col, name in zip(
+        axes, ("recovery_time_s", "peak_deviation_deg"), ("recovery time (s)", "peak deviation (deg)")
+    ):
         z = np.full((len(kd), len(ks)), np.nan)
         bad = np.zeros_like(z, bool)
         late = np.zeros_like(z, bool)
@@ -128,4 +147,3 @@ def plot_gains_map(rows: list[dict], path, fitted: tuple[float, float] | None = 
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return save_figure(fig, path)
-

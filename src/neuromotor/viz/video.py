@@ -81,18 +81,31 @@ def _camera_track(scene: Scene, ks, shift, fps, aspect):
         pts = np.concatenate([scene.extent_points(k, "perturbed"), scene.extent_points(k, "original") - shift])
         boxes.append(scene.box_centre(pts))
     centres = np.asarray(boxes)
-    win = max(1, int(round(fps)))   # ~1 s box filter
+    win = max(1, int(round(fps)))  # ~1 s box filter
     pad = np.pad(centres, ((win // 2, win // 2), (0, 0)), mode="edge")
     kernel = np.ones(win) / win
     smooth = np.stack([np.convolve(pad[:, i], kernel, mode="valid")[: len(ks)] for i in range(3)], 1)
-    z_mid = 0.5 * (scene.ground + max(float((np.concatenate([scene.extent_points(k, "perturbed"),
-                                                          scene.extent_points(k, "original")]) @ scene.up).max())
-                                       for k in np.unique(ks)))
+    z_mid = 0.5 * (
+        scene.ground
+        + max(
+            float(
+                (
+                    np.concatenate([scene.extent_points(k, "perturbed"), scene.extent_points(k, "original")]) @ scene.up
+                ).max()
+            )
+            for k in np.unique(ks)
+        )
+    )
     focals = smooth - (smooth @ scene.up)[:, None] * scene.up + z_mid * scene.up
     half_w = half_h = 0.0
     for k, f in zip(ks, focals):
-        pts = np.concatenate([scene.extent_points(k, "perturbed"), scene.extent_points(k, "original") - shift,
-                              (f - np.dot(f, scene.up) * scene.up + scene.ground * scene.up)[None]])
+        pts = np.concatenate(
+            [
+                scene.extent_points(k, "perturbed"),
+                scene.extent_points(k, "original") - shift,
+                (f - np.dot(f, scene.up) * scene.up + scene.ground * scene.up)[None],
+            ]
+        )
         w, h = fit(scene, pts, f)
         half_w, half_h = max(half_w, w), max(half_h, h)
     rmax = scene.pad
@@ -155,8 +168,10 @@ def _pose_frame(a: _Actors, scene: Scene, k, shift):
         # The ball belongs to the perturbed run: drawn on its (right) half of the frame
         # only, never over the original figure beside it.
         pos = scene.d["ball_pos"][k]
-        boundary = 0.5 * ((scene.extent_points(k, "original") - shift) @ scene.right).max() \
+        boundary = (
+            0.5 * ((scene.extent_points(k, "original") - shift) @ scene.right).max()
             + 0.5 * (scene.extent_points(k, "perturbed") @ scene.right).min()
+        )
         a.ball_actor.SetVisibility(bool(pos @ scene.right - float(scene.d["ball_radius"]) > boundary))
         a.ball.points = a.ball_dirs + pos
     a.clock.set_text("lower_left", f"t = {scene.time[k]:.2f} s")
@@ -165,8 +180,16 @@ def _pose_frame(a: _Actors, scene: Scene, k, shift):
 def _mp4_writer(out_tmp, fps):
     import imageio.v2 as iio2
 
-    writer = iio2.get_writer(out_tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264",
-                             quality=7, macro_block_size=8, ffmpeg_log_level="error")
+    writer = iio2.get_writer(
+        out_tmp,
+        format="FFMPEG",
+        mode="I",
+        fps=fps,
+        codec="libx264",
+        quality=7,
+        macro_block_size=8,
+        ffmpeg_log_level="error",
+    )
     writer.append_data = _forking_once(writer.append_data)
     return writer
 
@@ -194,7 +217,7 @@ def render_video(scene: Scene, out_tmp, ext, progress=True, ghost=True):
         for i, k in enumerate(tqdm(ks, desc=f"rendering {ext[1:]}", unit="frame", disable=not progress)):
             _pose_frame(actors, scene, k, shift)
             set_camera(pl, scene, focals[i], scale)
-            pl.render()   # screenshot() only renders by itself the first time
+            pl.render()  # screenshot() only renders by itself the first time
             img = pl.screenshot(return_img=True)
             if writer is not None:
                 writer.append_data(img)

@@ -18,27 +18,47 @@ is :mod:`neuromotor.studies.ball`; docs/contact.md describes the physics.
 
 from neuromotor.physics.contact.ball import Ball, BallState, initial_ball_state, make_ball, never_launched
 from neuromotor.physics.contact.detection import (
-                                                  ContactSettings,
-                                                  candidate_bodies,
-                                                  candidate_names,
-                                                  detect,
-                                                  tangent_basis,
+    ContactSettings,
+    candidate_bodies,
+    candidate_names,
+    detect,
+    tangent_basis,
 )
 from neuromotor.physics.contact.lcp import project_polygon, solve_gap_projection, solve_lcp_pgs
 from neuromotor.physics.contact.rollout import (
-                                                  ContactRollout,
-                                                  batched_simulate_contact,
-                                                  check_contact_rollout,
-                                                  simulate_contact,
-                                                  simulate_contact_jit,
+    ContactRollout,
+    batched_simulate_contact,
+    check_contact_rollout,
+    simulate_contact,
+    simulate_contact_jit,
 )
 from neuromotor.physics.contact.shapes import Capsules, fit_capsules, segment_distances
 from neuromotor.physics.contact.step import ContactData, ContactInfo, ContactScene, contact_step
 
 __all__ = [
-    "Ball", "BallState", "Capsules", "ContactData", "ContactInfo", "ContactRollout", "ContactScene",
-    "ContactSettings", "batched_simulate_contact", "candidate_bodies", "candidate_names", "check_contact_rollout",
-    "contact_step", "detect", "fit_capsules", "initial_ball_state", "make_ball", "never_launched",
-    "project_polygon", "segment_distances", "simulate_contact", "simulate_contact_jit", "solve_gap_projection",
-    "solve_lcp_pgs", "tangent_basis",
+    "Ball",
+    "BallState",
+    "Capsules",
+    "ContactData",
+    "ContactInfo",
+    "ContactRollout",
+    "ContactScene",
+    "ContactSettings",
+    "batched_simulate_contact",
+    "candidate_bodies",
+    "candidate_names",
+    "check_contact_rollout",
+    "contact_step",
+    "detect",
+    "fit_capsules",
+    "initial_ball_state",
+    "make_ball",
+    "never_launched",
+    "project_polygon",
+    "segment_distances",
+    "simulate_contact",
+    "simulate_contact_jit",
+    "solve_gap_projection",
+    "solve_lcp_pgs",
+    "tangent_basis",
 ]

@@ -47,8 +47,17 @@ class BallState(eqx.Module):
     omega: Float[Array, " 3"]
 
 
-def make_ball(radius=0.11, mass=0.45, position=(0.0, 1.0, 0.0), velocity=None, speed=None,
-              direction=None, restitution=0.6, friction=0.5, launch=0.0) -> Ball:
+def make_ball(
+    radius=0.11,
+    mass=0.45,
+    position=(0.0, 1.0, 0.0),
+    velocity=None,
+    speed=None,
+    direction=None,
+    restitution=0.6,
+    friction=0.5,
+    launch=0.0,
+) -> Ball:
     """Build a :class:`Ball` from either ``velocity`` or ``speed`` and ``direction``."""
     if velocity is not None:
         velocity = np.asarray(velocity, np.float64)

@@ -63,8 +63,9 @@ def capsule_contact(a_w, b_w, rad, centre, ball_r):
 def up_direction(model: Model) -> Float[Array, " 3"]:
     """-gravity / |gravity|; +y (the clips' up axis) in zero gravity."""
     norm = safe_norm(model.gravity)
-    return jnp.where(norm > 0, -model.gravity / jnp.maximum(norm, _TINY),
-                     jnp.array([0.0, 1.0, 0.0], model.gravity.dtype))
+    return jnp.where(
+        norm > 0, -model.gravity / jnp.maximum(norm, _TINY), jnp.array([0.0, 1.0, 0.0], model.gravity.dtype)
+    )
 
 
 def detect(model: Model, caps: Capsules, settings: ContactSettings, ball_radius, centre, pos, rot):
@@ -72,7 +73,8 @@ def detect(model: Model, caps: Capsules, settings: ContactSettings, ball_radius,
     bodies = caps.body
     to_world = lambda p: pos[bodies] + jnp.einsum("kij,kj->ki", rot[bodies], p - model.com[bodies])
     gap, n, p = jax.vmap(capsule_contact, (0, 0, 0, None, None))(
-        to_world(caps.a), to_world(caps.b), caps.radius, centre, ball_radius)
+        to_world(caps.a), to_world(caps.b), caps.radius, centre, ball_radius
+    )
     if settings.ground:
         up = up_direction(model)
         height = jnp.dot(centre, up) - settings.ground_height
@@ -99,8 +101,9 @@ def single_gap(model: Model, caps: Capsules, settings: ContactSettings, ball_rad
 
 def tangent_basis(n: Float[Array, "... 3"]) -> tuple[Float[Array, "... 3"], Float[Array, "... 3"]]:
     """Two unit tangents completing n to a right-handed frame (n, t1, t2)."""
-    helper = jnp.where(jnp.abs(n[..., :1]) < 0.57, jnp.array([1.0, 0.0, 0.0], n.dtype),
-                       jnp.array([0.0, 0.0, 1.0], n.dtype))
+    helper = jnp.where(
+        jnp.abs(n[..., :1]) < 0.57, jnp.array([1.0, 0.0, 0.0], n.dtype), jnp.array([0.0, 0.0, 1.0], n.dtype)
+    )
     t1 = jnp.cross(n, helper)
     t1 = t1 / safe_norm(t1)[..., None]
     return t1, jnp.cross(n, t1)

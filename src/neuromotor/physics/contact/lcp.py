@@ -42,15 +42,22 @@ def project_polygon(p: Float[Array, " 2"], scale, sides: int) -> Float[Array, " 
 
 def _tangent_steps(w_mat: Float[Array, "3K 3K"], k: int) -> Float[Array, " K"]:
     """1 / largest eigenvalue of each contact's 2x2 tangent block: the friction update's step."""
-    tt = jnp.stack([w_mat[3 * i + 1:3 * i + 3, 3 * i + 1:3 * i + 3] for i in range(k)])
+    tt = jnp.stack([w_mat[3 * i + 1 : 3 * i + 3, 3 * i + 1 : 3 * i + 3] for i in range(k)])
     tt = 0.5 * (tt + jnp.swapaxes(tt, -1, -2))
     tr, det = tt[:, 0, 0] + tt[:, 1, 1], tt[:, 0, 0] * tt[:, 1, 1] - tt[:, 0, 1] ** 2
     lam_max = 0.5 * tr + jnp.sqrt(jnp.maximum(0.25 * tr**2 - det, 0.0))
     return 1.0 / jnp.maximum(lam_max, _TINY)
 
 
-def solve_lcp_pgs(w_mat: Float[Array, "3K 3K"], q: Float[Array, " 3K"], mu, active: Bool[Array, " K"],
-                  p0: Float[Array, "K 3"], sides: int, iterations: int) -> Float[Array, "K 3"]:
+def solve_lcp_pgs(
+    w_mat: Float[Array, "3K 3K"],
+    q: Float[Array, " 3K"],
+    mu,
+    active: Bool[Array, " K"],
+    p0: Float[Array, "K 3"],
+    sides: int,
+    iterations: int,
+) -> Float[Array, "K 3"]:
     """Projected Gauss-Seidel for the contact LCP (see the module docstring).
 
     w = W P + q, contacts ordered (n, t1, t2). Inactive contacts keep P = 0.
@@ -64,12 +71,12 @@ def solve_lcp_pgs(w_mat: Float[Array, "3K 3K"], q: Float[Array, " 3K"], mu, acti
     def sweep(_, p):
         p = p.reshape(-1)
         for i in range(k):
-            rows = w_mat[3 * i:3 * i + 3]
-            w = rows @ p + q[3 * i:3 * i + 3]
+            rows = w_mat[3 * i : 3 * i + 3]
+            w = rows @ p + q[3 * i : 3 * i + 3]
             lam = jnp.maximum(0.0, p[3 * i] - w[0] * inv_n[i]) * mask[i]
             w_t = w[1:] + rows[1:, 3 * i] * (lam - p[3 * i])
-            f_t = project_polygon(p[3 * i + 1:3 * i + 3] - step_t[i] * w_t, mu * lam, sides) * mask[i]
-            p = p.at[3 * i].set(lam).at[3 * i + 1:3 * i + 3].set(f_t)
+            f_t = project_polygon(p[3 * i + 1 : 3 * i + 3] - step_t[i] * w_t, mu * lam, sides) * mask[i]
+            p = p.at[3 * i].set(lam).at[3 * i + 1 : 3 * i + 3].set(f_t)
         return p.reshape(k, 3)
 
     return jax.lax.fori_loop(0, iterations, sweep, p0 * mask[:, None])

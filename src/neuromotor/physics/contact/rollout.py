@@ -34,9 +34,11 @@ def simulate_contact(sim: SimModel, params: Params, scene: ContactScene) -> Cont
     data0 = initial_contact_data(sim.model, scene, init_data(sim, params))
     out, bad_step, bad_body = scan_steps(sim, params, data0, lambda s, p, d: contact_step(s, p, scene, d))
     stack = lambda a, b: jnp.concatenate([a[None], b], 0)
-    return ContactRollout(rollout_of(sim, data0, out, bad_step, bad_body),
-                          jax.tree_util.tree_map(stack, data0.ball, out.ball),
-                          jax.tree_util.tree_map(stack, data0.contact, out.contact))
+    return ContactRollout(
+        rollout_of(sim, data0, out, bad_step, bad_body),
+        jax.tree_util.tree_map(stack, data0.ball, out.ball),
+        jax.tree_util.tree_map(stack, data0.contact, out.contact),
+    )
 
 
 def check_contact_rollout(model: Model, out: ContactRollout) -> ContactRollout:

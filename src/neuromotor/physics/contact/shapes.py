@@ -71,8 +71,13 @@ def fit_capsules(character: Character) -> Capsules:
         body += [b] * len(mine)
         caps += mine
     aa, bb, rr, names = zip(*caps)
-    return Capsules(jnp.asarray(body, jnp.int32), jnp.asarray(np.stack(aa)), jnp.asarray(np.stack(bb)),
-                    jnp.asarray(rr), tuple(names))
+    return Capsules(
+        jnp.asarray(body, jnp.int32),
+        jnp.asarray(np.stack(aa)),
+        jnp.asarray(np.stack(bb)),
+        jnp.asarray(rr),
+        tuple(names),
+    )
 
 
 def _principal_capsule(verts):

@@ -85,8 +85,7 @@ class ContactInfo(eqx.Module):
     def before_any_step(cls, gap: Float[Array, " C"]) -> ContactInfo:
         """The record at t_0: no impulse, the gaps of the initial configuration."""
         zero = jnp.zeros_like(gap)
-        return cls(jnp.zeros(gap.shape + (3,), gap.dtype), zero, zero, zero, gap, gap, zero,
-                   jnp.zeros(gap.shape, bool))
+        return cls(jnp.zeros(gap.shape + (3,), gap.dtype), zero, zero, zero, gap, gap, zero, jnp.zeros(gap.shape, bool))
 
 
 class ContactData(eqx.Module):
@@ -105,8 +104,9 @@ class ContactData(eqx.Module):
     def badness(self, max_speed: float) -> Float[Array, " B1"]:
         """The ordinary score per body, the ball last; the ball may legitimately fly faster than
         any limb, so it is judged against 5x the limit."""
-        ball = jax.tree_util.tree_map(lambda x: x[None], State(self.ball.pos, self.ball.quat, self.ball.vel,
-                                                               self.ball.omega))
+        ball = jax.tree_util.tree_map(
+            lambda x: x[None], State(self.ball.pos, self.ball.quat, self.ball.vel, self.ball.omega)
+        )
         return jnp.concatenate([badness(self.state, max_speed), badness(ball, 5.0 * max_speed)])
 
     def held(self, last: ContactData, bad) -> ContactData:
@@ -118,11 +118,11 @@ class ContactData(eqx.Module):
 def initial_contact_data(model: Model, scene: ContactScene, data) -> ContactData:
     """The ordinary initial data plus the ball at rest at its launch position."""
     ball = scene.ball
-    gap = detect(model, scene.capsules, scene.settings, ball.radius, ball.position, data.state.pos,
-                 data.state.rot)[0]
+    gap = detect(model, scene.capsules, scene.settings, ball.radius, ball.position, data.state.pos, data.state.rot)[0]
     warm = jnp.zeros(gap.shape + (3,), gap.dtype)
-    return ContactData(data.k, data.state, data.info, initial_ball_state(ball), warm,
-                       ContactInfo.before_any_step(gap), data.history)
+    return ContactData(
+        data.k, data.state, data.info, initial_ball_state(ball), warm, ContactInfo.before_any_step(gap), data.history
+    )
 
 
 # ----------------------------------------------------------------------------- stages
@@ -174,8 +174,9 @@ def contact_frame(model: Model, scene: ContactScene, state: State, bstate: BallS
     n, dtype, settings = model.n_bodies, state.pos.dtype, scene.settings
     cand_body = candidate_bodies(scene.capsules, settings)
     n_keep = min(settings.max_contacts, cand_body.shape[0])
-    gap_all, nrm_all, pt_all = detect(model, scene.capsules, settings, scene.ball.radius, bstate.pos, state.pos,
-                                      state.rot)
+    gap_all, nrm_all, pt_all = detect(
+        model, scene.capsules, settings, scene.ball.radius, bstate.pos, state.pos, state.rot
+    )
     _, sel = jax.lax.top_k(-gap_all, n_keep)
     body, nrm = cand_body[sel], nrm_all[sel]
     t1, t2 = tangent_basis(nrm)
@@ -204,15 +205,17 @@ class Responses(eqx.Module):
     residual: Float[Array, ""]  # relative residual of the free solve of Eq. 2
 
 
-def responses(solver: solvers.KKTSolver, eq: Eq2, frame: ContactFrame, ball: Ball, free: BallFree,
-              v: Float[Array, " 6B"]) -> Responses:
+def responses(
+    solver: solvers.KKTSolver, eq: Eq2, frame: ContactFrame, ball: Ball, free: BallFree, v: Float[Array, " 6B"]
+) -> Responses:
     """The chosen solver's free velocity, and its responses to unit contact impulses (the
     contact rows as extra right-hand sides ``(Jc^T, 0)``, vmapped: one factorization)."""
     v_free, aux = solver.solve(eq.system, eq.r, eq.b)
     lam, residual = solver.multipliers(eq.system, eq.r, eq.b, v_free, aux)
     n6 = frame.jc_char.shape[1]
     x, _ = jax.vmap(lambda col: solver.solve(eq.system, col, jnp.zeros_like(eq.b)))(
-        frame.jc_char.reshape(-1, n6 // 6, 6))
+        frame.jc_char.reshape(-1, n6 // 6, 6)
+    )
     v_free, x_char = v_free.reshape(n6), x.reshape(-1, n6).T
     x_ball = ball.inverse_mass[:, None] * frame.jc_ball.T
     w_mat = frame.jc_char @ x_char + frame.jc_ball @ x_ball
@@ -230,8 +233,7 @@ class Impact(eqx.Module):
     q: Float[Array, " 3K"]  # LCP offset: w = W P + q
 
 
-def impact(frame: ContactFrame, resp: Responses, ball: Ball, settings: ContactSettings, h: float,
-           flying) -> Impact:
+def impact(frame: ContactFrame, resp: Responses, ball: Ball, settings: ContactSettings, h: float, flying) -> Impact:
     """Activity, time of impact and Newton's restitution target (see the module docstring)."""
     gap, uf_n, u_pre = frame.gap, resp.u_free[:, 0], resp.u_pre
     reach = h * jnp.maximum(-uf_n, 0.0)
@@ -252,9 +254,13 @@ def _when_touching(active, solve, zeros):
 
 def contact_impulses(resp: Responses, imp: Impact, ball: Ball, settings: ContactSettings, warm):
     """The LCP by PGS, warm started: impulses (K, 3) and the normal slack w_n (K,)."""
-    p = _when_touching(imp.active, lambda: solve_lcp_pgs(resp.w_mat, imp.q, ball.friction, imp.active, warm,
-                                                         settings.friction_directions, settings.pgs_iterations),
-                       jnp.zeros_like(warm))
+    p = _when_touching(
+        imp.active,
+        lambda: solve_lcp_pgs(
+            resp.w_mat, imp.q, ball.friction, imp.active, warm, settings.friction_directions, settings.pgs_iterations
+        ),
+        jnp.zeros_like(warm),
+    )
     slack = (resp.w_mat @ p.reshape(-1) + imp.q).reshape(-1, 3)[:, 0]
     return p, slack
 
@@ -268,8 +274,9 @@ class Motion(eqx.Module):
     d_ball: Float[Array, " 6"]
 
 
-def motion(frame: ContactFrame, resp: Responses, imp: Impact, p, free: BallFree, settings: ContactSettings,
-           h: float) -> Motion:
+def motion(
+    frame: ContactFrame, resp: Responses, imp: Impact, p, free: BallFree, settings: ContactSettings, h: float
+) -> Motion:
     """v+ = v_f + X P; displacement with the impact inside the step, then the projection of the
     remaining linearized penetration."""
     flat = p.reshape(-1)
@@ -279,9 +286,11 @@ def motion(frame: ContactFrame, resp: Responses, imp: Impact, p, free: BallFree,
     sel_n = jnp.arange(frame.sel.shape[0]) * 3
     g_end = frame.gap + h * resp.u_free[:, 0] + h * (resp.w_mat @ late)[sel_n]
     w_nn = resp.w_mat[sel_n][:, sel_n]
-    mu_pos = _when_touching(imp.active, lambda: solve_gap_projection(w_nn, g_end, imp.active,
-                                                                     settings.position_iterations),
-                            jnp.zeros_like(g_end))
+    mu_pos = _when_touching(
+        imp.active,
+        lambda: solve_gap_projection(w_nn, g_end, imp.active, settings.position_iterations),
+        jnp.zeros_like(g_end),
+    )
     push = jnp.zeros(flat.shape[0], flat.dtype).at[sel_n].set(mu_pos)
     disp = disp + resp.x_char @ push
     disp_b = jnp.where(free.flying, disp_b + resp.x_ball @ push, 0.0)
@@ -290,12 +299,26 @@ def motion(frame: ContactFrame, resp: Responses, imp: Impact, p, free: BallFree,
 
 def ball_after(bstate: BallState, free: BallFree, mo: Motion) -> BallState:
     """The ball at the step end; one that is not flying keeps its velocity and spin."""
-    return BallState(bstate.pos + mo.d_ball[:3], quat_turn(bstate.quat, mo.d_ball[3:]),
-                     jnp.where(free.flying, mo.v_ball[:3], free.vel), jnp.where(free.flying, mo.v_ball[3:], free.omega))
+    return BallState(
+        bstate.pos + mo.d_ball[:3],
+        quat_turn(bstate.quat, mo.d_ball[3:]),
+        jnp.where(free.flying, mo.v_ball[:3], free.vel),
+        jnp.where(free.flying, mo.v_ball[3:], free.omega),
+    )
 
 
-def contact_info(model: Model, scene: ContactScene, h: float, data: ContactData, free: BallFree,
-                 frame: ContactFrame, resp: Responses, imp: Impact, p, slack) -> ContactInfo:
+def contact_info(
+    model: Model,
+    scene: ContactScene,
+    h: float,
+    data: ContactData,
+    free: BallFree,
+    frame: ContactFrame,
+    resp: Responses,
+    imp: Impact,
+    p,
+    slack,
+) -> ContactInfo:
     """The step's record over all candidates, with the gap at the impact instant from the
     configuration moved by s h v_free."""
     state, vf6 = data.state, resp.v_free.reshape(model.n_bodies, 6)
@@ -303,8 +326,9 @@ def contact_info(model: Model, scene: ContactScene, h: float, data: ContactData,
     pb = state.pos[bidx] + sh[:, None] * vf6[bidx, :3]
     qb = quat_turn(state.quat[bidx], sh[:, None] * vf6[bidx, 3:])
     cb = data.ball.pos + sh[:, None] * jnp.where(free.flying, free.vel_free, 0.0)
-    gap_imp = jax.vmap(lambda i, p_, q_, c_: single_gap(model, scene.capsules, scene.settings, scene.ball.radius,
-                                                        i, p_, q_, c_))(frame.sel, pb, qb, cb)
+    gap_imp = jax.vmap(
+        lambda i, p_, q_, c_: single_gap(model, scene.capsules, scene.settings, scene.ball.radius, i, p_, q_, c_)
+    )(frame.sel, pb, qb, cb)
     scatter = lambda x, fill: jnp.full(frame.gap_all.shape + x.shape[1:], fill, x.dtype).at[frame.sel].set(x)
     return ContactInfo(
         impulse=scatter(jnp.einsum("kd,kdj->kj", p, frame.dirs), 0.0),
@@ -337,6 +361,12 @@ def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: Conta
     n = model.n_bodies
     new, violation = integrate(sim, solver, k, state, mo.d_char.reshape(n, 6), mo.v_char.reshape(n, 6))
     record = contact_info(model, scene, h, data, free, frame, resp, imp, p, slack)
-    return ContactData(k + 1, new, StepInfo(resp.residual, violation, eq.force, eq.points, resp.lam / h, eq.reflex),
-                       ball_after(data.ball, free, mo), jnp.zeros_like(data.warm).at[frame.sel].set(p), record,
-                       eq.history)
+    return ContactData(
+        k + 1,
+        new,
+        StepInfo(resp.residual, violation, eq.force, eq.points, resp.lam / h, eq.reflex),
+        ball_after(data.ball, free, mo),
+        jnp.zeros_like(data.warm).at[frame.sel].set(p),
+        record,
+        eq.history,
+    )

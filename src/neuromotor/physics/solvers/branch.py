@@ -112,8 +112,9 @@ def _schedule(topo: Topology, unrolled: bool) -> Schedule:
     order = np.zeros(n, np.int64)
     order[np.concatenate(levels)] = np.arange(n - 1)
     strict = (t[None] < depth[:, None]).astype(float)
-    return Schedule(t_max, levels, anc_at, (t[None] <= depth[:, None]).astype(float), strict, children,
-                    parent_pos, order, unrolled)
+    return Schedule(
+        t_max, levels, anc_at, (t[None] <= depth[:, None]).astype(float), strict, children, parent_pos, order, unrolled
+    )
 
 
 def schedule(topo: Topology, unrolled: bool = True) -> Schedule:
@@ -147,7 +148,7 @@ def _level_paths(sch: Schedule, c_blocks, first, pivot, stiff) -> Paths:
     rows, cols = [], []
     for d, lv in enumerate(sch.levels, 1):
         at = lambda x: _take(sch, x, lv)[:, None]
-        row = at(c_blocks) + _times_skew(at(first), _take(sch, pivot, sch.anc_at[lv, 1:d + 1]))
+        row = at(c_blocks) + _times_skew(at(first), _take(sch, pivot, sch.anc_at[lv, 1 : d + 1]))
         col = jnp.swapaxes(row[:, :-1], -1, -2)
         if stiff is not None:
             inner, up, down = map(at, stiff)
@@ -172,8 +173,13 @@ def _body_paths(sch: Schedule, c_blocks, first, pivot, stiff) -> Paths:
     return of_bodies(sch, row, col)
 
 
-def paths_of(sch: Schedule, c_blocks: Float[Array, "B 3 3"], first: Float[Array, "B 3"], pivot: Float[Array, "B 3"],
-             stiff: tuple | None = None) -> Paths:
+def paths_of(
+    sch: Schedule,
+    c_blocks: Float[Array, "B 3 3"],
+    first: Float[Array, "B 3"],
+    pivot: Float[Array, "B 3"],
+    stiff: tuple | None = None,
+) -> Paths:
     """Paths of ``S^T M S`` (``H_kl = C_k + [a_k]x [p_l]x``, symmetric), minus those of
     ``S^T G S`` when ``stiff = (inner, up, down)``: G's blocks summed within each subtree and its
     body/parent couplings (zero rows for the root), ``inner_k + up_k`` in the row of a strict
@@ -186,7 +192,7 @@ def paths_of(sch: Schedule, c_blocks: Float[Array, "B 3 3"], first: Float[Array,
 def of_bodies(sch: Schedule, row: Float[Array, "B T 3 3"], col: Float[Array, "B T 3 3"]) -> Paths:
     """Paths from per-body arrays, slot ``t - 1`` for the ancestor at depth t (one take of each
     into level order, then slices)."""
-    cut = lambda x, extra: tuple(a[:, :d + extra] for d, a in enumerate(_by_level(sch, x), 1))
+    cut = lambda x, extra: tuple(a[:, : d + extra] for d, a in enumerate(_by_level(sch, x), 1))
     return Paths(cut(row, 0), cut(col, -1))
 
 
@@ -204,7 +210,7 @@ def _by_level(sch: Schedule, x) -> list:
     level order, then slices."""
     flat = _take(sch, x, np.concatenate(sch.levels))
     ends = np.cumsum([len(lv) for lv in sch.levels])
-    return [flat[e - len(lv):e] for e, lv in zip(ends, sch.levels)]
+    return [flat[e - len(lv) : e] for e, lv in zip(ends, sch.levels)]
 
 
 def _to_parents(sch: Schedule, d: int, x):
@@ -290,10 +296,13 @@ def matvec(sch: Schedule, paths: Paths, x: Float[Array, "B 3"]) -> Float[Array, 
     """H x from the paths (root row 0): every stored block times x at its column's body, summed
     into its row's body (one product over all blocks, one sum by a 0/1 matrix)."""
     per_level = list(enumerate(sch.levels, 1))
-    src = np.concatenate([sch.anc_at[lv, 1:d + 1].ravel() for d, lv in per_level]  # row blocks H[k, anc]
-                         + [np.repeat(lv, d - 1) for d, lv in per_level])  # column blocks H[anc, k]
-    dst = np.concatenate([np.repeat(lv, d) for d, lv in per_level]
-                         + [sch.anc_at[lv, 1:d].ravel() for d, lv in per_level])
+    src = np.concatenate(
+        [sch.anc_at[lv, 1 : d + 1].ravel() for d, lv in per_level]  # row blocks H[k, anc]
+        + [np.repeat(lv, d - 1) for d, lv in per_level]
+    )  # column blocks H[anc, k]
+    dst = np.concatenate(
+        [np.repeat(lv, d) for d, lv in per_level] + [sch.anc_at[lv, 1:d].ravel() for d, lv in per_level]
+    )
     blocks = jnp.concatenate([b.reshape(-1, 3, 3) for b in (*paths.row, *paths.col)])
     return jnp.tensordot(jnp.asarray(np.eye(len(sch.order))[dst].T, x.dtype), mv(blocks, _take(sch, x, src)), axes=1)
 
@@ -301,18 +310,26 @@ def matvec(sch: Schedule, paths: Paths, x: Float[Array, "B 3"]) -> Float[Array, 
 def transposed(sch: Schedule, paths: Paths) -> Paths:
     """The paths of H^T: a body's row against its strict ancestors is its column transposed."""
     swap = lambda a: jnp.swapaxes(a, -1, -2)
-    return Paths(tuple(jnp.concatenate([swap(c), swap(r[:, -1:])], 1) for r, c in zip(paths.row, paths.col)),
-                 tuple(swap(r[:, :-1]) for r in paths.row))
+    return Paths(
+        tuple(jnp.concatenate([swap(c), swap(r[:, -1:])], 1) for r, c in zip(paths.row, paths.col)),
+        tuple(swap(r[:, :-1]) for r in paths.row),
+    )
 
 
-def linear_solve(sch: Schedule, paths: Paths, fac: Factor, rhs: Float[Array, "B 3"],
-                 symmetric: bool = False) -> Float[Array, "B 3"]:
+def linear_solve(
+    sch: Schedule, paths: Paths, fac: Factor, rhs: Float[Array, "B 3"], symmetric: bool = False
+) -> Float[Array, "B 3"]:
     """``H^-1 rhs`` with derivatives by implicit differentiation (``lax.custom_linear_solve``):
     a tangent costs one more solve with the same factor and one product with the tangent of H,
     not the derivative of the factorization. ``fac`` must be ``factor(sch, stop_gradient(paths))``."""
+
     def transpose_solve(_, y):
         return solve(sch, factor(sch, jax.lax.stop_gradient(transposed(sch, paths))), y)
 
-    return jax.lax.custom_linear_solve(lambda v: matvec(sch, paths, v), rhs, lambda _, y: solve(sch, fac, y),
-                                       transpose_solve=None if symmetric else transpose_solve, symmetric=symmetric)
-
+    return jax.lax.custom_linear_solve(
+        lambda v: matvec(sch, paths, v),
+        rhs,
+        lambda _, y: solve(sch, fac, y),
+        transpose_solve=None if symmetric else transpose_solve,
+        symmetric=symmetric,
+    )

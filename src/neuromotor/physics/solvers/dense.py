@@ -40,7 +40,7 @@ class DenseSolver(KKTSolver):
     def multipliers(self, system, r, b, v, sol):
         rhs = jnp.concatenate([r.reshape(-1), b])
         residual = relative_residual(system.lhs @ sol - rhs, jnp.linalg.norm(rhs))
-        return sol[r.size:], residual
+        return sol[r.size :], residual
 
     def projection_step(self, model, cfg, rot, c):
         jac = full_constraints(model, cfg.driven, rot, cfg.free_root)

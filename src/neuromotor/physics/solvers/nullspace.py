@@ -89,12 +89,14 @@ def _structure(topo: Topology, driven: tuple[int, ...], free_root: bool, unrolle
     known = np.array([3 * blk + j for blk in known_blocks for j in range(3)], dtype=np.int64)
     free = np.setdiff1d(np.arange(3 * (n + 1)), known)
     order = np.argsort(np.concatenate([free, known]))
-    return Structure(anc, strict_up, free, known, order, tuple(driven), free_root, branch.schedule(topo, unrolled),
-                     unrolled)
+    return Structure(
+        anc, strict_up, free, known, order, tuple(driven), free_root, branch.schedule(topo, unrolled), unrolled
+    )
 
 
-def structure(topo: Topology, driven: tuple[int, ...] = (), free_root: bool = False,
-              unrolled: bool = False) -> Structure:
+def structure(
+    topo: Topology, driven: tuple[int, ...] = (), free_root: bool = False, unrolled: bool = False
+) -> Structure:
     """Static structure of the null-space basis (built once per topology and driven set);
     ``unrolled``: static indexing as slices, the form for batches (:mod:`neuromotor.physics.static`)."""
     if any(b <= 0 or b >= topo.n_bodies for b in driven):
@@ -119,8 +121,9 @@ class Geometry(eqx.Module):
     r0: Float[Array, 3]  # root COM -> root joint origin (the driven root's lever)
 
 
-def geometry(st: Structure, r_parent: Float[Array, "C 3"], r_child: Float[Array, "C 3"],
-             r0: Float[Array, 3]) -> Geometry:
+def geometry(
+    st: Structure, r_parent: Float[Array, "C 3"], r_child: Float[Array, "C 3"], r0: Float[Array, 3]
+) -> Geometry:
     """COMs and pivots by chaining levers from the root: c_i = c_parent + r_parent - r_child."""
     zero = jnp.zeros((1, 3), r_parent.dtype)
     step = jnp.concatenate([zero, r_parent - r_child], 0)
@@ -129,8 +132,9 @@ def geometry(st: Structure, r_parent: Float[Array, "C 3"], r_child: Float[Array,
     return Geometry(com, pivot, r0)
 
 
-def apply_basis(st: Structure, geo: Geometry, u: Float[Array, " N"],
-                shift: Float[Array, "B 3"] | None = None) -> Float[Array, "B 6"]:
+def apply_basis(
+    st: Structure, geo: Geometry, u: Float[Array, " N"], shift: Float[Array, "B 3"] | None = None
+) -> Float[Array, "B 6"]:
     """v = S u: per body ``[v_i, omega_i]``; ``shift``: per body a displacement that moves its
     whole subtree (added to v, summed in the same dot)."""
     n = geo.com.shape[0]
@@ -174,10 +178,13 @@ def inertia_blocks(st: Structure, geo: Geometry, mass: Float[Array, " B"], inert
     p = geo.pivot
     pk_dot_pl = p @ p.T
     scalar = md * pk_dot_pl - jnp.sum((p[:, None, :] + p[None, :, :]) * sd_klx, -1)  # (k, l)
-    blocks = (jd + scalar[:, None, :, None] * eye[None, :, None, :]
-              + sd_kxl[..., None] * p[:, None, None, :]  # s_d p_k^T
-              + p.T[None, :, :, None] * sd_klx[:, None, :, :]  # p_l s_d^T
-              - md[:, None, :, None] * p.T[None, :, :, None] * p[:, None, None, :])  # m_d p_l p_k^T
+    blocks = (
+        jd
+        + scalar[:, None, :, None] * eye[None, :, None, :]
+        + sd_kxl[..., None] * p[:, None, None, :]  # s_d p_k^T
+        + p.T[None, :, :, None] * sd_klx[:, None, :, :]  # p_l s_d^T
+        - md[:, None, :, None] * p.T[None, :, :, None] * p[:, None, None, :]
+    )  # m_d p_l p_k^T
     first = s_sub - m_sub[:, None] * geo.pivot
     return blocks, first
 
@@ -192,8 +199,9 @@ def _flat(blocks: Float[Array, "K 3 L 3"]) -> Float[Array, "3K 3L"]:
     return blocks.reshape(3 * blocks.shape[0], 3 * blocks.shape[2])
 
 
-def reduced_inertia(st: Structure, geo: Geometry, mass: Float[Array, " B"],
-                    inertia: Float[Array, "B 3 3"]) -> Float[Array, "N N"]:
+def reduced_inertia(
+    st: Structure, geo: Geometry, mass: Float[Array, " B"], inertia: Float[Array, "B 3 3"]
+) -> Float[Array, "N N"]:
     """S^T M S over all columns ``[v0, u_0, ..., u_{B-1}]`` (see :func:`inertia_blocks`)."""
     n = geo.com.shape[0]
     blocks, first = inertia_blocks(st, geo, mass, inertia)
@@ -204,21 +212,26 @@ def reduced_inertia(st: Structure, geo: Geometry, mass: Float[Array, " B"],
     return jnp.concatenate([top, jnp.concatenate([left, _flat(blocks)], 1)], 0)
 
 
-def stiffness_blocks(st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[Array, "C 3 3"],
-                     g_down: Float[Array, "C 3 3"]) -> Float[Array, "B 3 B 3"]:
+def stiffness_blocks(
+    st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[Array, "C 3 3"], g_down: Float[Array, "C 3 3"]
+) -> Float[Array, "B 3 B 3"]:
     """Rotation blocks of S^T G S for an angular block-tree matrix G (diagonal blocks, body <- parent ``g_up`` and
     parent <- body ``g_down``), i.e. the sum of G's blocks over subtree(k) x subtree(l)."""
     dtype = g_diag.dtype
     inner, up, down = _stiff_subtrees(st, g_diag, g_up, g_down)
     at_k, at_l = _deep_masks(st, dtype)
     mask = lambda m: m[:, None, :, None]
-    return (mask(at_k) * inner[:, :, None, :] + mask(at_l) * jnp.swapaxes(inner, 0, 1)[None]
-            + mask(jnp.asarray(st.strict_up, dtype)) * up[:, :, None, :]
-            + mask(jnp.asarray(st.strict_up.T, dtype)) * jnp.swapaxes(down, 0, 1)[None])
+    return (
+        mask(at_k) * inner[:, :, None, :]
+        + mask(at_l) * jnp.swapaxes(inner, 0, 1)[None]
+        + mask(jnp.asarray(st.strict_up, dtype)) * up[:, :, None, :]
+        + mask(jnp.asarray(st.strict_up.T, dtype)) * jnp.swapaxes(down, 0, 1)[None]
+    )
 
 
-def reduced_stiffness(st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[Array, "C 3 3"],
-                      g_down: Float[Array, "C 3 3"]) -> Float[Array, "N N"]:
+def reduced_stiffness(
+    st: Structure, g_diag: Float[Array, "B 3 3"], g_up: Float[Array, "C 3 3"], g_down: Float[Array, "C 3 3"]
+) -> Float[Array, "N N"]:
     """S^T G S over all columns (zero in the translation rows and columns)."""
     n = g_diag.shape[0]
     out = jnp.zeros((3 * (n + 1), 3 * (n + 1)), g_diag.dtype)
@@ -261,7 +274,7 @@ def known_velocities(st: Structure, r0: Float[Array, 3], b: Float[Array, " nc"])
         parts += [b[0:3] - cross(w0, r0), w0]  # origin velocity v0 + w0 x r0 = b[0:3]
     n = st.anc.shape[0]
     if st.driven:
-        parts.append(b[m0 + 3 * (n - 1):])
+        parts.append(b[m0 + 3 * (n - 1) :])
     return jnp.concatenate(parts) if parts else jnp.zeros((0,), b.dtype)
 
 
@@ -284,8 +297,17 @@ def multipliers(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Float[A
     return jnp.concatenate(parts)
 
 
-def solve_kkt(st: Structure, geo: Geometry, mass: Float[Array, " B"], inertia_world: Float[Array, "B 3 3"],
-              g_diag, g_up, g_down, r: Float[Array, "B 6"], b: Float[Array, " nc"]) -> Float[Array, "B 6"]:
+def solve_kkt(
+    st: Structure,
+    geo: Geometry,
+    mass: Float[Array, " B"],
+    inertia_world: Float[Array, "B 3 3"],
+    g_diag,
+    g_up,
+    g_down,
+    r: Float[Array, "B 6"],
+    b: Float[Array, " nc"],
+) -> Float[Array, "B 6"]:
     """v+ of Eq. 2 with ``A = M - G`` (G = h D + h^2 K, angular blocks on the tree)."""
     rhs, u_known = project_forces(st, geo, r), known_velocities(st, geo.r0, b)
     if st.free_root or st.driven:
@@ -321,8 +343,9 @@ def reduce_tree(st: Structure, geo: Geometry, mass, inertia_world, g_diag, g_up,
     return Reduced(paths, branch.factor(sch, jax.lax.stop_gradient(paths)), c_blocks - inner - up, first)
 
 
-def solve_reduced(st: Structure, geo: Geometry, red: Reduced, r: Float[Array, "B 6"],
-                  b: Float[Array, " nc"]) -> Float[Array, "B 6"]:
+def solve_reduced(
+    st: Structure, geo: Geometry, red: Reduced, r: Float[Array, "B 6"], b: Float[Array, " nc"]
+) -> Float[Array, "B 6"]:
     """v+ of Eq. 2 from the factored :class:`Reduced` (any number of right-hand sides reuse it)."""
     rhs, u_known = project_forces(st, geo, r), known_velocities(st, geo.r0, b)
     v0, w0 = u_known[:3], u_known[3:6]
@@ -356,8 +379,8 @@ def particular_correction(st: Structure, geo: Geometry, c: Float[Array, " nc"]) 
         u = u.at[3:6].set(d_theta0).at[0:3].set(-c[0:3] - cross(d_theta0, geo.r0))
     if st.driven:
         cols = np.array([3 * (1 + b) + j for b in st.driven for j in range(3)])
-        u = u.at[cols].set(-c[m0 + 3 * (n - 1):])
-    gaps = jnp.concatenate([jnp.zeros((1, 3), c.dtype), c[m0:m0 + 3 * (n - 1)].reshape(n - 1, 3)], 0)
+        u = u.at[cols].set(-c[m0 + 3 * (n - 1) :])
+    gaps = jnp.concatenate([jnp.zeros((1, 3), c.dtype), c[m0 : m0 + 3 * (n - 1)].reshape(n - 1, 3)], 0)
     return apply_basis(st, geo, u, shift=gaps)
 
 
@@ -377,8 +400,9 @@ def spd_solve(a: Float[Array, "n n"] | SpdFactor, b: Float[Array, " n"]) -> Floa
     differentiation (``lax.custom_linear_solve``): a tangent costs two triangular solves with
     the same factor, not the derivative of the factorization (as for ``jnp.linalg.solve``)."""
     f = a if isinstance(a, SpdFactor) else spd_factor(a)
-    return jax.lax.custom_linear_solve(lambda x: f.a @ x, b, lambda _, y: jax.scipy.linalg.cho_solve(f.factor, y),
-                                       symmetric=True)
+    return jax.lax.custom_linear_solve(
+        lambda x: f.a @ x, b, lambda _, y: jax.scipy.linalg.cho_solve(f.factor, y), symmetric=True
+    )
 
 
 class Metric(eqx.Module):
@@ -421,18 +445,28 @@ def projection_step(st: Structure, geo: Geometry, mass, inertia_world, c: Float[
     return x_p + apply_basis(st, geo, u)
 
 
-def kkt_residual(st: Structure, geo: Geometry, r_parent, r_child, f: Float[Array, "B 6"], v: Float[Array, "B 6"],
-                 lam: Float[Array, " nc"], b: Float[Array, " nc"], parent: np.ndarray):
+def kkt_residual(
+    st: Structure,
+    geo: Geometry,
+    r_parent,
+    r_child,
+    f: Float[Array, "B 6"],
+    v: Float[Array, "B 6"],
+    lam: Float[Array, " nc"],
+    b: Float[Array, " nc"],
+    parent: np.ndarray,
+):
     """Both block rows of the residual of Eq. 2, ``(A v - r) - J^T lam`` and ``J v - b``, with
     J applied joint by joint (the same rows as ``system.full_constraints``)."""
     n = geo.com.shape[0]
     m0 = 0 if st.free_root else 6
     child = np.arange(1, n)
-    lam_ball = lam[m0:m0 + 3 * (n - 1)].reshape(n - 1, 3)
+    lam_ball = lam[m0 : m0 + 3 * (n - 1)].reshape(n - 1, 3)
     one_hot = lambda idx: jnp.asarray(np.eye(n)[idx], f.dtype)  # (rows, B): sums without scatter
     put = lambda idx, x: jnp.tensordot(one_hot(idx), x, axes=([0], [0]))
-    jt = (put(parent, jnp.concatenate([lam_ball, cross(r_parent, lam_ball)], -1))
-          - put(child, jnp.concatenate([lam_ball, cross(r_child, lam_ball)], -1)))
+    jt = put(parent, jnp.concatenate([lam_ball, cross(r_parent, lam_ball)], -1)) - put(
+        child, jnp.concatenate([lam_ball, cross(r_child, lam_ball)], -1)
+    )
     at = lambda x, body: static.take(x, body, unrolled=st.unrolled)
     point = lambda body, lever: at(v[:, :3], body) + cross(at(v[:, 3:], body), lever)
     rows = [(point(parent, r_parent) - point(child, r_child)).reshape(-1)]
@@ -443,9 +477,12 @@ def kkt_residual(st: Structure, geo: Geometry, r_parent, r_child, f: Float[Array
     if st.driven:
         drv = np.array(st.driven)
         par = np.array([parent[d - 1] for d in st.driven])
-        mu = lam[m0 + 3 * (n - 1):].reshape(-1, 3)
-        jt = (jt + put(drv, jnp.concatenate([jnp.zeros_like(mu), mu], -1))
-              - put(par, jnp.concatenate([jnp.zeros_like(mu), mu], -1)))
+        mu = lam[m0 + 3 * (n - 1) :].reshape(-1, 3)
+        jt = (
+            jt
+            + put(drv, jnp.concatenate([jnp.zeros_like(mu), mu], -1))
+            - put(par, jnp.concatenate([jnp.zeros_like(mu), mu], -1))
+        )
         rows.append((v[drv, 3:] - v[par, 3:]).reshape(-1))
     return (f - jt).reshape(-1), jnp.concatenate(rows) - b
 

@@ -84,8 +84,7 @@ def _diag(pad):
     return pad[..., :, None] * jnp.eye(pad.shape[-1], dtype=pad.dtype)
 
 
-def solve(sys: TreeKKT, topo: Topology, r: Float[Array, "B 6"], s_root: Float[Array, " m0"],
-          s: Float[Array, "C m"]):
+def solve(sys: TreeKKT, topo: Topology, r: Float[Array, "B 6"], s_root: Float[Array, " m0"], s: Float[Array, "C m"]):
     """Solve the tree KKT system; returns ``v (B,6)``, ``lam_root (m0,)``, ``lam (C,m)``."""
     n = topo.n_bodies
     rows, parents = topo.levels
@@ -104,9 +103,13 @@ def solve(sys: TreeKKT, topo: Topology, r: Float[Array, "B 6"], s_root: Float[Ar
 
     # Everything but the carried diagonal blocks and rhs is gathered per level once, outside
     # the loop (fewer, wider kernels per step).
-    static = (j_own[rows], pad[rows], s[rows],
-              jnp.concatenate([a_up[rows], j_par[rows]], -2),  # (L, W, 6+m, 6)
-              jnp.concatenate([a_down[rows], -jnp.swapaxes(j_par[rows], -1, -2)], -1))  # (L, W, 6, 6+m)
+    static = (
+        j_own[rows],
+        pad[rows],
+        s[rows],
+        jnp.concatenate([a_up[rows], j_par[rows]], -2),  # (L, W, 6+m, 6)
+        jnp.concatenate([a_down[rows], -jnp.swapaxes(j_par[rows], -1, -2)], -1),
+    )  # (L, W, 6, 6+m)
 
     sel_node, sel_par, sel_row = (jnp.asarray(x, dtype) for x in topo.derived(_selectors))
     take = lambda sel, x: jnp.einsum("wb,b...->w...", sel, x)  # x[index] as a product
@@ -186,9 +189,9 @@ def split_rows(n_bodies: int, driven, values: Float[Array, " nc"], free_root: bo
     """A vector over the rows of ``system.full_constraints`` in tree layout (root, (C, m))."""
     m0 = 0 if free_root else 6
     nj = n_bodies - 1
-    root, joints = values[:m0], values[m0:m0 + 3 * nj].reshape(nj, 3)
+    root, joints = values[:m0], values[m0 : m0 + 3 * nj].reshape(nj, 3)
     if driven:
-        extra = jnp.zeros((nj, 3), values.dtype).at[np.array(driven) - 1].set(values[m0 + 3 * nj:].reshape(-1, 3))
+        extra = jnp.zeros((nj, 3), values.dtype).at[np.array(driven) - 1].set(values[m0 + 3 * nj :].reshape(-1, 3))
         joints = jnp.concatenate([joints, extra], 1)
     return root, joints
 
@@ -220,8 +223,12 @@ class TreeSolver(KKTSolver):
 
     def assemble(self, model, cfg, rot, inertia, stiff, h):
         g_diag, g_up, g_down = stiff.g_blocks(h)
-        kkt = TreeKKT(mass_blocks(model, inertia) - embed_angular(g_diag), -embed_angular(g_up),
-                      -embed_angular(g_down), *tree_constraints(model, cfg.driven, rot, cfg.free_root))
+        kkt = TreeKKT(
+            mass_blocks(model, inertia) - embed_angular(g_diag),
+            -embed_angular(g_up),
+            -embed_angular(g_down),
+            *tree_constraints(model, cfg.driven, rot, cfg.free_root),
+        )
         return TreeSystem(kkt, model.topology, cfg.driven, cfg.free_root)
 
     def solve(self, system, r, b):
@@ -238,8 +245,12 @@ class TreeSolver(KKTSolver):
     def projection_step(self, model, cfg, rot, c):
         # [M -J^T; J 0][dx; mu] = [0; -C]: the same projection, dx = M^-1 J^T mu, J dx = -C.
         zero = jnp.zeros((model.n_bodies - 1, 6, 6), rot.dtype)
-        kkt = TreeKKT(mass_blocks(model, world_inertia(model, rot)), zero, zero,
-                      *tree_constraints(model, cfg.driven, rot, cfg.free_root))
+        kkt = TreeKKT(
+            mass_blocks(model, world_inertia(model, rot)),
+            zero,
+            zero,
+            *tree_constraints(model, cfg.driven, rot, cfg.free_root),
+        )
         c_root, c_joint = split_rows(model.n_bodies, cfg.driven, c, cfg.free_root)
         delta, _, _ = solve(kkt, model.topology, jnp.zeros((model.n_bodies, 6), rot.dtype), -c_root, -c_joint)
         return delta

@@ -47,7 +47,7 @@ class Calibration:
     @property
     def time(self) -> np.ndarray:
         s = self.problem.spec
-        return np.asarray(self.problem.ref.time[s.i0:s.i1])
+        return np.asarray(self.problem.ref.time[s.i0 : s.i1])
 
     def target_curves(self) -> np.ndarray:
         """Trajectory targets shaped like the evaluator's curves (C, T, c)."""
@@ -55,8 +55,17 @@ class Calibration:
         return self.target.reshape(c, t, -1)
 
 
-def trajectory_calibration(setup, table, quantity: str, names=None, weights=None, window=None,
-                           angle_unit: str = "rad", source: str | None = None, parameters=fp.DEFAULT) -> tuple:
+def trajectory_calibration(
+    setup,
+    table,
+    quantity: str,
+    names=None,
+    weights=None,
+    window=None,
+    angle_unit: str = "rad",
+    source: str | None = None,
+    parameters=fp.DEFAULT,
+) -> tuple:
     """Target and weights for a trajectory table (see :mod:`neuromotor.studies.targets`).
 
     Returns (problem, target, weights, labels). ``names``: the DOFs or bodies to fit (default:
@@ -71,13 +80,17 @@ def trajectory_calibration(setup, table, quantity: str, names=None, weights=None
     what = "DOF" if quantity == "joint_angles" else "body"
     unknown = [n for n in table.names if n not in known]
     if unknown:
-        raise ConfigError(f"{table.source}: field 'names' has unknown {what} name(s) {unknown[:5]}; "
-                          f"the model's are e.g. {list(known[:4])}")
+        raise ConfigError(
+            f"{table.source}: field 'names' has unknown {what} name(s) {unknown[:5]}; "
+            f"the model's are e.g. {list(known[:4])}"
+        )
     names = list(table.names) if names is None else list(names)
     for i, n in enumerate(names):
         if n not in known:
-            raise ConfigError(f"{src}: field 'fit.target.{'dofs' if what == 'DOF' else 'bodies'}[{i}]' is an "
-                              f"unknown {what} name {n!r}")
+            raise ConfigError(
+                f"{src}: field 'fit.target.{'dofs' if what == 'DOF' else 'bodies'}[{i}]' is an "
+                f"unknown {what} name {n!r}"
+            )
         if n not in table.names:
             raise ConfigError(f"{table.source}: column {n!r} is missing (named by {src} fit.target)")
     weights = dict(weights or {})
@@ -87,12 +100,14 @@ def trajectory_calibration(setup, table, quantity: str, names=None, weights=None
         if not (isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) and w >= 0):
             raise ConfigError(f"{src}: field 'fit.target.weights.{n}' must be a number >= 0, got {w!r}")
     if table.values.shape[0] != len(setup.config.perturbations):
-        raise ConfigError(f"{table.source}: holds {table.values.shape[0]} case(s) but {src} has "
-                          f"{len(setup.config.perturbations)} [[perturbation]] entries (one per case)")
+        raise ConfigError(
+            f"{table.source}: holds {table.values.shape[0]} case(s) but {src} has "
+            f"{len(setup.config.perturbations)} [[perturbation]] entries (one per case)"
+        )
     columns = [known.index(n) for n in names]
     problem = make_problem(setup, quantity, columns, window, names=parameters)
     s = problem.spec
-    times = np.asarray(setup.ref.time[s.i0:s.i1])
+    times = np.asarray(setup.ref.time[s.i0 : s.i1])
     vals = resample(table, times, "fit.window")  # (C, T, k[, 3])
     pick = [table.names.index(n) for n in names]
     vals = vals[:, :, pick]
@@ -121,8 +136,9 @@ def load_calibration(path, solver: str | None = None, character=None, traj=None)
     return calibration_from_dict(read_toml(path), str(path), path.parent, solver, character, traj)
 
 
-def calibration_from_dict(data: dict, source: str = "<dict>", base_dir=None, solver: str | None = None,
-                          character=None, traj=None) -> Calibration:
+def calibration_from_dict(
+    data: dict, source: str = "<dict>", base_dir=None, solver: str | None = None, character=None, traj=None
+) -> Calibration:
     """A :class:`Calibration` from a config's table (``[fit]`` parsed by :func:`neuromotor.config.fit_spec`)."""
     from neuromotor.config.parse import fit_spec, simulation_config
 
@@ -154,12 +170,21 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
             character, traj = load_character(cfg.clip, cfg.units, cfg.up_axis, cfg.stature, cfg.mass_options())
         table = match_trial(table, character, cfg.h)
     setup = prepare(cfg, character, traj)
-    problem, target, w, labels = trajectory_calibration(setup, table, t.kind, t.names or None, t.weights,
-                                                        spec.window, t.angle_unit, cfg.source, spec.parameters)
+    problem, target, w, labels = trajectory_calibration(
+        setup, table, t.kind, t.names or None, t.weights, spec.window, t.angle_unit, cfg.source, spec.parameters
+    )
     common["x0"] = fp.start(setup.gains, problem.names, cfg.source)
-    return Calibration(setup=setup, problem=problem, target=target, weights=w, labels=labels,
-                       target_file=str(t.file), not_fitted=table.not_fitted,
-                       converted=table.converted, **common)
+    return Calibration(
+        setup=setup,
+        problem=problem,
+        target=target,
+        weights=w,
+        labels=labels,
+        target_file=str(t.file),
+        not_fitted=table.not_fitted,
+        converted=table.converted,
+        **common,
+    )
 
 
 def _feature_calibration(setup, spec: FitSpec, common: dict) -> Calibration:
@@ -167,22 +192,43 @@ def _feature_calibration(setup, spec: FitSpec, common: dict) -> Calibration:
     model, t = setup.model, spec.target
     for i, n in enumerate(t.names):
         if n not in model.dof_names:
-            raise ConfigError(f"{setup.config.source}: field 'fit.target.dofs[{i}]' is an unknown DOF name {n!r} "
-                              f"(e.g. {list(model.dof_names[:3])})")
+            raise ConfigError(
+                f"{setup.config.source}: field 'fit.target.dofs[{i}]' is an unknown DOF name {n!r} "
+                f"(e.g. {list(model.dof_names[:3])})"
+            )
     table = [{name: f.as_dict() for name, f in row.items()} for row in t.cases]
     feats = tuple(n for n in FEATURE_NAMES if any(n in row for row in table))
-    problem = make_problem(setup, "features", [model.dof_names.index(n) for n in t.names], spec.window, feats,
-                           names=spec.parameters, **dataclasses.asdict(t.surrogate))
+    problem = make_problem(
+        setup,
+        "features",
+        [model.dof_names.index(n) for n in t.names],
+        spec.window,
+        feats,
+        names=spec.parameters,
+        **dataclasses.asdict(t.surrogate),
+    )
     common = dict(common, x0=fp.start(setup.gains, problem.names, setup.config.source))
     target = np.array([row.get(n, {}).get("value", 0.0) for row in table for n in feats])
     # A feature a case does not list gets weight 0: it is computed but does not count.
     w = np.array([1.0 / row[n]["sd"] if n in row else 0.0 for row in table for n in feats])
-    return Calibration(setup=setup, problem=problem, target=target, weights=w, labels=("deviation (deg)",),
-                       feature_table=table, **common)
+    return Calibration(
+        setup=setup,
+        problem=problem,
+        target=target,
+        weights=w,
+        labels=("deviation (deg)",),
+        feature_table=table,
+        **common,
+    )
 
 
-def calibrate(cal: Calibration, outdir=None, progress: bool = True, evaluator: ResponseEvaluator | None = None,
-              strict: bool = False) -> tuple[FitResult, dict]:
+def calibrate(
+    cal: Calibration,
+    outdir=None,
+    progress: bool = True,
+    evaluator: ResponseEvaluator | None = None,
+    strict: bool = False,
+) -> tuple[FitResult, dict]:
     """Fit, then write ``fit.json`` and ``fit.png`` to ``outdir`` (if given).
 
     Returns the result and the JSON document (which adds the problem description and, for
@@ -190,9 +236,15 @@ def calibrate(cal: Calibration, outdir=None, progress: bool = True, evaluator: R
     """
     ev = evaluator or ResponseEvaluator(cal.problem, cal.jacobian)
     res = fit(ev, cal.target, cal.weights, cal.x0, cal.solver, cal.options, progress=progress, strict=False)
-    doc = {"config": cal.source, "target_file": cal.target_file, "target_kind": cal.problem.spec.kind,
-           "window_s": [float(cal.time[0]), float(cal.time[-1])], "h": cal.setup.options.h,
-           "cases": [dict(p) for p in cal.setup.config.perturbations], **res.to_json()}
+    doc = {
+        "config": cal.source,
+        "target_file": cal.target_file,
+        "target_kind": cal.problem.spec.kind,
+        "window_s": [float(cal.time[0]), float(cal.time[-1])],
+        "h": cal.setup.options.h,
+        "cases": [dict(p) for p in cal.setup.config.perturbations],
+        **res.to_json(),
+    }
     if cal.not_fitted:
         doc["not_fitted"] = cal.not_fitted
     if cal.converted:
@@ -220,11 +272,23 @@ def _feature_report(cal: Calibration, ev: ResponseEvaluator, res: FitResult) -> 
         dev = fitted.curves[c, :, 0]
         start = float(cal.problem.start[c])
         exact = mx.recovery_metrics(cal.time, dev, start, s.fraction, s.floor_deg)
-        exact_named = {"peak_deviation_deg": exact["peak_deviation_deg"],
-                       "time_to_peak_s": exact["time_of_peak_s"] - start,
-                       "recovery_time_s": exact["recovery_time_s"], "overshoot_deg": exact["overshoot_deg"],
-                       "peak_acceleration_deg_s2": exact_peak_acceleration(fitted.curves[c, :, 1])}
-        out.append({n: {"target": row.get(n, {}).get("value"), "sd": row.get(n, {}).get("sd"),
-                        "source": row.get(n, {}).get("source"), "fitted_surrogate": float(y[c, j]),
-                        "fitted_exact": exact_named[n]} for j, n in enumerate(s.features)})
+        exact_named = {
+            "peak_deviation_deg": exact["peak_deviation_deg"],
+            "time_to_peak_s": exact["time_of_peak_s"] - start,
+            "recovery_time_s": exact["recovery_time_s"],
+            "overshoot_deg": exact["overshoot_deg"],
+            "peak_acceleration_deg_s2": exact_peak_acceleration(fitted.curves[c, :, 1]),
+        }
+        out.append(
+            {
+                n: {
+                    "target": row.get(n, {}).get("value"),
+                    "sd": row.get(n, {}).get("sd"),
+                    "source": row.get(n, {}).get("source"),
+                    "fitted_surrogate": float(y[c, j]),
+                    "fitted_exact": exact_named[n],
+                }
+                for j, n in enumerate(s.features)
+            }
+        )
     return out

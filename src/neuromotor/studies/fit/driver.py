@@ -26,9 +26,17 @@ from neuromotor.studies.fit.solvers import run_solver
 from neuromotor.studies.gains import gain_value
 
 
-def fit(evaluator: ResponseEvaluator, target, weights, x0, solver: str = "optimistix_lm",
-        options: SolverOptions | None = None, progress: bool = True, strict: bool = False,
-        residual: Callable | None = None) -> FitResult:
+def fit(
+    evaluator: ResponseEvaluator,
+    target,
+    weights,
+    x0,
+    solver: str = "optimistix_lm",
+    options: SolverOptions | None = None,
+    progress: bool = True,
+    strict: bool = False,
+    residual: Callable | None = None,
+) -> FitResult:
     """Minimize ``1/2 ||w * (y(x) - target)||^2`` over x (the logarithms of the problem's
     fitted parameters, ``evaluator.problem.names``) from ``x0``.
 
@@ -45,8 +53,10 @@ def fit(evaluator: ResponseEvaluator, target, weights, x0, solver: str = "optimi
     t_start, evals0, div0 = _time.perf_counter(), evaluator.n_evals, len(evaluator.diverged_evals)
     ev0 = evaluator(x0)
     if np.any(ev0.diverged >= 0):
-        raise FitError(f"the rollout diverges at the starting values {_at(evaluator, x0)} "
-                       f"({_divergence_text(evaluator, ev0)}); start from values that simulate")
+        raise FitError(
+            f"the rollout diverges at the starting values {_at(evaluator, x0)} "
+            f"({_divergence_text(evaluator, ev0)}); start from values that simulate"
+        )
     r = residual or residual_function(evaluator, target, weights)
     bar = tqdm(total=opts.max_steps, desc=f"fit {solver}", unit="it", disable=not progress, leave=False)
     track = _Progress(evaluator, target, weights, x0, bar)
@@ -98,13 +108,14 @@ def _final_status(evaluator, solver, opts, track: _Progress, x, iters, converged
     history = track.history
     # Converged in the loss: flat at the iterates, and the solver's latest evaluations finite (a
     # solver stuck because every trial point is NaN also has a flat loss, and has not converged).
-    recent_ok = all(math.isfinite(h["last_loss"]) for h in history[-(LOSS_FLAT_ITERATIONS + 1):])
-    if (status == "max_steps" and iters >= opts.max_steps and recent_ok
-            and loss_is_flat([h["loss"] for h in history])):
+    recent_ok = all(math.isfinite(h["last_loss"]) for h in history[-(LOSS_FLAT_ITERATIONS + 1) :])
+    if status == "max_steps" and iters >= opts.max_steps and recent_ok and loss_is_flat([h["loss"] for h in history]):
         status = "converged (loss flat)"
-        message = (f"converged (loss flat): the loss changed by less than {LOSS_FLAT_RTOL:g} (relative) in "
-                   f"each of the last {LOSS_FLAT_ITERATIONS} iterations; {solver}'s own step tolerance "
-                   f"was not met in {opts.max_steps} steps")
+        message = (
+            f"converged (loss flat): the loss changed by less than {LOSS_FLAT_RTOL:g} (relative) in "
+            f"each of the last {LOSS_FLAT_ITERATIONS} iterations; {solver}'s own step tolerance "
+            f"was not met in {opts.max_steps} steps"
+        )
     if not np.all(np.isfinite(x)):
         status, x = "nonfinite", track.last_good
         message = f"the solver produced non-finite parameters; returning the last finite iterate {_at(evaluator, x)}"
@@ -132,18 +143,43 @@ def _report(evaluator, ev, target, weights, x, x0, solver, status, message, hist
     gains = evaluator.problem.gains
     fixed = lambda n, d: d[n] if n in d else float(gain_value(gains, n))
     se_abs = {n: values[n] * float(s) for n, s in zip(names, se)}
-    corr = float(cov[0, 1] / (se[0] * se[1])) if (len(se) > 1 and np.all(np.isfinite(se[:2]))
-                                                  and np.all(se[:2] > 0)) else float("nan")
+    corr = (
+        float(cov[0, 1] / (se[0] * se[1]))
+        if (len(se) > 1 and np.all(np.isfinite(se[:2])) and np.all(se[:2] > 0))
+        else float("nan")
+    )
     ok, note = identifiability(names, se, cov)
     return FitResult(
-        solver=solver, status=status, message=message or "converged", ks=fixed("ks", values),
-        kd=fixed("kd", values), ks0=fixed("ks", starts), kd0=fixed("kd", starts), log_params=[float(v) for v in x],
-        covariance_log=cov.tolist(), se_log=se.tolist(), se_ks=se_abs.get("ks", 0.0), se_kd=se_abs.get("kd", 0.0),
-        correlation=corr, s2=s2, residual_norm=float(np.linalg.norm(res)),
-        residual_rms=float(np.sqrt(np.mean(res**2))), loss=0.5 * float(res @ res), n_residuals=int(res.size),
-        iterations=0, evaluations=0, wall_time_s=0.0, jacobian=evaluator.jacobian,
-        diverged_evaluations=0, history=history, parameters=list(names), values=values, start_values=starts,
-        standard_errors=se_abs, identifiable=ok, identifiability=note,
+        solver=solver,
+        status=status,
+        message=message or "converged",
+        ks=fixed("ks", values),
+        kd=fixed("kd", values),
+        ks0=fixed("ks", starts),
+        kd0=fixed("kd", starts),
+        log_params=[float(v) for v in x],
+        covariance_log=cov.tolist(),
+        se_log=se.tolist(),
+        se_ks=se_abs.get("ks", 0.0),
+        se_kd=se_abs.get("kd", 0.0),
+        correlation=corr,
+        s2=s2,
+        residual_norm=float(np.linalg.norm(res)),
+        residual_rms=float(np.sqrt(np.mean(res**2))),
+        loss=0.5 * float(res @ res),
+        n_residuals=int(res.size),
+        iterations=0,
+        evaluations=0,
+        wall_time_s=0.0,
+        jacobian=evaluator.jacobian,
+        diverged_evaluations=0,
+        history=history,
+        parameters=list(names),
+        values=values,
+        start_values=starts,
+        standard_errors=se_abs,
+        identifiable=ok,
+        identifiability=note,
     )
 
 

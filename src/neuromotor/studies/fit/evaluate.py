@@ -82,6 +82,7 @@ def compiled_response(jacobian: str):
 
         def fn(problem: FitProblem, x):
             if jacobian == "forward":
+
                 def y_aux(x):
                     y, curves, div = problem.outputs(x)
                     return y, (y, curves, div)

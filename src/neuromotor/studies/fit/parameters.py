@@ -20,8 +20,10 @@ def start(gains: Gains, names: tuple[str, ...], source: str) -> np.ndarray:
     for n, v in zip(names, vals):
         if not v > 0:
             where = "gains" if n in ("ks", "kd") else "reflex"
-            raise ConfigError(f"{source}: the fit starts from {n} = {v:g} {UNITS[n]} (field '{where}'), which must "
-                              f"be > 0 (parameters are fitted as logarithms)")
+            raise ConfigError(
+                f"{source}: the fit starts from {n} = {v:g} {UNITS[n]} (field '{where}'), which must "
+                f"be > 0 (parameters are fitted as logarithms)"
+            )
     return np.log(vals)
 
 

@@ -96,27 +96,29 @@ class FitProblem(eqx.Module):
         runs = self.rollouts(x)
         s = self.spec
         if s.kind == "joint_angles":
-            cur = runs.theta[:, s.i0:s.i1][:, :, jnp.asarray(s.columns)]
+            cur = runs.theta[:, s.i0 : s.i1][:, :, jnp.asarray(s.columns)]
             return cur.reshape(-1), cur, runs.diverged_step
         if s.kind == "body_positions":
-            cur = runs.states.pos[:, s.i0:s.i1][:, :, jnp.asarray(s.columns)]
+            cur = runs.states.pos[:, s.i0 : s.i1][:, :, jnp.asarray(s.columns)]
             return cur.reshape(-1), cur.reshape(cur.shape[0], cur.shape[1], -1), runs.diverged_step
-        time = runs.time[0, s.i0:s.i1]
+        time = runs.time[0, s.i0 : s.i1]
         h = self.options.h
         if s.metric == "geodesic":
             rows, mask = mx.dof_selection(self.model, s.columns) if s.columns else (mx.joint_rows(self.model), None)
-            quat, omega = runs.states.quat[:, s.i0:s.i1], runs.states.omega[:, s.i0:s.i1]
+            quat, omega = runs.states.quat[:, s.i0 : s.i1], runs.states.omega[:, s.i0 : s.i1]
             local = lambda c: mx.joint_quats(self.model, quat[c])
-            curve = lambda c: (mx.selected_deviation_deg(local(c), local(-1), rows, np.ones((len(rows), 3))
-                                                         if mask is None else mask),
-                               joint_acceleration_deg(self.model, quat[c], omega[c], quat[-1], omega[-1], h, rows,
-                                                      mask))
+            curve = lambda c: (
+                mx.selected_deviation_deg(local(c), local(-1), rows, np.ones((len(rows), 3)) if mask is None else mask),
+                joint_acceleration_deg(self.model, quat[c], omega[c], quat[-1], omega[-1], h, rows, mask),
+            )
         else:
-            base = runs.theta[-1, s.i0:s.i1]
+            base = runs.theta[-1, s.i0 : s.i1]
             dofs = jnp.asarray(s.columns) if s.columns else None
-            base_rate = runs.theta_dot[-1, s.i0:s.i1]
-            curve = lambda c: (deviation_deg(runs.theta[c, s.i0:s.i1], base, dofs),
-                               acceleration_deg(runs.theta_dot[c, s.i0:s.i1], base_rate, h, dofs))
+            base_rate = runs.theta_dot[-1, s.i0 : s.i1]
+            curve = lambda c: (
+                deviation_deg(runs.theta[c, s.i0 : s.i1], base, dofs),
+                acceleration_deg(runs.theta_dot[c, s.i0 : s.i1], base_rate, h, dofs),
+            )
         feats, devs = [], []
         for c in range(self.n_cases):
             dev, acc = curve(c)
@@ -136,8 +138,9 @@ def loss(problem: FitProblem, x, target, weights) -> Float[Array, ""]:
     return 0.5 * jnp.sum(r**2)
 
 
-def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAMES, names=fp.DEFAULT,
-                 **surrogate) -> FitProblem:
+def make_problem(
+    setup, kind: str, columns=(), window=None, features=FEATURE_NAMES, names=fp.DEFAULT, **surrogate
+) -> FitProblem:
     """A :class:`FitProblem` over the perturbation cases of ``setup.config.perturbations``.
 
     Each ``[[perturbation]]`` entry is one case (one rollout), of any kind and shape (the
@@ -163,8 +166,9 @@ def make_problem(setup, kind: str, columns=(), window=None, features=FEATURE_NAM
         window = (float(sim_time[0]), float(sim_time[-1]))
     i0, i1 = window_indices(sim_time, window, cfg.source, "fit.window")
     surrogate.setdefault("metric", cfg.metric)
-    spec = ResponseSpec(kind, tuple(int(c) for c in columns), i0, i1,
-                        tuple(features) if kind == "features" else (), **surrogate)
+    spec = ResponseSpec(
+        kind, tuple(int(c) for c in columns), i0, i1, tuple(features) if kind == "features" else (), **surrogate
+    )
     start = jnp.asarray([float(s["start"]) for s in specs])
     names = check_fit_parameters(names, setup.gains.reflex is not None, cfg.source)
     return FitProblem(setup.model, setup.gains, batch, setup.ref, start, setup.options, spec, names)

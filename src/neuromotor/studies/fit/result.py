@@ -10,8 +10,11 @@ from neuromotor.io.tables import json_safe as _json_safe
 
 
 class FitError(RuntimeError):
-    """The fit failed (no convergence, diverged rollout, non-finite iterate); carries the result.
-    Not a user error: ``neuromotor fit`` reports it with its own exit status (3)."""""
+    (
+        """The fit failed (no convergence, diverged rollout, non-finite iterate); carries the result.
+    Not a user error: ``neuromotor fit`` reports it with its own exit status (3)."""
+        ""
+    )
 
     def __init__(self, message: str, result: FitResult | None = None):
         super().__init__(message)
@@ -34,7 +37,7 @@ def loss_is_flat(losses, rtol: float = LOSS_FLAT_RTOL, n: int = LOSS_FLAT_ITERAT
     vals = [float(v) for v in losses if v is not None]
     if len(vals) < n + 1:
         return False
-    tail = np.asarray(vals[-(n + 1):])
+    tail = np.asarray(vals[-(n + 1) :])
     if not np.all(np.isfinite(tail)):
         return False
     return bool(np.all(np.abs(np.diff(tail)) <= rtol * np.maximum(np.abs(tail[:-1]), 1e-300)))
@@ -52,10 +55,13 @@ def identifiability(names, se_log, cov) -> tuple[dict, str]:
     bad = [n for n in names if not ok[n]]
     if not bad:
         return ok, "every fitted parameter is identifiable from this target"
-    why = ("the target does not determine them (J^T J is singular: fewer independent residuals than "
-           "parameters, or parameters that trade off exactly)" if not np.all(np.isfinite(cov)) else
-           f"standard error of the log above {IDENTIFIABLE_SE_LOG} (the value is uncertain by more than a factor "
-           f"{np.exp(IDENTIFIABLE_SE_LOG):.2f})")
+    why = (
+        "the target does not determine them (J^T J is singular: fewer independent residuals than "
+        "parameters, or parameters that trade off exactly)"
+        if not np.all(np.isfinite(cov))
+        else f"standard error of the log above {IDENTIFIABLE_SE_LOG} (the value is uncertain by more than a factor "
+        f"{np.exp(IDENTIFIABLE_SE_LOG):.2f})"
+    )
     return ok, f"not identifiable from this target: {', '.join(bad)}; {why}"
 
 

@@ -88,8 +88,11 @@ def _jaxopt_loop(solver, x0, opts: SolverOptions, on_iter, tol):
             break
     err = float(state.error)
     converged = err <= tol
-    message = "" if converged else ("maximum number of steps reached" if math.isfinite(err)
-                                    else "the gradient became non-finite")
+    message = (
+        ""
+        if converged
+        else ("maximum number of steps reached" if math.isfinite(err) else "the gradient became non-finite")
+    )
     return np.asarray(x), k, converged, message
 
 
@@ -119,8 +122,9 @@ def run_solver(name: str, residual: Callable, x0, m: int, opts: SolverOptions, o
             warnings.filterwarnings("ignore", category=DeprecationWarning)
             import jaxopt
         if name == "jaxopt_lm":
-            solver = jaxopt.LevenbergMarquardt(residual, maxiter=opts.max_steps, tol=opts.gtol,
-                                               materialize_jac=True, solver="cholesky", jit=True)
+            solver = jaxopt.LevenbergMarquardt(
+                residual, maxiter=opts.max_steps, tol=opts.gtol, materialize_jac=True, solver="cholesky", jit=True
+            )
         else:
             solver = jaxopt.LBFGS(objective, maxiter=opts.max_steps, tol=opts.gtol, jit=True)
         # Relative gradient tolerance: the residual's units (rad, m, feature sds) vary by target.

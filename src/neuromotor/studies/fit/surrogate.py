@@ -52,8 +52,9 @@ def acceleration_deg(theta_dot, theta_dot_ref, h: float, dofs=None) -> Float[Arr
     return jnp.pad(inner, (1, 1))
 
 
-def joint_acceleration_deg(model, quat, omega, quat_ref, omega_ref, h: float, rows=None,
-                           mask=None) -> Float[Array, " T"]:
+def joint_acceleration_deg(
+    model, quat, omega, quat_ref, omega_ref, h: float, rows=None, mask=None
+) -> Float[Array, " T"]:
     """The geodesic counterpart of :func:`acceleration_deg`: per sample, the RMS over joints
     (``rows``; None: all) of |d/dt (w_j - w_ref_j)| in deg/s^2 (``mask``: only these child-frame
     axes, as :func:`neuromotor.studies.metrics.selected_deviation_deg`), w_j the joint's relative
@@ -122,8 +123,12 @@ def response_features(time, dev, start, spec: Surrogate | ResponseSpec, acc=None
     still = jnp.cumprod(1.0 - after_peak * (1.0 - jax.nn.sigmoid((dev - thr) / (spec.width * thr))))
     t_return = t_peak + jnp.sum(still * after_peak) * dt
     overshoot = mx.soft_overshoot(time, dev, t_return, spec.beta)
-    out = {"peak_deviation_deg": peak, "time_to_peak_s": t_peak - start,
-           "recovery_time_s": rec, "overshoot_deg": overshoot}
+    out = {
+        "peak_deviation_deg": peak,
+        "time_to_peak_s": t_peak - start,
+        "recovery_time_s": rec,
+        "overshoot_deg": overshoot,
+    }
     if acc is not None:
         out["peak_acceleration_deg_s2"] = soft_max_weighted(acc, spec.accel_beta)
     return out

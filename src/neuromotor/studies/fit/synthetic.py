@@ -14,9 +14,15 @@ from neuromotor.studies.fit.problem import make_problem
 from neuromotor.studies.fit.result import FitError
 
 
-def synthetic_target(cal: Calibration, ks: float | None = None, kd: float | None = None, noise: float = 0.0,
-                     seed: int = 0, evaluator: ResponseEvaluator | None = None,
-                     values: dict | None = None) -> np.ndarray:
+def synthetic_target(
+    cal: Calibration,
+    ks: float | None = None,
+    kd: float | None = None,
+    noise: float = 0.0,
+    seed: int = 0,
+    evaluator: ResponseEvaluator | None = None,
+    values: dict | None = None,
+) -> np.ndarray:
     """The model output at known values of the fitted parameters (``ks``, ``kd`` and/or
     ``values``: name -> value, every one of ``cal.problem.names``) plus seeded Gaussian noise
     (sd ``noise``, output units)."""
@@ -32,8 +38,15 @@ def synthetic_target(cal: Calibration, ks: float | None = None, kd: float | None
     return ev.y + noise * rng.standard_normal(ev.y.shape)
 
 
-def write_synthetic_target(config_path, ks: float | None = None, kd: float | None = None, values: dict | None = None,
-                           noise_deg: float = 0.0, seed: int = 0, progress: bool = True) -> pathlib.Path:
+def write_synthetic_target(
+    config_path,
+    ks: float | None = None,
+    kd: float | None = None,
+    values: dict | None = None,
+    noise_deg: float = 0.0,
+    seed: int = 0,
+    progress: bool = True,
+) -> pathlib.Path:
     """Simulate a joint-angle target at known values of the config's fitted parameters (``[fit]
     parameters``, default ks and kd: ``ks``, ``kd`` and/or ``values``) and write it to the
     config's target file.
@@ -62,28 +75,44 @@ def write_synthetic_target(config_path, ks: float | None = None, kd: float | Non
     for i, n in enumerate(dofs):
         if n not in model.dof_names:
             raise ConfigError(f"{cfg.source}: field 'fit.target.dofs[{i}]' is an unknown DOF name {n!r}")
-    problem = make_problem(setup, "joint_angles", [model.dof_names.index(n) for n in dofs], spec.window,
-                           names=spec.parameters)
+    problem = make_problem(
+        setup, "joint_angles", [model.dof_names.index(n) for n in dofs], spec.window, names=spec.parameters
+    )
     known = dict(values or {}, **{n: v for n, v in (("ks", ks), ("kd", kd)) if v is not None})
     missing = [n for n in problem.names if n not in known]
     if missing:
-        raise ConfigError(f"{cfg.source}: the synthetic target needs a value of every fitted parameter "
-                          f"(fit.parameters); missing {missing}")
+        raise ConfigError(
+            f"{cfg.source}: the synthetic target needs a value of every fitted parameter "
+            f"(fit.parameters); missing {missing}"
+        )
     cal = Calibration(setup=setup, problem=problem, target=np.zeros(1), weights=np.zeros(1), x0=np.zeros(2))
-    y = synthetic_target(cal, noise=np.deg2rad(noise_deg), seed=seed, evaluator=ResponseEvaluator(problem),
-                         values={n: known[n] for n in problem.names})
+    y = synthetic_target(
+        cal,
+        noise=np.deg2rad(noise_deg),
+        seed=seed,
+        evaluator=ResponseEvaluator(problem),
+        values={n: known[n] for n in problem.names},
+    )
     vals = y.reshape(problem.n_cases, -1, len(dofs))
     unit = spec.target.angle_unit
     if unit == "deg":
         vals = np.rad2deg(vals)
     at = ", ".join(f"{n} = {known[n]:g} {UNITS[n]}" for n in problem.names)
-    note = (f"synthetic target: neuromotor rollout at {at}, h = {setup.options.h}\n"
-            f"plus Gaussian noise of sd {noise_deg} deg (seed {seed}); angles in {unit}; config {config_path.name}")
+    note = (
+        f"synthetic target: neuromotor rollout at {at}, h = {setup.options.h}\n"
+        f"plus Gaussian noise of sd {noise_deg} deg (seed {seed}); angles in {unit}; config {config_path.name}"
+    )
     return write_target_csv(spec.target.file, cal.time, dofs, vals, "joint_angles", note)
 
 
-def truth_recovery(cal: Calibration, truth: dict, noise: float, seeds, evaluator: ResponseEvaluator | None = None,
-                   progress: bool = True) -> list[dict]:
+def truth_recovery(
+    cal: Calibration,
+    truth: dict,
+    noise: float,
+    seeds,
+    evaluator: ResponseEvaluator | None = None,
+    progress: bool = True,
+) -> list[dict]:
     """The synthetic-truth check: for each seed, the model output at the known values ``truth``
     (name -> value, every fitted parameter) plus Gaussian noise of sd ``noise`` (output units),
     fitted back from ``cal.x0``. One row per seed (seed None: no noise) with the fitted values,
@@ -93,21 +122,33 @@ def truth_recovery(cal: Calibration, truth: dict, noise: float, seeds, evaluator
     ev = evaluator or ResponseEvaluator(cal.problem, cal.jacobian)
     rows = []
     for seed in seeds:
-        target = synthetic_target(cal, noise=0.0 if seed is None else noise, seed=seed or 0, evaluator=ev,
-                                  values=truth)
+        target = synthetic_target(cal, noise=0.0 if seed is None else noise, seed=seed or 0, evaluator=ev, values=truth)
         res = fit(ev, target, cal.weights, cal.x0, cal.solver, cal.options, progress=progress)
-        row = {"seed": seed, "noise": 0.0 if seed is None else noise, "status": res.status,
-               "iterations": res.iterations, "identifiable": all(res.identifiable.values())}
+        row = {
+            "seed": seed,
+            "noise": 0.0 if seed is None else noise,
+            "status": res.status,
+            "iterations": res.iterations,
+            "identifiable": all(res.identifiable.values()),
+        }
         for n in cal.problem.names:
-            row.update({n: res.values[n], f"se_{n}": res.standard_errors[n], f"error_{n}": res.values[n] - truth[n],
-                        f"z_{n}": (res.values[n] - truth[n]) / res.standard_errors[n]
-                        if res.standard_errors[n] > 0 else float("nan")})
+            row.update(
+                {
+                    n: res.values[n],
+                    f"se_{n}": res.standard_errors[n],
+                    f"error_{n}": res.values[n] - truth[n],
+                    f"z_{n}": (res.values[n] - truth[n]) / res.standard_errors[n]
+                    if res.standard_errors[n] > 0
+                    else float("nan"),
+                }
+            )
         rows.append(row)
     return rows
 
 
-def record_trial(data: dict, ks: float, kd: float, out_dir, source: str = "<recorded trial>", character=None,
-                 traj=None) -> pathlib.Path:
+def record_trial(
+    data: dict, ks: float, kd: float, out_dir, source: str = "<recorded trial>", character=None, traj=None
+) -> pathlib.Path:
     """A 'recorded trial' with a known truth: the config table ``data`` (``[sim]``, the clip,
     ``[[perturbation]]``) simulated at (ks, kd), written as ``out_dir/run.npz`` and exported by
     ``export-bvh`` as ``out_dir/trial.bvh`` in the clip's own skeleton (channels of joints the

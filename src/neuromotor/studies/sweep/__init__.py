@@ -110,8 +110,17 @@ def write_csv(rows: list[dict], path, columns: Sequence[str] = COLUMNS) -> pathl
     return tables.write_csv(rows, path, columns)
 
 
-def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inner_batch=None,
-                  progress: bool = True, keep_curves: bool = False) -> SweepResult:
+def simulate_grid(
+    cfg,
+    spec: SweepSpec,
+    setup,
+    *,
+    devices=None,
+    chunk=None,
+    inner_batch=None,
+    progress: bool = True,
+    keep_curves: bool = False,
+) -> SweepResult:
     """Every run of the grid of ``spec`` on the prepared ``setup`` of ``cfg``: force pulses, or
     (``spec.kind == "ball"``) ball speeds; ``chunk`` and ``inner_batch`` default to the spec's;
     ``keep_curves``: keep every run's deviation curve d(t)."""
@@ -120,12 +129,13 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
 
     if (cfg.ball is not None) != (spec.kind == "ball") or (spec.kind == "ball" and cfg.perturbations):
         # A pulse sweep's rollouts have no contact, a ball sweep's twins no pulses: never half a config.
-        raise ConfigError(f"{cfg.source}: field 'ball': a sweep varies either the ball's speed (a [ball] and no "
-                          "[[perturbation]]) or perturbation[0] (no [ball]), not both")
+        raise ConfigError(
+            f"{cfg.source}: field 'ball': a sweep varies either the ball's speed (a [ball] and no "
+            "[[perturbation]]) or perturbation[0] (no [ball]), not both"
+        )
     model = setup.model
     mesh = None if devices is None else device_mesh(devices)
-    sizes = dict(chunk=chunk or spec.chunk, inner_batch=inner_batch or spec.inner_batch, mesh=mesh,
-                 metric=cfg.metric)
+    sizes = dict(chunk=chunk or spec.chunk, inner_batch=inner_batch or spec.inner_batch, mesh=mesh, metric=cfg.metric)
     if spec.kind == "ball":
         try:  # aim every speed first: a speed that cannot reach the target is a config error
             balls = balls_at_speeds(setup, spec.magnitudes)
@@ -134,8 +144,9 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
         except ValueError as e:
             raise ConfigError(f"{cfg.source}: field 'sweep.magnitudes': {e}") from None
         ball_sweeper = BallSweeper(model, setup.ref, setup.options, setup.ball, setup.pulses, **sizes)
-        return run_ball_sweep(ball_sweeper, setup, spec.magnitudes, spec.gains, balls=balls, keep_curves=keep_curves,
-                              progress=progress)
+        return run_ball_sweep(
+            ball_sweeper, setup, spec.magnitudes, spec.gains, balls=balls, keep_curves=keep_curves, progress=progress
+        )
     index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'", setup.character)  # names or segment keywords
     hit = cfg.perturbations[0]
     for i, b in enumerate(spec.bodies or []):  # every row of the grid can act (the rule of prepare)
@@ -144,8 +155,16 @@ def simulate_grid(cfg, spec: SweepSpec, setup, *, devices=None, chunk=None, inne
     for i, t in enumerate(spec.starts or []):
         setup.window.check(dataclasses.replace(hit, start=float(t)), "perturbation[0].body", f"sweep.starts[{i}]")
     sweeper = Sweeper(model, setup.ref, setup.options, **sizes)
-    return run_sweep(sweeper, setup.gains, setup.pulses, spec.runs(hit, cfg.perturbations[1:]), index, model.body_names,
-                     keep_curves=keep_curves, progress=progress)
+    return run_sweep(
+        sweeper,
+        setup.gains,
+        setup.pulses,
+        spec.runs(hit, cfg.perturbations[1:]),
+        index,
+        model.body_names,
+        keep_curves=keep_curves,
+        progress=progress,
+    )
 
 
 def _gains_map_title(cfg, spec: SweepSpec, name: str) -> str:
@@ -171,21 +190,28 @@ def write_outputs(cfg, spec: SweepSpec, result: SweepResult, out: pathlib.Path, 
         files["plot"] = plot_sweep(result.rows, out / "sweep.png", title=name)
     one_reflex = len(spec.reflexes or ()) <= 1
     if len({g.ks for g in spec.gains}) > 1 and len({g.kd for g in spec.gains}) > 1 and one_reflex:
-        files["gains_map"] = plot_gains_map(result.rows, out / "gains_map.png", spec.fitted,
-                                            title=_gains_map_title(cfg, spec, name))
+        files["gains_map"] = plot_gains_map(
+            result.rows, out / "gains_map.png", spec.fitted, title=_gains_map_title(cfg, spec, name)
+        )
     reflexes = spec.reflexes or ()
-    if (len({r.gain for r in reflexes}) > 1 and len({r.delay for r in reflexes}) > 1
-            and len(spec.gains) == 1 and len(spec.runs(cfg.perturbations[0])) == len(reflexes)):
+    if (
+        len({r.gain for r in reflexes}) > 1
+        and len({r.delay for r in reflexes}) > 1
+        and len(spec.gains) == 1
+        and len(spec.runs(cfg.perturbations[0])) == len(reflexes)
+    ):
         from neuromotor.studies.sweep.stability import classified, map_options
         from neuromotor.viz.reflex_plots import plot_stability_map
 
-        files["reflex_map"] = plot_stability_map(classified(result.rows), out / "reflex_map.png",
-                                                 title=_gains_map_title(cfg, spec, name), **map_options(cfg))
+        files["reflex_map"] = plot_stability_map(
+            classified(result.rows), out / "reflex_map.png", title=_gains_map_title(cfg, spec, name), **map_options(cfg)
+        )
     return files
 
 
-def sweep_from_config(path, output=None, *, devices=None, chunk=None, inner_batch=None, fitted=None,
-                      progress: bool = True) -> tuple[SweepResult, dict[str, pathlib.Path]]:
+def sweep_from_config(
+    path, output=None, *, devices=None, chunk=None, inner_batch=None, fitted=None, progress: bool = True
+) -> tuple[SweepResult, dict[str, pathlib.Path]]:
     """Run the sweep of a config file; write ``sweep.csv``, ``sweep.png`` and, when ks and kd
     both vary, ``gains_map.png`` into ``output`` (default: the config's ``sweep.output``).
     A config with a ``[ball]`` table sweeps the ball speed (see the module docstring)."""
@@ -196,17 +222,46 @@ def sweep_from_config(path, output=None, *, devices=None, chunk=None, inner_batc
     if fitted is not None:
         spec = dataclasses.replace(spec, fitted=read_fitted(fitted, "--fitted"))
     lead = jax.process_index() == 0  # with several processes, each computes its share, one writes
-    result = simulate_grid(cfg, spec, prepare(cfg), devices=devices, chunk=chunk, inner_batch=inner_batch,
-                       progress=progress and lead)
+    result = simulate_grid(
+        cfg, spec, prepare(cfg), devices=devices, chunk=chunk, inner_batch=inner_batch, progress=progress and lead
+    )
     if not lead:
         return result, {}
     return result, write_outputs(cfg, spec, result, out, pathlib.Path(path).stem)
 
 
 __all__ = [
-    "AXIS", "BALL_COLUMNS", "BallBatch", "BallRunOut", "BallSweeper", "COLUMNS", "CONTROLLERS", "GainSetting",
-    "METRIC_KEYS", "REFLEX_COLUMNS", "RunBatch", "RunOut", "SweepResult", "SweepSpec", "Sweeper", "build_batch",
-    "device_mesh", "gain_keys", "gains_for", "load_sweep_config", "plot_gains_map", "plot_sweep", "read_csv",
-    "read_fitted", "run_ball_sweep", "run_sweep", "save_figure", "simulate_grid", "sweep_batches",
-    "sweep_from_config", "sweep_spec", "write_csv", "write_outputs",
+    "AXIS",
+    "BALL_COLUMNS",
+    "BallBatch",
+    "BallRunOut",
+    "BallSweeper",
+    "COLUMNS",
+    "CONTROLLERS",
+    "GainSetting",
+    "METRIC_KEYS",
+    "REFLEX_COLUMNS",
+    "RunBatch",
+    "RunOut",
+    "SweepResult",
+    "SweepSpec",
+    "Sweeper",
+    "build_batch",
+    "device_mesh",
+    "gain_keys",
+    "gains_for",
+    "load_sweep_config",
+    "plot_gains_map",
+    "plot_sweep",
+    "read_csv",
+    "read_fitted",
+    "run_ball_sweep",
+    "run_sweep",
+    "save_figure",
+    "simulate_grid",
+    "sweep_batches",
+    "sweep_from_config",
+    "sweep_spec",
+    "write_csv",
+    "write_outputs",
 ]

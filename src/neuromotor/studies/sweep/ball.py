@@ -50,35 +50,54 @@ class BallSweeper(Sweeper):
     """:class:`Sweeper` of contact rollouts: runs are (gains, ball) pairs, the capsules, contact
     settings and (empty) force pulses are shared by all of them."""
 
-    def __init__(self, model: Model, ref: Reference, options: StepOptions, ball_setup,
-                 pulses: ForcePulses, **kw):
+    def __init__(self, model: Model, ref: Reference, options: StepOptions, ball_setup, pulses: ForcePulses, **kw):
         self.capsules, self.settings, self.pulses = ball_setup.capsules, ball_setup.settings, pulses
         super().__init__(model, ref, options, **kw)
 
     def _program(self, static):
         self.model_static = static  # the contact rollout closes over this sweeper's ball set-up
-        local = lambda shared, batch: jax.lax.map(functools.partial(self._one, shared), batch,
-                                                  batch_size=None if self.inner_batch == 1 else self.inner_batch)
-        return compiler.jit(jax.shard_map(local, mesh=self.mesh, in_specs=(P(), P(AXIS)), out_specs=P(AXIS),
-                                          check_vma=False))
+        local = lambda shared, batch: jax.lax.map(
+            functools.partial(self._one, shared), batch, batch_size=None if self.inner_batch == 1 else self.inner_batch
+        )
+        return compiler.jit(
+            jax.shard_map(local, mesh=self.mesh, in_specs=(P(), P(AXIS)), out_specs=P(AXIS), check_vma=False)
+        )
 
     def _one(self, shared, run: BallBatch) -> BallRunOut:
         model = eqx.combine(shared[0], self.model_static)
-        r = ct.simulate_contact(SimModel(model, shared[1], self.options), Params(run.gains, self.pulses),
-                                ct.ContactScene(run.ball, self.capsules, self.settings))
+        r = ct.simulate_contact(
+            SimModel(model, shared[1], self.options),
+            Params(run.gains, self.pulses),
+            ct.ContactScene(run.ball, self.capsules, self.settings),
+        )
         bodies = ct.candidate_bodies(self.capsules, self.settings)
         on_char = bodies >= 0  # not the ground
         imp = jnp.linalg.norm(r.contact.impulse, axis=-1) * on_char  # (S+1, C)
         peak = jnp.max(imp)
         cand = jnp.argmax(jnp.max(imp, axis=0))
         touched = jnp.any((r.contact.normal_impulse > 0) & on_char, axis=-1)
-        return BallRunOut(self.pose(model, r.run), r.run.diverged_step, r.run.diverged_body, jnp.max(r.run.residual),
-                          jnp.max(r.run.violation), peak, jnp.where(peak > 0, bodies[cand], -1),
-                          jnp.where(jnp.any(touched), jnp.argmax(touched), -1))
+        return BallRunOut(
+            self.pose(model, r.run),
+            r.run.diverged_step,
+            r.run.diverged_body,
+            jnp.max(r.run.residual),
+            jnp.max(r.run.violation),
+            peak,
+            jnp.where(peak > 0, bodies[cand], -1),
+            jnp.where(jnp.any(touched), jnp.argmax(touched), -1),
+        )
 
 
-def run_ball_sweep(sweeper: BallSweeper, setup, speeds: Sequence[float], gain_settings: Sequence[GainSetting], *,
-                   balls: ct.Ball | None = None, keep_curves: bool = False, progress: bool = True) -> SweepResult:
+def run_ball_sweep(
+    sweeper: BallSweeper,
+    setup,
+    speeds: Sequence[float],
+    gain_settings: Sequence[GainSetting],
+    *,
+    balls: ct.Ball | None = None,
+    keep_curves: bool = False,
+    progress: bool = True,
+) -> SweepResult:
     """Contact rollouts of the config's ball at every speed x gain setting (gain setting
     outermost), chunked like :func:`~neuromotor.studies.sweep.run_sweep`, measured against the
     ball never launched. ``balls``: :func:`neuromotor.studies.ball.balls_at_speeds` of ``speeds``,
@@ -104,13 +123,26 @@ def run_ball_sweep(sweeper: BallSweeper, setup, speeds: Sequence[float], gain_se
 
     def row(i: int, out: dict, dev, time) -> dict:
         (g, k), hit, first = runs[i], int(out["hit_body"]), int(out["first_contact"])
-        return {"run": i, "kind": "ball", "label": g.name, "controller": g.controller, "ks": g.ks, "kd": g.kd,
-                "body": target, "magnitude": speeds[k], "direction_x": float(direction[i, 0]),
-                "direction_y": float(direction[i, 1]), "direction_z": float(direction[i, 2]), "start": launch,
-                **mx.recovery_metrics(time, dev, launch),
-                "peak_impulse_Ns": float(out["peak_impulse"]), "hit_body": body_names[hit] if hit >= 0 else "",
-                "first_contact_s": float(time[first]) if first >= 0 else float("nan"),
-                "max_kkt_residual": float(out["max_residual"]), "max_constraint_violation": float(out["max_violation"])}
+        return {
+            "run": i,
+            "kind": "ball",
+            "label": g.name,
+            "controller": g.controller,
+            "ks": g.ks,
+            "kd": g.kd,
+            "body": target,
+            "magnitude": speeds[k],
+            "direction_x": float(direction[i, 0]),
+            "direction_y": float(direction[i, 1]),
+            "direction_z": float(direction[i, 2]),
+            "start": launch,
+            **mx.recovery_metrics(time, dev, launch),
+            "peak_impulse_Ns": float(out["peak_impulse"]),
+            "hit_body": body_names[hit] if hit >= 0 else "",
+            "first_contact_s": float(time[first]) if first >= 0 else float("nan"),
+            "max_kkt_residual": float(out["max_residual"]),
+            "max_constraint_violation": float(out["max_violation"]),
+        }
 
     def body(out: dict) -> str:  # n_bodies: the ball
         b = int(out["diverged_body"])

@@ -17,13 +17,38 @@ from neuromotor.physics.perturbation import ForcePulses, build_pulses, replace_f
 from neuromotor.physics.reflex import Reflex
 from neuromotor.studies.gains import gains_for
 
-METRIC_KEYS = ("peak_deviation_deg", "time_of_peak_s", "recovery_time_s", "final_error_deg",
-               "overshoot_deg", "recovery_threshold_deg")
+METRIC_KEYS = (
+    "peak_deviation_deg",
+    "time_of_peak_s",
+    "recovery_time_s",
+    "final_error_deg",
+    "overshoot_deg",
+    "recovery_threshold_deg",
+)
 
 
-COLUMNS = ("run", "kind", "label", "controller", "ks", "kd", "body", "magnitude", "direction_x", "direction_y",
-           "direction_z", "start", "duration", *METRIC_KEYS, "max_kkt_residual",
-           "max_constraint_violation", "diverged", "diverged_step", "diverged_time_s", "diverged_body")
+COLUMNS = (
+    "run",
+    "kind",
+    "label",
+    "controller",
+    "ks",
+    "kd",
+    "body",
+    "magnitude",
+    "direction_x",
+    "direction_y",
+    "direction_z",
+    "start",
+    "duration",
+    *METRIC_KEYS,
+    "max_kkt_residual",
+    "max_constraint_violation",
+    "diverged",
+    "diverged_step",
+    "diverged_time_s",
+    "diverged_body",
+)
 
 
 # The reflex of a run (neuromotor.physics.reflex), written when the config has a [reflex] table.
@@ -36,10 +61,30 @@ def with_reflex_columns(columns: Sequence[str]) -> tuple[str, ...]:
     return (*columns[:i], *REFLEX_COLUMNS, *columns[i:])
 
 
-BALL_COLUMNS = ("run", "kind", "label", "controller", "ks", "kd", "body", "magnitude", "direction_x",
-                "direction_y", "direction_z", "start", *METRIC_KEYS, "peak_impulse_Ns", "hit_body",
-                "first_contact_s", "max_kkt_residual", "max_constraint_violation", "diverged", "diverged_step",
-                "diverged_time_s", "diverged_body")
+BALL_COLUMNS = (
+    "run",
+    "kind",
+    "label",
+    "controller",
+    "ks",
+    "kd",
+    "body",
+    "magnitude",
+    "direction_x",
+    "direction_y",
+    "direction_z",
+    "start",
+    *METRIC_KEYS,
+    "peak_impulse_Ns",
+    "hit_body",
+    "first_contact_s",
+    "max_kkt_residual",
+    "max_constraint_violation",
+    "diverged",
+    "diverged_step",
+    "diverged_time_s",
+    "diverged_body",
+)
 
 
 class RunBatch(eqx.Module):
@@ -85,8 +130,9 @@ def reflex_columns(run: dict, template: Reflex | None) -> dict:
     return dict(zip(REFLEX_COLUMNS, (float(x) for x in paths)))
 
 
-def build_batch(template_gains: Gains, template_pulses: ForcePulses, runs: list[dict], body_index, h: float,
-                model) -> RunBatch:
+def build_batch(
+    template_gains: Gains, template_pulses: ForcePulses, runs: list[dict], body_index, h: float, model
+) -> RunBatch:
     """Batched gains and pulses for ``runs``: pulse 0 of the template is each run's
     ``perturbation`` (its spec with the grid's axes applied) through the one builder,
     :func:`~neuromotor.physics.perturbation.build_pulses` at step ``h`` on ``model``; the
@@ -105,8 +151,10 @@ def build_batch(template_gains: Gains, template_pulses: ForcePulses, runs: list[
 
 def gain_keys(batch: RunBatch) -> tuple[np.ndarray, np.ndarray]:
     """Index of the first run with identical gains (the baseline to share) and each run's slot."""
-    leaves = [np.asarray(x).reshape(len(np.asarray(batch.pulses.magnitude)), -1)
-              for x in jax.tree_util.tree_leaves(batch.gains)]
+    leaves = [
+        np.asarray(x).reshape(len(np.asarray(batch.pulses.magnitude)), -1)
+        for x in jax.tree_util.tree_leaves(batch.gains)
+    ]
     flat = np.concatenate(leaves, axis=1)
     _, first, slot = np.unique(flat, axis=0, return_index=True, return_inverse=True)
     return first, slot.reshape(-1)

@@ -74,8 +74,17 @@ class Sweeper:
     reuses the compiled program.
     """
 
-    def __init__(self, model: Model, ref: Reference, options: StepOptions, *, chunk: int = 64,
-                 inner_batch: int = 1, mesh: Mesh | None = None, metric: str = "geodesic"):
+    def __init__(
+        self,
+        model: Model,
+        ref: Reference,
+        options: StepOptions,
+        *,
+        chunk: int = 64,
+        inner_batch: int = 1,
+        mesh: Mesh | None = None,
+        metric: str = "geodesic",
+    ):
         if metric not in mx.DEVIATION_METRICS:
             raise ValueError(f"metric must be one of {mx.DEVIATION_METRICS}, got {metric!r}")
         self.metric = metric
@@ -141,8 +150,9 @@ def _chunk_program(layout: _Layout, options: StepOptions, metric: str, inner_bat
     def one(shared, run: RunBatch) -> RunOut:
         model = eqx.combine(shared[0], layout.static)
         r = simulate(SimModel(model, shared[1], options), Params(run.gains, run.pulses))
-        return RunOut(_pose(metric, model, r), r.diverged_step, r.diverged_body, jnp.max(r.residual),
-                      jnp.max(r.violation))
+        return RunOut(
+            _pose(metric, model, r), r.diverged_step, r.diverged_body, jnp.max(r.residual), jnp.max(r.violation)
+        )
 
     def local(shared, batch: RunBatch) -> RunOut:
         return jax.lax.map(functools.partial(one, shared), batch, batch_size=None if inner_batch == 1 else inner_batch)
@@ -177,8 +187,17 @@ def _simulate_baselines(sweeper, base_batch, n_base: int, bar):
     return jnp.asarray(np.concatenate(theta)), np.concatenate(bad)
 
 
-def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[dict], body_index,
-              body_names: Sequence[str], *, keep_curves: bool = False, progress: bool = True) -> SweepResult:
+def run_sweep(
+    sweeper: Sweeper,
+    gains: Gains,
+    pulses: ForcePulses,
+    runs: list[dict],
+    body_index,
+    body_names: Sequence[str],
+    *,
+    keep_curves: bool = False,
+    progress: bool = True,
+) -> SweepResult:
     """Simulate every run of ``runs`` (from :meth:`SweepSpec.runs`) and measure its recovery."""
     from tqdm.auto import tqdm
 
@@ -192,16 +211,30 @@ def run_sweep(sweeper: Sweeper, gains: Gains, pulses: ForcePulses, runs: list[di
         r, g = runs[i], runs[i]["gain"]
         d = np.asarray(r["direction"], float)
         d = d / np.linalg.norm(d)
-        return {"run": i, "kind": r["kind"], "label": g.name, "controller": g.controller, "ks": g.ks, "kd": g.kd,
-                **reflex_columns(r, gains.reflex), "body": r["body"], "magnitude": r["magnitude"],
-                "direction_x": float(d[0]), "direction_y": float(d[1]), "direction_z": float(d[2]),
-                "start": r["start"], "duration": r["duration"],
-                **mx.recovery_metrics(time, dev, r["onset"]),
-                "max_kkt_residual": float(out["max_residual"]), "max_constraint_violation": float(out["max_violation"])}
+        return {
+            "run": i,
+            "kind": r["kind"],
+            "label": g.name,
+            "controller": g.controller,
+            "ks": g.ks,
+            "kd": g.kd,
+            **reflex_columns(r, gains.reflex),
+            "body": r["body"],
+            "magnitude": r["magnitude"],
+            "direction_x": float(d[0]),
+            "direction_y": float(d[1]),
+            "direction_z": float(d[2]),
+            "start": r["start"],
+            "duration": r["duration"],
+            **mx.recovery_metrics(time, dev, r["onset"]),
+            "max_kkt_residual": float(out["max_residual"]),
+            "max_constraint_violation": float(out["max_violation"]),
+        }
 
     bar = tqdm(total=len(first) + len(runs), desc="sweep", unit="run", disable=not progress)
-    return sweep_batches(sweeper, batch, base, slot, row, lambda out: body_names[int(out["diverged_body"])], bar,
-                         keep_curves)
+    return sweep_batches(
+        sweeper, batch, base, slot, row, lambda out: body_names[int(out["diverged_body"])], bar, keep_curves
+    )
 
 
 def flag_divergence(row: dict, step: int, base_step: int, time, body) -> dict:
@@ -210,8 +243,12 @@ def flag_divergence(row: dict, step: int, base_step: int, time, body) -> dict:
     if step >= 0 or base_step >= 0:
         s = step if step >= 0 else base_step
         row.update({k: float("nan") for k in METRIC_KEYS})
-        row.update(diverged=True, diverged_step=s, diverged_time_s=float(time[min(s + 1, len(time) - 1)]),
-                   diverged_body=body() if step >= 0 else "baseline")
+        row.update(
+            diverged=True,
+            diverged_step=s,
+            diverged_time_s=float(time[min(s + 1, len(time) - 1)]),
+            diverged_body=body() if step >= 0 else "baseline",
+        )
     else:
         row.update(diverged=False, diverged_step=-1, diverged_time_s=float("nan"), diverged_body="")
     return row
@@ -238,8 +275,9 @@ def _simulate_share(sweeper: Sweeper, batch, base_batch, slot, lo: int, hi: int,
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def sweep_batches(sweeper: Sweeper, batch, base_batch, slot, make_row, body_name, bar,
-                  keep_curves: bool = False) -> SweepResult:
+def sweep_batches(
+    sweeper: Sweeper, batch, base_batch, slot, make_row, body_name, bar, keep_curves: bool = False
+) -> SweepResult:
     """Every run of ``batch`` in chunks, after the twins they need:
     ``make_row(i, outputs, d(t), time)`` gives run i's row, ``body_name(outputs)`` the body a
     diverged run blew up in. With several processes (``jax.distributed``) each simulates its
@@ -254,7 +292,8 @@ def sweep_batches(sweeper: Sweeper, batch, base_batch, slot, make_row, body_name
     for i in range(n):
         h = {k: v[i] for k, v in full.items() if k not in ("dev", "base_step")}
         row = make_row(i, h, full["dev"][i], time)
-        rows.append(flag_divergence(row, int(h["diverged_step"]), int(full["base_step"][i]), time,
-                                    lambda: body_name(h)))
+        rows.append(
+            flag_divergence(row, int(h["diverged_step"]), int(full["base_step"][i]), time, lambda: body_name(h))
+        )
     bar.close()
     return SweepResult(rows, full["dev"] if keep_curves else None, time)

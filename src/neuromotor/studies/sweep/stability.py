@@ -16,10 +16,15 @@ PAPER_FEEDBACK = (0.0, 0.0)
 def map_options(cfg: SimulationConfig, bound_deg: float = STABLE_PEAK_DEG) -> dict:
     """Keyword arguments of :func:`neuromotor.viz.reflex_plots.plot_stability_map` for a grid
     on ``cfg``: the bound and the paper's controller (no delayed path) marked."""
-    criterion = (f"no divergence, peak deviation below {bound_deg:g} deg, and at the window's end below "
-                 f"{DECAY_FRACTION:g} x the peak")
-    return dict(criterion=criterion, paper=PAPER_FEEDBACK,
-                paper_label=f"paper: muscle feedback alone (ks={cfg.ks:g}, kd={cfg.kd:g}, no delay)")
+    criterion = (
+        f"no divergence, peak deviation below {bound_deg:g} deg, and at the window's end below "
+        f"{DECAY_FRACTION:g} x the peak"
+    )
+    return dict(
+        criterion=criterion,
+        paper=PAPER_FEEDBACK,
+        paper_label=f"paper: muscle feedback alone (ks={cfg.ks:g}, kd={cfg.kd:g}, no delay)",
+    )
 
 
 def classify(row: dict, bound_deg: float = STABLE_PEAK_DEG) -> str:
