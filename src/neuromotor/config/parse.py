@@ -6,6 +6,7 @@ are refused. Defaults come from the spec classes.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import pathlib
@@ -21,7 +22,6 @@ from neuromotor.config.specs import (
     FIT_SOLVERS,
     JACOBIANS,
     PERTURBATION_KINDS,
-    PULSE_SHAPES,
     REFLEX_AXES,
     REFLEX_DELAY_LIMIT,
     SEXES,
@@ -53,34 +53,46 @@ TABLES = ("fit", "sweep", "experiment", "ball", "reflex")  # top-level tables be
 
 
 def parse_perturbation(table, where: str, source: str) -> PerturbationSpec:
+    """One ``[[perturbation]]`` table by its spec's fields and their rules
+    (:class:`~neuromotor.config.specs.PerturbationSpec`): a field the kind does not read is an
+    error naming it, a field without a default is required."""
     f = Fields(table, where, source)
-    d = lambda name: default(PerturbationSpec, name)
-    kind = f.choice("kind", d("kind"), PERTURBATION_KINDS)
-    body = f.get("body")
-    if not isinstance(body, str):
-        f.fail("body", f"must be a body (joint) name, got {body!r}")
-    if kind == "impulse":
-        for key in ("duration", "shape"):
-            if key in table:
-                f.fail(
-                    key,
-                    "does not apply to an impulse (magnitude in N s, delivered within one step); "
-                    'use kind = "force" for a pulse of a shape and duration',
-                )
-    spec = PerturbationSpec(
-        kind=kind,
-        body=body,
-        point=f.vector("point", None) if "point" in table else None,
-        direction=f.vector("direction", d("direction")),
-        magnitude=f.required("magnitude", f.number("magnitude", None, nonneg=True)),
-        start=f.number("start", d("start"), nonneg=True),
-        duration=f.number("duration", d("duration"), positive=True),
-        shape=f.choice("shape", d("shape"), PULSE_SHAPES),
-    )
-    if not any(spec.direction):
-        f.fail("direction", "must be non-zero")
+    kind = f.choice("kind", default(PerturbationSpec, "kind"), PERTURBATION_KINDS)
+    values = {"kind": kind}
+    for field in dataclasses.fields(PerturbationSpec):
+        name = field.name
+        if name == "kind":
+            continue
+        if not PerturbationSpec.reads(kind, name):
+            if name in table:
+                article = "an" if kind[0] in "aeiou" else "a"
+                readers = [k for k in PERTURBATION_KINDS if PerturbationSpec.reads(k, name)]
+                f.fail(name, f"does not apply to {article} {kind} (only kind = {' | '.join(readers)} reads it)")
+            continue
+        values[name] = _perturbation_field(f, table, field)
     f.done()
-    return spec
+    return PerturbationSpec(**values)
+
+
+def _perturbation_field(f: Fields, table, field: dataclasses.Field):
+    """One field of a perturbation table by its rule (``field.metadata``)."""
+    name, rule = field.name, field.metadata["rule"]
+    required = field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING
+    if required and name not in table:
+        f.fail(name, "is required")
+    fallback = None if required else default(PerturbationSpec, name)
+    if rule == "body":
+        value = f.get(name)
+        if not isinstance(value, str) or not value:
+            f.fail(name, f"must be a body (joint) name, got {value!r}")
+        return value
+    if rule == "vector":
+        return f.vector(name, None) if f.get(name) is not None else fallback
+    if rule == "direction":
+        return f.nonzero_vector(name, fallback)
+    if rule == "choice":
+        return f.choice(name, fallback, field.metadata["choices"])
+    return f.number(name, fallback, nonneg=rule == "nonneg", positive=rule == "positive")
 
 
 def _ball_velocity(f: Fields, table: dict) -> dict:

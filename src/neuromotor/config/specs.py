@@ -93,32 +93,57 @@ class _KeyView(Mapping):
     __hash__ = None  # type: ignore[assignment]  # unhashable, as the dict it replaces
 
 
+def _rule(rule: str, **more) -> dict:
+    """How the parser reads a field (:func:`neuromotor.config.parse.parse_perturbation`): ``body``
+    (a name), ``vector`` (3 numbers or absent), ``direction`` (3 numbers, not all zero),
+    ``nonneg``, ``positive``, ``choice`` (of ``choices``)."""
+    return {"rule": rule, **more}
+
+
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
 class PerturbationSpec(_KeyView):
-    """One ``[[perturbation]]``: a force pulse or an impulse at a point on a body."""
+    """One ``[[perturbation]]``: a force pulse or an impulse at a point on a body. Each field's
+    default and parsing rule is written here once; which kind reads which field, and in which
+    unit, is :data:`neuromotor.physics.perturbation.KIND_FIELDS` and ``UNITS``."""
 
-    kind: str = "force"  # force | impulse
-    body: str  # a body (joint) name, or a segment keyword such as chest
-    point: list[float] | None = None  # body frame, m, from the joint origin; None: the body's COM
-    direction: list[float] = dataclasses.field(default_factory=lambda: [1.0, 0.0, 0.0])  # world
-    magnitude: float  # N (force) or N s (impulse)
-    start: float = 1.0  # s, clip time
-    duration: float = 0.1  # s (force only)
-    shape: str = "half_sine"  # square | half_sine | triangle
+    kind: str = dataclasses.field(default="force", metadata=_rule("choice", choices=_perturbation.KINDS))
+    body: str = dataclasses.field(metadata=_rule("body"))  # a body (joint) name, or a segment keyword (chest)
+    # Body frame, m, from the joint origin; None: the body's COM.
+    point: list[float] | None = dataclasses.field(default=None, metadata=_rule("vector"))
+    direction: list[float] = dataclasses.field(default_factory=lambda: [1.0, 0.0, 0.0], metadata=_rule("direction"))
+    magnitude: float = dataclasses.field(metadata=_rule("nonneg"))  # in the kind's unit: N, N s
+    start: float = dataclasses.field(default=1.0, metadata=_rule("nonneg"))  # s, clip time
+    duration: float = dataclasses.field(default=0.1, metadata=_rule("positive"))  # s
+    shape: str = dataclasses.field(default="half_sine", metadata=_rule("choice", choices=_perturbation.SHAPES))
 
     @classmethod
     def of(cls, value) -> PerturbationSpec:
         return value if isinstance(value, cls) else cls(**dict(value))
 
+    @staticmethod
+    def reads(kind: str, name: str) -> bool:
+        """Whether a perturbation of ``kind`` reads field ``name``."""
+        per_kind = {f for fields in _perturbation.KIND_FIELDS.values() for f in fields}
+        return name not in per_kind or name in _perturbation.KIND_FIELDS[kind]
+
+    @property
+    def unit(self) -> str:
+        return _perturbation.UNITS[self.kind]
+
     def label(self, magnitude: float | None = None) -> str:
         """How figures name it, in the user's units: "40 N s impulse", "400 N half_sine pulse"."""
         m = self.magnitude if magnitude is None else magnitude
-        return f"{m:g} N s impulse" if self.kind == "impulse" else f"{m:g} N {self.shape} pulse"
+        what = f"{self.shape} pulse" if self.reads(self.kind, "shape") else self.kind
+        return f"{m:g} {self.unit} {what}"
 
     @property
     def span(self) -> float:
-        """Seconds it acts (an impulse: none; callers use one step)."""
-        return self.duration if self.kind == "force" else 0.0
+        """Seconds it acts as configured (an impulse: 0; it acts within one step)."""
+        return self.duration if self.reads(self.kind, "duration") else 0.0
+
+    def acting(self, h: float) -> tuple[float, float]:
+        """Clip seconds [t0, t1) it pushes at step ``h`` (an impulse: the step centred on ``start``)."""
+        return _perturbation.acting_interval(self.kind, float(self.start), float(self.duration), h)
 
 
 def onset(perturbations, ball=None, default: float | None = None) -> float:

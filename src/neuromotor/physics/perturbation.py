@@ -24,7 +24,21 @@ from jaxtyping import Array, Float, Int
 from neuromotor.rotations import mv
 
 SHAPES = ("square", "half_sine", "triangle")
-KINDS = ("force", "impulse")  # N (a pulse of a shape and duration) or N s (one step)
+# Each kind: the fields it reads beside body, point, direction, magnitude and start (the config
+# refuses the others), and its magnitude's unit. A force pulse has a shape and duration; an
+# impulse acts within one step.
+KIND_FIELDS = {"force": ("duration", "shape"), "impulse": ()}
+UNITS = {"force": "N", "impulse": "N s"}
+KINDS = tuple(KIND_FIELDS)
+
+
+def acting_interval(kind: str, start: float, duration: float, h: float) -> tuple[float, float]:
+    """Clip seconds [t0, t1) a perturbation of ``kind`` pushes: an impulse the one step centred
+    on ``start`` (exactly one sample of the time grid falls inside, whatever the round-off of
+    t_k = t_0 + k h), a force pulse its ``duration`` from ``start``."""
+    if kind == "impulse":
+        return start - 0.5 * h, start + 0.5 * h
+    return start, start + duration
 
 
 class ForcePulses(eqx.Module):
@@ -82,10 +96,9 @@ def _pulse(s, model, h: float, body_index) -> tuple:
     b = body_index(s["body"])
     point = np.asarray(model.com[b] if s["point"] is None else s["point"], np.float64)
     magnitude, start, duration, shape = float(s["magnitude"]), float(s["start"]), float(s["duration"]), s["shape"]
-    if s["kind"] == "impulse":
-        # Centre the one-step window on ``start`` so that exactly one sample of the time grid
-        # falls inside it, whatever the round-off of t_k = t_0 + k h.
-        magnitude, start, duration, shape = magnitude / h, start - 0.5 * h, h, "square"
+    if s["kind"] == "impulse":  # N s as a square pulse of magnitude / h over its acting step
+        start = acting_interval("impulse", start, duration, h)[0]
+        magnitude, duration, shape = magnitude / h, h, "square"
     if shape not in SHAPES:
         raise ValueError(f"perturbation shape must be one of {SHAPES}, got {shape!r}")
     return (b, point, direction / norm, magnitude, start, float(duration), shape)

@@ -75,9 +75,9 @@ def write_json(obj: Any, path) -> pathlib.Path:
 
 def _hit_span(cfg: SimulationConfig) -> tuple[float, float]:
     """Clip seconds the hit spans: from its :func:`~neuromotor.config.specs.onset` to the end of
-    the last pulse (an impulse: one step; a ball: one step from its launch, its contact comes later)."""
+    the last push (an impulse: its step; a ball: one step from its launch, its contact comes later)."""
     start = onset(cfg.perturbations, cfg.ball)
-    ends = [p.start + (p.duration if p.kind == "force" else cfg.h) for p in cfg.perturbations]
+    ends = [p.acting(cfg.h)[1] for p in cfg.perturbations]
     return start, max(ends, default=start + cfg.h)
 
 

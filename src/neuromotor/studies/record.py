@@ -252,7 +252,6 @@ def _perturbation_records(setup: Setup) -> list[dict]:
     perts = []
     for i, spec in enumerate(setup.config.perturbations):
         b = int(np.asarray(p.body)[i])
-        impulse = spec.kind == "impulse"
         perts.append(
             {
                 "kind": spec.kind,
@@ -263,10 +262,10 @@ def _perturbation_records(setup: Setup) -> list[dict]:
                 "point_given": spec.point is not None,
                 "direction": _floats(np.asarray(p.direction)[i]),
                 "magnitude": float(spec.magnitude),
-                "unit": "N s" if impulse else "N",
+                "unit": spec.unit,
                 "start": float(spec.start),
                 "duration": float(spec.span),  # an impulse: 0 (it acts within one step)
-                "shape": None if impulse else spec.shape,
+                "shape": spec.shape if spec.reads(spec.kind, "shape") else None,
             }
         )
     return perts

@@ -17,7 +17,7 @@ import numpy as np
 
 from neuromotor import compiler
 from neuromotor.config import ConfigError, SimulationConfig
-from neuromotor.config.specs import onset
+from neuromotor.config.specs import PerturbationSpec, onset
 from neuromotor.io.runfile import read_run_info, save_npz_atomic  # noqa: F401  (re-exported)
 from neuromotor.model.kinematics import Trajectory
 from neuromotor.model.load import DEFAULT_CLIP_NAME, default_clip_path, load_character  # noqa: F401  (re-exported)
@@ -133,13 +133,13 @@ class ActingWindow:
 
     def check(self, p, body_field: str, start_field: str) -> None:
         """ConfigError (naming the field) when perturbation ``p`` cannot act."""
+        p = PerturbationSpec.of(p)
         if self.index(p["body"]) in self.driven:
             raise ConfigError(
                 f"{self.source}: field '{body_field}' = {p['body']!r} is a driven body (the root "
                 f"always is; [sim] driven_joints adds more): a push on it does nothing"
             )
-        start = float(p["start"])
-        end = start + (0.5 * self.h if p["kind"] == "impulse" else float(p["duration"]))  # impulse: centred
+        start, end = float(p.start), p.acting(self.h)[1]
         if start >= self.t1 - 1e-9:
             raise ConfigError(
                 f"{self.source}: field '{start_field}' = {start:g} s is at or after the end of {self.text}"
