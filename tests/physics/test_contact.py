@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from neuromotor.physics import contact as ct
-from neuromotor.studies import ball as sb
+from neuromotor.studies import ball_hit as sb
 from neuromotor.config import ConfigError, SimulationConfig, simulation_config
 from neuromotor.physics.dynamics import Params, SimModel, SimulationDiverged, StepOptions
 from neuromotor.rotations import quat_to_matrix, rotation_error

@@ -210,7 +210,7 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
         arrays["skeleton_points_unperturbed"], arrays["skeleton_edges"], int(arrays["up_axis"]), forward
     )
     if getattr(result, "ball", None) is not None:
-        from neuromotor.studies.ball import ball_arrays
+        from neuromotor.studies.ball_hit import ball_arrays
 
         arrays.update(ball_arrays(setup, result))
     return arrays

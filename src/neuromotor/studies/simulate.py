@@ -38,7 +38,7 @@ from neuromotor.physics.dynamics import (
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
 from neuromotor.physics.precision import Precision
 from neuromotor.studies import metrics as mx
-from neuromotor.studies.ball import BallSetup, ball_metrics, ball_rollouts, ball_setup
+from neuromotor.studies.ball_hit import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies.gains import gains_for
 
 

@@ -13,7 +13,7 @@ same step. One job per module:
 * :mod:`.rollout` -- the scan over steps with the ball's state beside the character's.
 
 The ball's place in a run (building it from a config, aiming, RUN.npz arrays, speed sweeps)
-is :mod:`neuromotor.studies.ball`; docs/contact.md describes the physics.
+is :mod:`neuromotor.studies.ball_hit`; docs/contact.md describes the physics.
 """
 
 from neuromotor.physics.contact.ball import Ball, BallState, initial_ball_state, make_ball, never_launched

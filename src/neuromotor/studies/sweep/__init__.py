@@ -59,7 +59,7 @@ row equals a single run of the config with that reflex. sweep.csv then has the c
 also draws reflex_map.png (stable cells, recovery time, the boundary).
 
 Ball-speed sweeps: when the config has a ``[ball]`` table, ``magnitudes`` are ball
-speeds (m/s) and every run is a contact rollout (:mod:`neuromotor.studies.sweep.ball`) of that ball at that
+speeds (m/s) and every run is a contact rollout (:mod:`neuromotor.studies.sweep.ball_speed`) of that ball at that
 speed; its twin is the same gains with the ball never launched. A ball aimed at ``ball.target``
 is re-aimed for every speed, so each row equals ``neuromotor simulate`` of the config with
 ``ball.speed`` set to the row's magnitude. ``bodies``, ``directions`` and ``starts`` do not
@@ -88,7 +88,7 @@ from neuromotor.errors import ConfigError
 from neuromotor.io import tables
 from neuromotor.io.tables import read_csv
 from neuromotor.studies.gains import gains_for
-from neuromotor.studies.sweep.ball import BallBatch, BallRunOut, BallSweeper, run_ball_sweep
+from neuromotor.studies.sweep.ball_speed import BallBatch, BallRunOut, BallSweeper, run_ball_sweep
 from neuromotor.studies.sweep.grid import (
     BALL_COLUMNS,
     COLUMNS,
@@ -124,7 +124,7 @@ def simulate_grid(
     """Every run of the grid of ``spec`` on the prepared ``setup`` of ``cfg``: force pulses, or
     (``spec.kind == "ball"``) ball speeds; ``chunk`` and ``inner_batch`` default to the spec's;
     ``keep_curves``: keep every run's deviation curve d(t)."""
-    from neuromotor.studies.ball import balls_at_speeds
+    from neuromotor.studies.ball_hit import balls_at_speeds
     from neuromotor.studies.simulate import body_lookup
 
     if (cfg.ball is not None) != (spec.kind == "ball") or (spec.kind == "ball" and cfg.perturbations):

@@ -100,11 +100,11 @@ def run_ball_sweep(
 ) -> SweepResult:
     """Contact rollouts of the config's ball at every speed x gain setting (gain setting
     outermost), chunked like :func:`~neuromotor.studies.sweep.run_sweep`, measured against the
-    ball never launched. ``balls``: :func:`neuromotor.studies.ball.balls_at_speeds` of ``speeds``,
+    ball never launched. ``balls``: :func:`neuromotor.studies.ball_hit.balls_at_speeds` of ``speeds``,
     if already built."""
     from tqdm.auto import tqdm
 
-    from neuromotor.studies.ball import balls_at_speeds
+    from neuromotor.studies.ball_hit import balls_at_speeds
 
     body_names = setup.model.body_names
     speeds = [float(v) for v in speeds]
