@@ -132,7 +132,7 @@ def test_passive_pendulum_small_angle_period(tmp_path):
     path.write_text(chain_bvh([(0.0, -0.1, 0.0)], (0.0, -0.6, 0.0), frames))
     h = 1.0 / 240.0
     setup = prepare(SimulationConfig(clip=str(path), units="m", h=h, duration=3.0))
-    run = check_rollout(setup.model, jax.jit(rollout, static_argnames="cfg")(
+    run = check_rollout(setup.model, jax.jit(rollout, static_argnames="options")(
         setup.model, _passive(setup.gains), setup.pulses, setup.ref, setup.options))
     model = setup.model
     b = model.joint_body[model.joint_names.index("L1")]
@@ -185,7 +185,7 @@ def test_free_floating_chain_conserves_momentum(tmp_path):
     setup = prepare(SimulationConfig(clip=str(path), units="m", duration=1.0, perturbations=[kick]))
     model = eqx.tree_at(lambda m: m.gravity, setup.model, jnp.zeros(3))
     sim = dataclasses.replace(setup.options, free_root=True)
-    run = check_rollout(model, jax.jit(rollout, static_argnames="cfg")(
+    run = check_rollout(model, jax.jit(rollout, static_argnames="options")(
         model, setup.gains, setup.pulses, setup.ref, sim))  # muscles on: internal torques only
     lin, ang = _momenta(model, run.states)
     p_scale = float(jnp.sum(model.mass * jnp.linalg.norm(run.states.vel, axis=-1), axis=1).max())

@@ -128,7 +128,7 @@ def test_batched_form_of_the_blocks_differentiates_like_the_merged_form(hit_setu
 @pytest.mark.parametrize("solver", ["nullspace", "branch", "tree"])
 def test_fast_rollout_equals_dense_rollout_with_a_hit(hit_setup, solver):
     s = hit_setup
-    run = jax.jit(rollout, static_argnames="cfg")
+    run = jax.jit(rollout, static_argnames="options")
     tree = run(s.model, s.gains, s.pulses, s.ref, dataclasses.replace(s.options, solver=solver))
     dense = run(s.model, s.gains, s.pulses, s.ref, dataclasses.replace(s.options, solver="dense"))
     base = run(s.model, s.gains, dataclasses.replace(s.pulses, magnitude=0 * s.pulses.magnitude), s.ref, s.options)
@@ -151,7 +151,7 @@ def test_fast_step_equals_dense_step_with_constraint_forces(hit_setup, driven_fr
     s = hit_setup
     driven, free_root = driven_free
     cfg = dataclasses.replace(s.options, driven=driven, free_root=free_root)
-    run = jax.jit(rollout, static_argnames="cfg")(s.model, s.gains, s.pulses, s.ref, cfg)
+    run = jax.jit(rollout, static_argnames="options")(s.model, s.gains, s.pulses, s.ref, cfg)
     states = jax.tree_util.tree_map(lambda x: x[8:20:4], run.states)  # during the hit
     ks = jnp.arange(8, 20, 4)
 

@@ -33,7 +33,7 @@ def hit():
     character, traj = load_character(CLIPS["mocapbank"])
     setup = prepare(SimulationConfig(duration=0.2, perturbations=[dict(DEFAULT_HIT, magnitude=400.0, start=0.02)]),
                     character, traj)
-    run = jax.jit(rollout, static_argnames="cfg")(setup.model, setup.gains, setup.pulses, setup.ref, setup.options)
+    run = jax.jit(rollout, static_argnames="options")(setup.model, setup.gains, setup.pulses, setup.ref, setup.options)
     return setup, run
 
 
@@ -59,7 +59,7 @@ def test_closed_form_blocks_equal_jacfwd_blocks(hit, when):
 
 def test_rollout_with_closed_form_blocks_equals_jacfwd_rollout(hit):
     setup, run = hit
-    other = jax.jit(rollout, static_argnames="cfg")(setup.model, setup.gains, setup.pulses, setup.ref,
+    other = jax.jit(rollout, static_argnames="options")(setup.model, setup.gains, setup.pulses, setup.ref,
                                                      dataclasses.replace(setup.options, jacobians="jacfwd"))
     assert float(jnp.abs(run.theta - other.theta).max()) < 1e-11
     assert float(jnp.abs(run.states.omega - other.states.omega).max()) < 1e-9

@@ -54,7 +54,7 @@ def _counting_step():
     return step, rounds
 
 
-SIM = types.SimpleNamespace(cfg=types.SimpleNamespace(n_steps=5, max_speed=1e3), ref=types.SimpleNamespace(time=jnp.zeros(6)))
+SIM = types.SimpleNamespace(options=types.SimpleNamespace(n_steps=5, max_speed=1e3), ref=types.SimpleNamespace(time=jnp.zeros(6)))
 
 
 def _final(step, params):

@@ -191,29 +191,14 @@ def _capture_grid(model: Model, traj: Trajectory, t0, cfg: StepOptions):
     return pos, matrix_to_quat(rot), PoseTargets(origin, rot[:, 0], rel)
 
 
-# One compiled program rather than hundreds of eagerly dispatched small ops (each eager op is
-# compiled on its own, which made preparing a run take longer than compiling the rollout).
-@functools.partial(compiler.jit, static_argnames=("cfg",))
-def _make_reference(model: Model, traj: Trajectory, t0, cfg: StepOptions, landed=None) -> Reference:
-    times = t0 + cfg.h * jnp.arange(cfg.n_steps + 1)
-    q = jax.vmap(traj.q)(times)
-    qd = jax.vmap(traj.qd)(times)
-    qdd = jax.vmap(traj.qdd)(times)
-    kin = jax.vmap(lambda a, b, c: body_kinematics(model, a, b, c))(q, qd, qdd)
-    pos, rot, vel, omega = kin[0], kin[1], kin[2], kin[3]
-    quat = matrix_to_quat(rot)
-    topo = model.topology
-    cols = sim_columns(model)
-    theta = jax.vmap(lambda a, t: joint_angles_from_q(model, a, traj.angle_reference(t)))(q, times)[:, cols]
-    if JointLaw(cfg.joint_law) is JointLaw.EULER:
-        local_axes = jax.vmap(lambda th: joint_local_axes(model, th))(theta)
-        local_pinv = damped_pinv(local_axes)
-    else:  # the rotation law: each joint's torque and error in its parent's frame
-        local_axes = jnp.broadcast_to(jnp.eye(3), (times.shape[0], model.n_bodies - 1, 3, 3))
-        local_pinv = local_axes
-    par = topo.parent0
-    rel = jnp.swapaxes(rot[:, par], -1, -2) @ rot
-    root_origin = pos[:, 0] - jnp.einsum("tij,j->ti", rot[:, 0], model.com[0])
+def _reference_feedforward(
+    model: Model, traj: Trajectory, cfg: StepOptions, times, kin, rel, root_origin, local_axes, landed
+):
+    """The feedforward of :func:`_make_reference` by ``cfg.feedforward`` and what it lands on:
+    torques, residuals, landing errors, the root's velocity, the reference's angular velocities,
+    the stored velocities (discrete), the joints' relative rates and the driven joints' rates."""
+    pos, rot, quat, vel, omega, qd = kin
+    par = model.topology.parent0
     if Feedforward(cfg.feedforward) is Feedforward.CONTINUOUS:
         sol = inverse_dynamics(model, traj, times, local_axes)
         tau, residual, landing = sol.tau, sol.residual, jnp.zeros_like(times)
@@ -237,6 +222,35 @@ def _make_reference(model: Model, traj: Trajectory, t0, cfg: StepOptions, landed
         root_vel = jnp.concatenate([qd[:1, 0:3], u[1:, 0, :3] - jnp.cross(lever, u[1:, 0, 3:])], 0)
         drive_next = jnp.einsum("tbji,tbj->tbi", rot[:-1, par], ref_omega[1:] - ref_omega[1:, par])
         drive = jnp.concatenate([rel_w[:1], drive_next], 0)
+    return tau, residual, landing, root_vel, ref_omega, stored, rel_w, drive
+
+
+# One compiled program rather than hundreds of eagerly dispatched small ops (each eager op is
+# compiled on its own, which made preparing a run take longer than compiling the rollout).
+@functools.partial(compiler.jit, static_argnames=("cfg",))
+def _make_reference(model: Model, traj: Trajectory, t0, cfg: StepOptions, landed=None) -> Reference:
+    times = t0 + cfg.h * jnp.arange(cfg.n_steps + 1)
+    q = jax.vmap(traj.q)(times)
+    qd = jax.vmap(traj.qd)(times)
+    qdd = jax.vmap(traj.qdd)(times)
+    kin = jax.vmap(lambda a, b, c: body_kinematics(model, a, b, c))(q, qd, qdd)
+    pos, rot, vel, omega = kin[0], kin[1], kin[2], kin[3]
+    quat = matrix_to_quat(rot)
+    topo = model.topology
+    cols = sim_columns(model)
+    theta = jax.vmap(lambda a, t: joint_angles_from_q(model, a, traj.angle_reference(t)))(q, times)[:, cols]
+    if JointLaw(cfg.joint_law) is JointLaw.EULER:
+        local_axes = jax.vmap(lambda th: joint_local_axes(model, th))(theta)
+        local_pinv = damped_pinv(local_axes)
+    else:  # the rotation law: each joint's torque and error in its parent's frame
+        local_axes = jnp.broadcast_to(jnp.eye(3), (times.shape[0], model.n_bodies - 1, 3, 3))
+        local_pinv = local_axes
+    par = topo.parent0
+    rel = jnp.swapaxes(rot[:, par], -1, -2) @ rot
+    root_origin = pos[:, 0] - jnp.einsum("tij,j->ti", rot[:, 0], model.com[0])
+    tau, residual, landing, root_vel, ref_omega, stored, rel_w, drive = _reference_feedforward(
+        model, traj, cfg, times, (pos, rot, quat, vel, omega, qd), rel, root_origin, local_axes, landed
+    )
     # Euler rates from sum_i h_i thetadot_i = omega_child - omega_parent (exact, and much
     # cheaper to compile than a jvp through the Euler decomposition).
     euler_axes_world = jax.vmap(lambda r, th: dof_axes(model, r, th))(rot, theta)

@@ -3,18 +3,30 @@ counterparts. Every function is pure JAX and differentiable in the gains through
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from neuromotor.config.specs import Surrogate
 from neuromotor.studies import metrics as mx
 
-if TYPE_CHECKING:
-    from neuromotor.studies.fit.problem import ResponseSpec
+
+class Smoothing(Protocol):
+    """The smoothing settings the surrogates read: a :class:`Surrogate`, or the fit's
+    :class:`~neuromotor.studies.fit.problem.ResponseSpec` (which carries them)."""
+
+    @property
+    def beta(self) -> float: ...
+    @property
+    def width(self) -> float: ...
+    @property
+    def fraction(self) -> float: ...
+    @property
+    def floor_deg(self) -> float: ...
+    @property
+    def accel_beta(self) -> float: ...
 
 
 def deviation_deg(theta, theta_ref, dofs=None) -> Float[Array, " T"]:
@@ -103,7 +115,7 @@ def soft_recovery(time, dev, start, threshold, width: float):
     return jnp.sum(gate * (1.0 - never_again)) * dt
 
 
-def response_features(time, dev, start, spec: Surrogate | ResponseSpec, acc=None) -> dict:
+def response_features(time, dev, start, spec: Smoothing, acc=None) -> dict:
     """Smooth peak deviation, time to peak, recovery time and overshoot of a deviation signal
     (``spec``: a :class:`Surrogate` or a :class:`~neuromotor.studies.fit.problem.ResponseSpec`),
     and (given the acceleration signal ``acc`` of :func:`acceleration_deg`) its peak angular
