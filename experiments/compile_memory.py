@@ -5,13 +5,12 @@ table of docs/benchmarks.md, "Compile memory".
     .venv/bin/python experiments/compile_memory.py [--duration 0.1] [--limit-gb 4]
 
 Each run is a subprocess under an address-space limit (a blow-up fails instead of filling the
-machine); its peak RSS comes from ``os.wait4``.
+machine); its peak RSS is the process's own ``VmHWM`` (``tests/peak_rss.py``).
 """
 
 import argparse
 import os
 import pathlib
-import resource
 import subprocess
 import sys
 import tempfile
@@ -41,12 +40,12 @@ def measure(clip: pathlib.Path, dtype: str, duration: float, limit: int, h: floa
     cfg.write_text(f'clip = "{clip}"\n[sim]\nh = {h!r}\nstart = 1.0\nduration = {duration}\ndtype = "{dtype}"\n')
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR")}
     env.update(NEUROMOTOR_CACHE_DIR="off", PYTHONPATH=str(REPO / "src"))
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "neuromotor.cli", "simulate", str(cfg), "-o", str(work / "run.npz")], env=env,
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (limit, limit)))
-    _, status, usage = os.wait4(proc.pid, 0)
-    return usage.ru_maxrss / 1e6, os.waitstatus_to_exitcode(status)
+    peak = work / "peak_kb.txt"
+    peak.unlink(missing_ok=True)
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "tests" / "peak_rss.py"), str(limit), str(peak), "simulate", str(cfg), "-o",
+         str(work / "run.npz")], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return (int(peak.read_text()) / 1e6 if peak.exists() else float("nan")), proc.returncode
 
 
 def main() -> int:
