@@ -73,26 +73,13 @@ def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatom
     stature = check_stature(stature)
     found = label_joints(clip)
     warnings = list(found.warnings)
-    if not found.limb_chains:  # not a person: no stature to go by
-        if fixed is None and stature is None:
-            fixed = auto_scale(_rest_points(clip))
-        scale, unit_name, stat = choose_units(found.height, fixed, stature, warnings)
-        return Anatomy(
-            found.segment,
-            found.side,
-            found.mirror,
-            found.up,
-            found.forward,
-            found.reference_frame,
-            stat,
-            scale,
-            unit_name,
-            tuple(warnings),
-            {},
-        )  # generic shapes: the offsets alone
+    person = bool(found.limb_chains)
+    if not person and fixed is None and stature is None:  # not a person: no stature to go by
+        fixed = auto_scale(_rest_points(clip))
     scale, unit_name, stat = choose_units(found.height, fixed, stature, warnings)
-    _translation_warnings(clip, scale, warnings)
-    return Anatomy(
+    if person:
+        _translation_warnings(clip, scale, warnings)
+    labels = Anatomy(
         found.segment,
         found.side,
         found.mirror,
@@ -103,10 +90,16 @@ def analyse(clip: BvhClip, units="auto", stature: float | None = None) -> Anatom
         scale,
         unit_name,
         tuple(warnings),
-        found.limb_chains,
-        found.shape_frame,
-        found.shape_up,
-        found.shape_forward,
+        {},
+    )
+    if not person:  # generic shapes: the offsets alone
+        return labels
+    return dataclasses.replace(
+        labels,
+        limb_chains=found.limb_chains,
+        shape_frame=found.shape_frame,
+        shape_up=found.shape_up,
+        shape_forward=found.shape_forward,
     )
 
 
