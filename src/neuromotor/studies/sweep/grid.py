@@ -27,7 +27,9 @@ METRIC_KEYS = (
 )
 
 
-COLUMNS = (
+# The columns every sweep table has: the run and its inputs, then (after each kind's own) the
+# step's diagnostics and divergence.
+RUN_COLUMNS = (
     "run",
     "kind",
     "label",
@@ -40,8 +42,8 @@ COLUMNS = (
     "direction_y",
     "direction_z",
     "start",
-    "duration",
-    *METRIC_KEYS,
+)
+DIAGNOSTIC_COLUMNS = (
     "max_kkt_residual",
     "max_constraint_violation",
     "diverged",
@@ -49,6 +51,7 @@ COLUMNS = (
     "diverged_time_s",
     "diverged_body",
 )
+COLUMNS = (*RUN_COLUMNS, "duration", *METRIC_KEYS, *DIAGNOSTIC_COLUMNS)
 
 
 # The reflex of a run (neuromotor.physics.reflex), written when the config has a [reflex] table.
@@ -61,30 +64,7 @@ def with_reflex_columns(columns: Sequence[str]) -> tuple[str, ...]:
     return (*columns[:i], *REFLEX_COLUMNS, *columns[i:])
 
 
-BALL_COLUMNS = (
-    "run",
-    "kind",
-    "label",
-    "controller",
-    "ks",
-    "kd",
-    "body",
-    "magnitude",
-    "direction_x",
-    "direction_y",
-    "direction_z",
-    "start",
-    *METRIC_KEYS,
-    "peak_impulse_Ns",
-    "hit_body",
-    "first_contact_s",
-    "max_kkt_residual",
-    "max_constraint_violation",
-    "diverged",
-    "diverged_step",
-    "diverged_time_s",
-    "diverged_body",
-)
+BALL_COLUMNS = (*RUN_COLUMNS, *METRIC_KEYS, "peak_impulse_Ns", "hit_body", "first_contact_s", *DIAGNOSTIC_COLUMNS)
 
 
 class RunBatch(eqx.Module):
