@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from neuromotor.config.specs import FEATURE_NAMES, TARGET_KINDS as KINDS, Surrogate, check_fit_parameters
+from neuromotor.config.specs import FEATURE_NAMES, TARGET_KINDS as KINDS, Surrogate, check_fit_parameters, onset
 from neuromotor.errors import ConfigError
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.control import Gains
@@ -169,6 +169,6 @@ def make_problem(
     spec = ResponseSpec(
         kind, tuple(int(c) for c in columns), i0, i1, tuple(features) if kind == "features" else (), **surrogate
     )
-    start = jnp.asarray([float(s["start"]) for s in specs])
+    start = jnp.asarray([onset([s]) for s in specs])  # each case measured from its own onset
     names = check_fit_parameters(names, setup.gains.reflex is not None, cfg.source)
     return FitProblem(setup.model, setup.gains, batch, setup.ref, start, setup.options, spec, names)
