@@ -102,6 +102,18 @@ class Fields:
             self.fail(key, "must be non-zero")
         return val
 
+    def direction(self, key, default):
+        """A direction: 3 numbers, not all zero, or a keyword of the character's frame
+        (:data:`neuromotor.model.facing.DIRECTION_KEYWORDS`), resolved when the run is built."""
+        from neuromotor.model.facing import DIRECTION_KEYWORDS
+
+        val = self.get(key, default)
+        if isinstance(val, str):
+            if val not in DIRECTION_KEYWORDS:
+                self.fail(key, f"must be 3 numbers or one of {list(DIRECTION_KEYWORDS)}, got {val!r}")
+            return val
+        return self.nonzero_vector(key, default)
+
     def choice(self, key, default, options):
         val = self.get(key, default)
         if val not in options:

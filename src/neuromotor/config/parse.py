@@ -43,6 +43,7 @@ from neuromotor.config.specs import (
     reflex_grid,
 )
 from neuromotor.errors import ConfigError
+from neuromotor.model.facing import DIRECTION_KEYWORDS
 from neuromotor.physics.options import Feedforward, JointLaw
 from neuromotor.physics.precision import Precision
 
@@ -89,7 +90,7 @@ def _perturbation_field(f: Fields, table, field: dataclasses.Field):
     if rule == "vector":
         return f.vector(name, None) if f.get(name) is not None else fallback
     if rule == "direction":
-        return f.nonzero_vector(name, fallback)
+        return f.direction(name, fallback)
     if rule == "choice":
         return f.choice(name, fallback, field.metadata["choices"])
     return f.number(name, fallback, nonneg=rule == "nonneg", positive=rule == "positive")
@@ -110,7 +111,7 @@ def _ball_velocity(f: Fields, table: dict) -> dict:
     if ("direction" in table) == ("target" in table):
         f.fail("direction", "give exactly one of direction (a vector) or target (a body name)")
     if "direction" in table:
-        out["direction"] = f.nonzero_vector("direction", None)
+        out["direction"] = f.direction("direction", None)
     else:
         target = f.get("target")
         if not isinstance(target, str):
@@ -350,7 +351,9 @@ def _sweep_axes(f: Fields) -> dict:
             isinstance(directions, list)
             and directions
             and all(
-                isinstance(d, list)
+                d in DIRECTION_KEYWORDS
+                if isinstance(d, str)
+                else isinstance(d, list)
                 and len(d) == 3
                 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in d)
                 and any(d)
@@ -358,10 +361,14 @@ def _sweep_axes(f: Fields) -> dict:
             )
         )
         if not ok:
-            f.fail("directions", f"must be a non-empty list of non-zero [x, y, z], got {directions!r}")
+            f.fail(
+                "directions",
+                f"must be a non-empty list of non-zero [x, y, z] or keywords {list(DIRECTION_KEYWORDS)}, "
+                f"got {directions!r}",
+            )
     return dict(
         bodies=bodies,
-        directions=[list(map(float, d)) for d in directions] if directions else None,
+        directions=[d if isinstance(d, str) else list(map(float, d)) for d in directions] if directions else None,
         starts=f.number_list("starts", None, nonneg=True, allow_range=False),
     )
 

@@ -96,7 +96,8 @@ class _KeyView(Mapping):
 def _rule(rule: str, **more) -> dict:
     """How the parser reads a field (:func:`neuromotor.config.parse.parse_perturbation`): ``body``
     (a name), ``vector`` (3 numbers or absent), ``direction`` (3 numbers, not all zero),
-    ``nonneg``, ``positive``, ``choice`` (of ``choices``)."""
+    ``nonneg``, ``positive``, ``choice`` (of ``choices``); a ``direction`` may also be a keyword
+    of the character's frame (:data:`neuromotor.model.facing.DIRECTION_KEYWORDS`)."""
     return {"rule": rule, **more}
 
 
@@ -110,7 +111,10 @@ class PerturbationSpec(_KeyView):
     body: str = dataclasses.field(metadata=_rule("body"))  # a body (joint) name, or a segment keyword (chest)
     # Body frame, m, from the joint origin; None: the body's COM.
     point: list[float] | None = dataclasses.field(default=None, metadata=_rule("vector"))
-    direction: list[float] = dataclasses.field(default_factory=lambda: [1.0, 0.0, 0.0], metadata=_rule("direction"))
+    # World, or a keyword of the character's frame at ``start`` (forward, backward, left, right, up, down).
+    direction: list[float] | str = dataclasses.field(
+        default_factory=lambda: [1.0, 0.0, 0.0], metadata=_rule("direction")
+    )
     magnitude: float = dataclasses.field(metadata=_rule("nonneg"))  # in the kind's unit: N, N s
     start: float = dataclasses.field(default=1.0, metadata=_rule("nonneg"))  # s, clip time
     duration: float = dataclasses.field(default=0.1, metadata=_rule("positive"))  # s
@@ -196,7 +200,7 @@ class BallSpec(_KeyView):
     pgs_iterations: int = ContactSettings.pgs_iterations  # projected Gauss-Seidel sweeps
     velocity: list[float] | None = None
     speed: float | None = None  # m/s
-    direction: list[float] | None = None
+    direction: list[float] | str | None = None  # world, or a keyword of the character's frame at launch
     target: str | None = None  # a body to aim at
 
     @classmethod
@@ -412,7 +416,7 @@ class SweepSpec:
     magnitudes: list[float]
     gains: list[GainSetting]
     bodies: list[str] | None = None  # None: the config's perturbation[0] value
-    directions: list[list[float]] | None = None
+    directions: list[list[float] | str] | None = None  # vectors or keywords of the character's frame
     starts: list[float] | None = None
     chunk: int = 64
     inner_batch: int = 1
@@ -438,13 +442,14 @@ class SweepSpec:
                             for m in self.magnitudes:
                                 # An axis replaces a field; the point stays the user's (None: each
                                 # body's own COM), resolved by the one builder.
+                                d = d if isinstance(d, str) else list(d)
                                 p = dataclasses.replace(
-                                    base, body=body, direction=list(d), start=float(start), magnitude=float(m)
+                                    base, body=body, direction=d, start=float(start), magnitude=float(m)
                                 )
                                 run = dict(
                                     gain=g,
                                     body=body,
-                                    direction=list(d),
+                                    direction=d,
                                     start=float(start),
                                     magnitude=float(m),
                                     duration=p.span,

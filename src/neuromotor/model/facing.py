@@ -84,3 +84,59 @@ def facing_direction(points, edges, up_axis: int = 1, forward=None) -> np.ndarra
         if np.all(np.isfinite(f)) and np.linalg.norm(f) > 1e-3:
             return f / np.linalg.norm(f)
     return facing_from_skeleton(points, edges, up_axis)
+
+
+# Directions named in the character's own frame: its facing and the world up axis (the same
+# keywords for every perturbation kind's direction and for a fit target's axis).
+DIRECTION_KEYWORDS = ("forward", "backward", "left", "right", "up", "down")
+
+
+def character_axes(character, time: float) -> dict[str, np.ndarray]:
+    """World unit vector of every :data:`DIRECTION_KEYWORDS` entry at clip ``time`` (s).
+
+    Up is the anatomy's up axis. Forward is the anatomy's facing (found at its reference frame)
+    turned by the root's rotation from that frame to ``time`` (the nearest frame of the clip)
+    and made horizontal, so a character that turns during the clip keeps its own forward; left is
+    ``up x forward`` (right-handed). A character without anatomy, or whose turned facing is near
+    vertical, keeps the anatomy's (or the skeleton's) facing.
+    """
+    from neuromotor.model.clip_edit import forward_kinematics
+
+    anat, clip = character.anatomy, character.clip
+    if anat is None:
+        up = np.eye(3)[1]
+        pos, _, _ = forward_kinematics(clip, [0])
+        edges = [(j.parent, k) for k, j in enumerate(clip.joints) if j.parent >= 0]
+        forward = facing_from_skeleton(pos[0], edges, 1)
+    else:
+        up = np.asarray(anat.up, float)
+        frame = int(np.clip(round(float(time) / clip.frame_time), 0, clip.n_frames - 1))
+        ref = int(np.clip(anat.reference_frame, 0, clip.n_frames - 1))
+        _, rot, _ = forward_kinematics(clip, [ref, frame])
+        turned = horizontal(rot[1, 0] @ rot[0, 0].T @ np.asarray(anat.forward, float), up)
+        forward = horizontal(np.asarray(anat.forward, float), up)
+        if np.linalg.norm(turned) > 0.2:
+            forward = turned
+        forward = unit(forward, np.eye(3)[(int(np.argmax(np.abs(up))) + 2) % 3])
+    left = np.cross(up, forward)
+    return {"forward": forward, "backward": -forward, "left": left, "right": -left, "up": up, "down": -up}
+
+
+def resolve_direction(value, character, time: float, where: str) -> np.ndarray:
+    """A direction field's world unit vector: a keyword of :data:`DIRECTION_KEYWORDS` (in the
+    character's frame at clip ``time``, :func:`character_axes`) or 3 numbers, not all zero.
+    ``where`` names the file and field in the :class:`~neuromotor.errors.ConfigError`."""
+    from neuromotor.errors import ConfigError
+
+    if isinstance(value, str):
+        if value not in DIRECTION_KEYWORDS:
+            raise ConfigError(
+                f"{where} = {value!r} is not a direction; use 3 numbers or one of {', '.join(DIRECTION_KEYWORDS)}"
+            )
+        if character is None:
+            raise ConfigError(f"{where} = {value!r}: a keyword direction needs the character (give 3 numbers)")
+        return character_axes(character, time)[value]
+    v = np.asarray(value, float).reshape(-1)
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or not np.linalg.norm(v) > 0:
+        raise ConfigError(f"{where} must be 3 numbers, not all zero, or a keyword; got {value!r}")
+    return v / np.linalg.norm(v)

@@ -62,17 +62,31 @@ def no_pulses() -> ForcePulses:
     )
 
 
-def build_pulses(specs, model, h: float, body_index) -> ForcePulses:
+def vector_direction(value, time: float) -> np.ndarray:
+    """A direction given as 3 numbers, made unit (keywords need the character: see
+    :func:`neuromotor.studies.simulate.direction_lookup`)."""
+    if isinstance(value, str):
+        raise ValueError(f"direction {value!r} is a keyword of the character's frame: build with its direction_of")
+    direction = np.asarray(value, np.float64)
+    norm = np.linalg.norm(direction)
+    if not norm > 0:
+        raise ValueError(f"perturbation direction must be non-zero, got {value}")
+    return direction / norm
+
+
+def build_pulses(specs, model, h: float, body_index, direction_of=vector_direction) -> ForcePulses:
     """The one way from the user's perturbations to the arrays the step consumes.
 
     ``specs``: mappings with every field of :class:`neuromotor.config.specs.PerturbationSpec`
     (kind, body, point, direction, magnitude, start, duration, shape; the defaults live there,
     not here). ``point`` None is the body's COM (``model.com``); an impulse (N s) becomes a
-    square pulse of one step ``h`` and magnitude / h newtons. ``body_index`` maps a name to an index.
+    square pulse of one step ``h`` and magnitude / h newtons. ``body_index`` maps a name to an
+    index; ``direction_of(value, start)`` a direction (3 numbers or a keyword of the character's
+    frame, taken at the perturbation's start) to a world unit vector.
     """
     if not specs:
         return no_pulses()
-    rows = [_pulse(s, model, h, body_index) for s in specs]
+    rows = [_pulse(s, model, h, body_index, direction_of) for s in specs]
     body, point, direction, magnitude, start, duration, shape = zip(*rows)
     return ForcePulses(
         jnp.asarray(body, jnp.int32),
@@ -85,14 +99,11 @@ def build_pulses(specs, model, h: float, body_index) -> ForcePulses:
     )
 
 
-def _pulse(s, model, h: float, body_index) -> tuple:
+def _pulse(s, model, h: float, body_index, direction_of) -> tuple:
     """One pulse's fields from one spec (see :func:`build_pulses`)."""
     if s["kind"] not in KINDS:
         raise ValueError(f"perturbation kind must be one of {KINDS}, got {s['kind']!r}")
-    direction = np.asarray(s["direction"], np.float64)  # host arrays: a sweep builds one per run
-    norm = np.linalg.norm(direction)
-    if not norm > 0:
-        raise ValueError(f"perturbation direction must be non-zero, got {s['direction']}")
+    direction = direction_of(s["direction"], float(s["start"]))  # host arrays: a sweep builds one per run
     b = body_index(s["body"])
     point = np.asarray(model.com[b] if s["point"] is None else s["point"], np.float64)
     magnitude, start, duration, shape = float(s["magnitude"]), float(s["start"]), float(s["duration"]), s["shape"]
@@ -101,7 +112,7 @@ def _pulse(s, model, h: float, body_index) -> tuple:
         magnitude, duration, shape = magnitude / h, h, "square"
     if shape not in SHAPES:
         raise ValueError(f"perturbation shape must be one of {SHAPES}, got {shape!r}")
-    return (b, point, direction / norm, magnitude, start, float(duration), shape)
+    return (b, point, direction, magnitude, start, float(duration), shape)
 
 
 def replace_first(p: ForcePulses, first: ForcePulses) -> ForcePulses:

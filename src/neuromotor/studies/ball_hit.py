@@ -18,6 +18,7 @@ import numpy as np
 
 from neuromotor import compiler
 from neuromotor.config import ConfigError
+from neuromotor.model.facing import resolve_direction
 from neuromotor.model.kinematics import body_poses
 from neuromotor.model.skeleton import Character, Model
 from neuromotor.physics.contact import (
@@ -136,6 +137,9 @@ def ball_setup(spec, character: Character, traj, body_index, source: str = "conf
     """Build the ball from a parsed ``[ball]`` table (see :func:`neuromotor.config.parse_ball`);
     ``body_index`` maps a body name to its index (raising ConfigError for an unknown one)."""
     model = character.model
+    if isinstance(spec.get("direction"), str):  # a keyword of the character's frame at launch
+        where = f"{source}: field 'ball.direction'"
+        spec = dict(spec, direction=resolve_direction(spec["direction"], character, float(spec["launch"]), where))
     try:
         target = body_index(spec["target"]) if _aims(spec) else None
         ball = ball_from_spec(spec, model, traj, target)
@@ -161,7 +165,7 @@ def balls_at_speeds(setup, speeds) -> Ball:
     ``direction`` or ``velocity`` keeps its direction. Raises ValueError for a speed that
     cannot reach the target."""
     spec = dict(setup.config.ball)
-    if "velocity" in spec:  # speed + direction of the given velocity
+    if "velocity" in spec or isinstance(spec.get("direction"), str):  # the direction the setup resolved
         spec["direction"] = np.asarray(setup.ball.ball.direction).tolist()
         del spec["velocity"]
     balls = []

@@ -19,6 +19,7 @@ from neuromotor import compiler
 from neuromotor.config import ConfigError, SimulationConfig
 from neuromotor.config.specs import PerturbationSpec, onset
 from neuromotor.io.runfile import read_run_info, save_npz_atomic  # noqa: F401  (re-exported)
+from neuromotor.model.facing import resolve_direction
 from neuromotor.model.kinematics import Trajectory
 from neuromotor.model.load import DEFAULT_CLIP_NAME, default_clip_path, load_character  # noqa: F401  (re-exported)
 from neuromotor.model.skeleton import BODY_KEYWORDS, Character, Model, keyword_body
@@ -111,6 +112,17 @@ def body_lookup(model: Model, source: str = "config", character: Character | Non
         return b
 
     return index
+
+
+def direction_lookup(character: Character | None, source: str = "config"):
+    """(direction, clip time) -> world unit vector: 3 numbers, or a keyword of the character's
+    frame at that time (:func:`neuromotor.model.facing.character_axes`), the one rule for the
+    direction of every perturbation kind and of the ball."""
+
+    def direction(value, time: float) -> np.ndarray:
+        return resolve_direction(value, character, time, f"{source}: field 'direction'")
+
+    return direction
 
 
 @dataclasses.dataclass(frozen=True)
@@ -208,7 +220,7 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     gains = gains_for(template, config.gains, reflex=None if config.reflex is None else config.reflex.build(config.h))
     ball = ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
-    pulses = build_pulses(config.perturbations, model, config.h, index)
+    pulses = build_pulses(config.perturbations, model, config.h, index, direction_lookup(character, config.source))
     return Setup(character, traj, ref, gains, options, pulses, config, ball, warnings, window)
 
 

@@ -147,7 +147,7 @@ def make_problem(
     shape is an array leaf). ``window`` = (t0, t1) in clip
     seconds (default: the whole simulation).
     """
-    from neuromotor.studies.simulate import body_lookup
+    from neuromotor.studies.simulate import body_lookup, direction_lookup
     from neuromotor.studies.targets import window_indices
 
     if kind not in KINDS:
@@ -157,7 +157,8 @@ def make_problem(
     if not specs:
         raise ConfigError(f"{cfg.source}: a fit needs at least one [[perturbation]] (one per case)")
     index = body_lookup(setup.model, cfg.source, setup.character)
-    per_case = [build_pulses([s], setup.model, setup.options.h, index) for s in specs]
+    direction_of = direction_lookup(setup.character, cfg.source)
+    per_case = [build_pulses([s], setup.model, setup.options.h, index, direction_of) for s in specs]
     if kind == "features":
         per_case = per_case + [unperturbed(per_case[0])]
     batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *per_case)

@@ -13,7 +13,7 @@ from jaxtyping import Array, Float, Int
 
 from neuromotor.errors import ConfigError
 from neuromotor.physics.control import Gains
-from neuromotor.physics.perturbation import ForcePulses, build_pulses, replace_first
+from neuromotor.physics.perturbation import ForcePulses, build_pulses, replace_first, vector_direction
 from neuromotor.physics.reflex import Reflex
 from neuromotor.studies.gains import gains_for
 
@@ -111,7 +111,13 @@ def reflex_columns(run: dict, template: Reflex | None) -> dict:
 
 
 def build_batch(
-    template_gains: Gains, template_pulses: ForcePulses, runs: list[dict], body_index, h: float, model
+    template_gains: Gains,
+    template_pulses: ForcePulses,
+    runs: list[dict],
+    body_index,
+    h: float,
+    model,
+    direction_of=vector_direction,
 ) -> RunBatch:
     """Batched gains and pulses for ``runs``: pulse 0 of the template is each run's
     ``perturbation`` (its spec with the grid's axes applied) through the one builder,
@@ -125,7 +131,10 @@ def build_batch(
         if key not in settings:
             settings[key] = run_controller(template_gains, r, h)
     gains = _stack([settings[(r["gain"], r.get("reflex"))] for r in runs])
-    rows = [replace_first(template_pulses, build_pulses([r["perturbation"]], model, h, body_index)) for r in runs]
+    rows = [
+        replace_first(template_pulses, build_pulses([r["perturbation"]], model, h, body_index, direction_of))
+        for r in runs
+    ]
     return RunBatch(gains, _stack(rows))
 
 

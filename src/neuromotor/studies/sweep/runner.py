@@ -20,7 +20,7 @@ from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
 from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Params, Reference, SimModel, StepOptions, simulate
-from neuromotor.physics.perturbation import ForcePulses, unperturbed
+from neuromotor.physics.perturbation import ForcePulses, unperturbed, vector_direction
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.sweep.grid import METRIC_KEYS, RunBatch, RunOut, build_batch, gain_keys, reflex_columns
 
@@ -197,11 +197,14 @@ def run_sweep(
     *,
     keep_curves: bool = False,
     progress: bool = True,
+    direction_of=vector_direction,
 ) -> SweepResult:
-    """Simulate every run of ``runs`` (from :meth:`SweepSpec.runs`) and measure its recovery."""
+    """Simulate every run of ``runs`` (from :meth:`SweepSpec.runs`) and measure its recovery;
+    ``direction_of`` resolves a direction keyword (:func:`~neuromotor.studies.simulate.direction_lookup`)."""
     from tqdm.auto import tqdm
 
-    batch = build_batch(gains, pulses, runs, body_index, sweeper.options.h, sweeper.model)
+    batch = build_batch(gains, pulses, runs, body_index, sweeper.options.h, sweeper.model, direction_of)
+    directions = np.asarray(batch.pulses.direction)[:, 0]  # the world vectors the runs used
     first, slot = gain_keys(batch)
     # Baselines: the distinct gain settings without any pulse, simulated with the same program.
     base = jax.tree_util.tree_map(lambda x: np.asarray(x)[first], batch)
@@ -209,8 +212,7 @@ def run_sweep(
 
     def row(i: int, out: dict, dev, time) -> dict:
         r, g = runs[i], runs[i]["gain"]
-        d = np.asarray(r["direction"], float)
-        d = d / np.linalg.norm(d)
+        d = directions[i]
         return {
             "run": i,
             "kind": r["kind"],
