@@ -1,9 +1,10 @@
 """Issue 35's differential test: one perturbation config, asked through every command that runs
 it, gives one answer.
 
-Random configs (force pulses and impulses, one to three, every optional field omitted or given,
-bodies by name or segment keyword, the driven root, driven joints and starts outside the window
-included; the Euler metric, a delayed reflex) go
+Random configs (force pulses, impulses and base motions (pulses and a recorded series), one to
+three, every optional field omitted or given, bodies by name or segment keyword, directions as
+vectors or keywords of the character's frame, the driven root, driven joints and starts outside
+the window included; the Euler metric, a delayed reflex) go
 through the functions behind ``neuromotor simulate`` (prepare + run), a one-row ``sweep``
 (simulate_grid), the fit's forward model at its starting gains (make_problem, one case per
 perturbation) and ``neuromotor experiment`` (contrast, with its one-magnitude sweep). The
@@ -22,6 +23,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import pathlib
+import tempfile
 
 import numpy as np
 import pytest
@@ -54,9 +57,37 @@ def _vector(scale):
     return st.lists(st.floats(-scale, scale, allow_nan=False), min_size=3, max_size=3)
 
 
+KEYWORDS = ("forward", "backward", "left", "right", "up", "down")
+# A recorded base acceleration (g, ms): a 60 ms bump sampled unevenly.
+RECORD = pathlib.Path(tempfile.mkdtemp()) / "t1_acceleration.csv"
+RECORD.write_text("time,ax\n-10,0\n0,0.5\n15,2.5\n40,1.0\n60,0\n")
+
+
 @st.composite
-def perturbation_table(draw) -> dict:
+def base_table(draw) -> dict:
+    """A base motion as a user writes it: a pulse or the recorded series, optional fields omitted."""
+    t = {"kind": "base", "unit": draw(st.sampled_from(["g", "m/s^2"]))}
+    t["direction"] = draw(st.sampled_from(KEYWORDS) | _vector(1.0).filter(lambda v: np.linalg.norm(v) > 0.1))
+    if draw(st.booleans()):
+        t["file"], t["time_unit"] = str(RECORD), "ms"
+        if draw(st.booleans()):
+            t["magnitude"] = draw(st.floats(0.0, 3.0))
+    else:
+        t["magnitude"] = draw(st.floats(0.0, 3.0)) * (1.0 if t["unit"] == "g" else 9.81)
+        if draw(st.booleans()):
+            t["duration"] = draw(st.floats(0.02, 0.2))
+        if draw(st.booleans()):
+            t["shape"] = draw(st.sampled_from(SHAPES))
+    if draw(st.booleans()):
+        t["start"] = draw(st.floats(0.7, 1.3))
+    return t
+
+
+@st.composite
+def perturbation_table(draw, base: bool = True) -> dict:
     """A ``[[perturbation]]`` table as a user writes it: optional fields omitted or given."""
+    if base and draw(st.integers(0, 3)) == 0:
+        return draw(base_table())
     kind = draw(st.sampled_from([None, "force", "impulse"]))
     t = {"body": draw(st.sampled_from(BODIES))}
     if kind is not None:
@@ -65,7 +96,7 @@ def perturbation_table(draw) -> dict:
     if draw(st.booleans()):
         t["point"] = draw(_vector(0.15))
     if draw(st.booleans()):
-        t["direction"] = draw(_vector(1.0).filter(lambda v: np.linalg.norm(v) > 0.1))
+        t["direction"] = draw(st.sampled_from(KEYWORDS) | _vector(1.0).filter(lambda v: np.linalg.norm(v) > 0.1))
     if draw(st.booleans()):
         t["start"] = draw(st.floats(0.7, 1.3))  # some before or after the window
     if kind != "impulse":
@@ -119,6 +150,9 @@ SETTINGS = dict(deadline=None, derandomize=True, phases=(Phase.explicit, Phase.g
 # The issue's push (an impulse at the chest's COM: the sweep read it 1/h too small) beside a
 # pulse on the driven root (refused by every command).
 ISSUE_PUSH = dict(kind="impulse", body="chest", direction=[0.0, 0.0, 1.0], magnitude=8.0, start=0.9)
+# A sled's jolt (issue 37): a base pulse, and the recorded series, beside a push.
+SLED = dict(kind="base", direction="backward", magnitude=2.0, unit="g", duration=0.1, start=0.9)
+RECORDED = dict(kind="base", direction="left", unit="g", file=str(RECORD), time_unit="ms", start=0.95)
 
 
 @settings(max_examples=EXAMPLES, **SETTINGS)
@@ -186,7 +220,9 @@ def sweep_axes(draw) -> dict:
 
 @settings(max_examples=EXAMPLES, **SETTINGS)
 @example(table=ISSUE_PUSH, axes={"bodies": ["chest", "RightKnee"], "starts": [0.9, 1.05]})
-@given(table=perturbation_table().filter(lambda t: t["body"] not in ("pelvis", "Hips")), axes=sweep_axes())
+@example(table=SLED, axes={"magnitudes": [1.0, 2.5], "directions": ["backward", [1.0, 0.0, 0.5]]})
+@example(table=RECORDED, axes={"magnitudes": [0.5, 2.0], "starts": [0.9, 1.0]})
+@given(table=perturbation_table(base=False).filter(lambda t: t["body"] not in ("pelvis", "Hips")), axes=sweep_axes())
 def test_every_sweep_row_equals_its_single_run(character, table, axes):
     table = dict(table, start=1.0)  # in the window; the axes' starts are checked in the test above
     data = config_data([table])

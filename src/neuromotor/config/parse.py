@@ -24,6 +24,7 @@ from neuromotor.config.specs import (
     PERTURBATION_KINDS,
     REFLEX_AXES,
     REFLEX_DELAY_LIMIT,
+    REQUIRED,
     SEXES,
     TARGET_KINDS,
     BallSpec,
@@ -45,6 +46,7 @@ from neuromotor.config.specs import (
 from neuromotor.errors import ConfigError
 from neuromotor.model.facing import DIRECTION_KEYWORDS
 from neuromotor.physics.options import Feedforward, JointLaw
+from neuromotor.physics.perturbation import TIME_UNITS
 from neuromotor.physics.precision import Precision
 
 TABLES = ("fit", "sweep", "experiment", "ball", "reflex")  # top-level tables beside [sim], [gains], [[perturbation]]
@@ -53,16 +55,23 @@ TABLES = ("fit", "sweep", "experiment", "ball", "reflex")  # top-level tables be
 # ----------------------------------------------------------------------------- simulation
 
 
-def parse_perturbation(table, where: str, source: str) -> PerturbationSpec:
+def parse_perturbation(table, where: str, source: str, base_dir=None) -> PerturbationSpec:
     """One ``[[perturbation]]`` table by its spec's fields and their rules
     (:class:`~neuromotor.config.specs.PerturbationSpec`): a field the kind does not read is an
-    error naming it, a field without a default is required."""
+    error naming it, a field the kind requires (:data:`~neuromotor.config.specs.REQUIRED`) too.
+    A base motion is a pulse (magnitude, shape, duration) or a recorded series (``file``, read
+    here: :func:`read_series`)."""
     f = Fields(table, where, source)
     kind = f.choice("kind", default(PerturbationSpec, "kind"), PERTURBATION_KINDS)
-    values = {"kind": kind}
+    values: dict = {"kind": kind}
     for field in dataclasses.fields(PerturbationSpec):
         name = field.name
         if name == "kind":
+            continue
+        if field.metadata["rule"] == "derived":  # a parsed spec's dict carries it: read again from file
+            if name in table and "file" not in table:
+                f.fail(name, "is read from the file field, not given")
+            f.get(name)
             continue
         if not PerturbationSpec.reads(kind, name):
             if name in table:
@@ -70,23 +79,83 @@ def parse_perturbation(table, where: str, source: str) -> PerturbationSpec:
                 readers = [k for k in PERTURBATION_KINDS if PerturbationSpec.reads(k, name)]
                 f.fail(name, f"does not apply to {article} {kind} (only kind = {' | '.join(readers)} reads it)")
             continue
-        values[name] = _perturbation_field(f, table, field)
+        if name in REQUIRED[kind] and name not in table:
+            f.fail(name, f"is required for kind = {kind!r}")
+        values[name] = _perturbation_field(f, table, field, base_dir)
+    if kind == "base":
+        if values["file"] is None:
+            for name in ("time_unit",):
+                if name in table:
+                    f.fail(name, "applies to a recorded base motion only (give file)")
+            if "magnitude" not in table:
+                f.fail("magnitude", "is required for a base pulse (or give file, a recorded acceleration)")
+        else:
+            for name in ("shape", "duration"):
+                if name in table:
+                    f.fail(name, "does not apply to a recorded base motion (file gives the samples)")
+            values["record"] = read_series(values["file"], f.name("file"), source, values["time_unit"])
+            values["file"] = str(values["file"])
     f.done()
     return PerturbationSpec(**values)
 
 
-def _perturbation_field(f: Fields, table, field: dataclasses.Field):
+def read_series(path: pathlib.Path, field: str, source: str, time_unit: str) -> tuple[tuple, tuple]:
+    """A recorded series from CSV: a header naming ``time`` and one value column (``#`` lines are
+    comments), then rows of numbers with strictly increasing times. Times in ``time_unit``,
+    returned in seconds; every error names the file, the line and the config field."""
+    import csv
+
+    where = f"{source}: field '{field}' = {str(path)!r}"
+    try:
+        text = pathlib.Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{where}: cannot read: {getattr(e, 'strerror', None) or e}") from None
+    rows = [(n + 1, r) for n, r in enumerate(csv.reader(text.splitlines())) if r and not r[0].lstrip().startswith("#")]
+    if not rows:
+        raise ConfigError(f"{where}: no header row (time and an acceleration column)")
+    line, header = rows[0]
+    header = [h.strip() for h in header]
+    if "time" not in header:
+        raise ConfigError(f"{where}: line {line}: no 'time' column in the header {header}")
+    if len(header) != 2:
+        raise ConfigError(
+            f"{where}: line {line}: the header must name 'time' and one acceleration column, got {header}"
+        )
+    it = header.index("time")
+    times: list[float] = []
+    values: list[float] = []
+    for n, r in rows[1:]:
+        if len(r) != 2:
+            raise ConfigError(f"{where}: line {n}: expected 2 values, got {len(r)}")
+        try:
+            t, a = float(r[it]), float(r[1 - it])
+        except ValueError:
+            raise ConfigError(f"{where}: line {n}: not a number: {r}") from None
+        if not (math.isfinite(t) and math.isfinite(a)):
+            raise ConfigError(f"{where}: line {n}: not finite: {r}")
+        if times and t <= times[-1]:
+            raise ConfigError(
+                f"{where}: line {n}: time {r[it].strip()} is not after the previous row's (times must increase)"
+            )
+        times.append(t)
+        values.append(a)
+    if len(times) < 2:
+        raise ConfigError(f"{where}: needs at least 2 rows of samples, got {len(times)}")
+    scale = TIME_UNITS[time_unit]
+    return tuple(t * scale for t in times), tuple(values)
+
+
+def _perturbation_field(f: Fields, table, field: dataclasses.Field, base_dir=None):
     """One field of a perturbation table by its rule (``field.metadata``)."""
     name, rule = field.name, field.metadata["rule"]
-    required = field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING
-    if required and name not in table:
-        f.fail(name, "is required")
-    fallback = None if required else default(PerturbationSpec, name)
+    fallback = default(PerturbationSpec, name)
     if rule == "body":
         value = f.get(name)
         if not isinstance(value, str) or not value:
             f.fail(name, f"must be a body (joint) name, got {value!r}")
         return value
+    if rule == "file":
+        return f.path(name, None, base_dir, "a CSV path") if name in table else None
     if rule == "vector":
         return f.vector(name, None) if f.get(name) is not None else fallback
     if rule == "direction":
@@ -234,7 +303,9 @@ def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> Simu
     perts = top.get("perturbation", [])
     if not isinstance(perts, list):
         top.fail("perturbation", "must be an array of tables ([[perturbation]])")
-    fields["perturbations"] = [parse_perturbation(p, f"perturbation[{i}]", source) for i, p in enumerate(perts)]
+    fields["perturbations"] = [
+        parse_perturbation(p, f"perturbation[{i}]", source, base_dir) for i, p in enumerate(perts)
+    ]
     if "ball" in data:
         fields["ball"] = parse_ball(top.get("ball"), source)
     if "reflex" in data:

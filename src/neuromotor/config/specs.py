@@ -96,29 +96,58 @@ class _KeyView(Mapping):
 def _rule(rule: str, **more) -> dict:
     """How the parser reads a field (:func:`neuromotor.config.parse.parse_perturbation`): ``body``
     (a name), ``vector`` (3 numbers or absent), ``direction`` (3 numbers, not all zero),
-    ``nonneg``, ``positive``, ``choice`` (of ``choices``); a ``direction`` may also be a keyword
-    of the character's frame (:data:`neuromotor.model.facing.DIRECTION_KEYWORDS`)."""
+    ``number``, ``nonneg``, ``positive``, ``choice`` (of ``choices``), ``file`` (a CSV path),
+    ``derived`` (set by the parser, not read); a ``direction`` may also be a keyword of the
+    character's frame (:data:`neuromotor.model.facing.DIRECTION_KEYWORDS`)."""
     return {"rule": rule, **more}
 
 
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)
 class PerturbationSpec(_KeyView):
-    """One ``[[perturbation]]``: a force pulse or an impulse at a point on a body. Each field's
-    default and parsing rule is written here once; which kind reads which field, and in which
-    unit, is :data:`neuromotor.physics.perturbation.KIND_FIELDS` and ``UNITS``."""
+    """One ``[[perturbation]]``: a force pulse or an impulse at a point on a body, or a base motion
+    (an acceleration added to the driven root's path: a pulse, or a recorded series from a CSV
+    ``file``). Each field's default and parsing rule is written here once; which kind reads which
+    field, and in which unit, is :data:`neuromotor.physics.perturbation.KIND_FIELDS` and ``UNITS``;
+    which fields a kind requires is :data:`REQUIRED`."""
+
+    # Keys absent while None (a base motion has no body; a pulse no file), as in the TOML table.
+    _optional: ClassVar[tuple[str, ...]] = ("body", "magnitude", "file", "unit", "record")
 
     kind: str = dataclasses.field(default="force", metadata=_rule("choice", choices=_perturbation.KINDS))
-    body: str = dataclasses.field(metadata=_rule("body"))  # a body (joint) name, or a segment keyword (chest)
+    # A body (joint) name, or a segment keyword (chest); required by the kinds that push a body.
+    body: str | None = dataclasses.field(default=None, metadata=_rule("body"))
     # Body frame, m, from the joint origin; None: the body's COM.
     point: list[float] | None = dataclasses.field(default=None, metadata=_rule("vector"))
     # World, or a keyword of the character's frame at ``start`` (forward, backward, left, right, up, down).
     direction: list[float] | str = dataclasses.field(
         default_factory=lambda: [1.0, 0.0, 0.0], metadata=_rule("direction")
     )
-    magnitude: float = dataclasses.field(metadata=_rule("nonneg"))  # in the kind's unit: N, N s
+    # In the kind's unit (N, N s, or the base motion's ``unit``); a recorded base series: a factor
+    # on its values (default 1).
+    magnitude: float | None = dataclasses.field(default=None, metadata=_rule("nonneg"))
     start: float = dataclasses.field(default=1.0, metadata=_rule("nonneg"))  # s, clip time
     duration: float = dataclasses.field(default=0.1, metadata=_rule("positive"))  # s
     shape: str = dataclasses.field(default="half_sine", metadata=_rule("choice", choices=_perturbation.SHAPES))
+    # A base motion: a CSV of time and acceleration (instead of magnitude, shape and duration), the
+    # acceleration's unit (g or m/s^2, required) and the file's time unit. The file's time 0 sits
+    # at ``start``.
+    file: str | None = dataclasses.field(default=None, metadata=_rule("file"))
+    unit: str | None = dataclasses.field(
+        default=None, metadata=_rule("choice", choices=tuple(_perturbation.ACCELERATION_UNITS))
+    )
+    time_unit: str = dataclasses.field(default="s", metadata=_rule("choice", choices=tuple(_perturbation.TIME_UNITS)))
+    # The file's samples as read (times in s from the file's 0, values in ``unit``); set by the parser.
+    record: tuple[tuple[float, ...], tuple[float, ...]] | None = dataclasses.field(
+        default=None, metadata=_rule("derived")
+    )
+
+    def _keys(self) -> list[str]:
+        """The keys of the fields its kind reads (so ``dict(spec)`` parses back to the same spec)."""
+        return [k for k in super()._keys() if self.reads(self.kind, k)]
+
+    def __post_init__(self):
+        if self.kind == "base" and self.file is not None and self.magnitude is None:
+            object.__setattr__(self, "magnitude", 1.0)
 
     @classmethod
     def of(cls, value) -> PerturbationSpec:
@@ -127,27 +156,57 @@ class PerturbationSpec(_KeyView):
     @staticmethod
     def reads(kind: str, name: str) -> bool:
         """Whether a perturbation of ``kind`` reads field ``name``."""
-        per_kind = {f for fields in _perturbation.KIND_FIELDS.values() for f in fields}
-        return name not in per_kind or name in _perturbation.KIND_FIELDS[kind]
+        return name in ("kind", "record") or name in _perturbation.KIND_FIELDS[kind]
 
     @property
-    def unit(self) -> str:
+    def recorded(self) -> bool:
+        """A base motion read from a file."""
+        return self.kind == "base" and self.file is not None
+
+    @property
+    def magnitude_unit(self) -> str:
+        """The unit of ``magnitude``: N, N s, g or m/s^2 (a recorded series: its values')."""
+        if self.kind == "base":
+            return str(self.unit)
         return _perturbation.UNITS[self.kind]
 
     def label(self, magnitude: float | None = None) -> str:
-        """How figures name it, in the user's units: "40 N s impulse", "400 N half_sine pulse"."""
+        """How figures name it, in the user's units: "40 N s impulse", "400 N half_sine pulse",
+        "15 g half_sine base pulse", "base acceleration 1 x t1.csv"."""
         m = self.magnitude if magnitude is None else magnitude
+        if self.recorded:
+            return f"base acceleration {m:g} x {pathlib.Path(str(self.file)).name}"
         what = f"{self.shape} pulse" if self.reads(self.kind, "shape") else self.kind
-        return f"{m:g} {self.unit} {what}"
+        if self.kind == "base":
+            what = f"{self.shape} base pulse"
+        return f"{m:g} {self.magnitude_unit} {what}"
+
+    @property
+    def place(self) -> str:
+        """Where it acts, for titles: "on Chest2", or "on the base" (a base motion)."""
+        return "on the base" if self.kind == "base" else f"on {self.body}"
 
     @property
     def span(self) -> float:
-        """Seconds it acts as configured (an impulse: 0; it acts within one step)."""
+        """Seconds it acts as configured (an impulse: 0; it acts within one step; a recorded
+        series: from its first sample to its last)."""
+        if self.recorded:
+            assert self.record is not None
+            return float(self.record[0][-1] - self.record[0][0])
         return self.duration if self.reads(self.kind, "duration") else 0.0
 
     def acting(self, h: float) -> tuple[float, float]:
-        """Clip seconds [t0, t1) it pushes at step ``h`` (an impulse: the step centred on ``start``)."""
+        """Clip seconds [t0, t1) it pushes at step ``h`` (an impulse: the step centred on ``start``;
+        a recorded series: its samples' span, its time 0 at ``start``)."""
+        if self.recorded:
+            assert self.record is not None
+            t0 = float(self.start) + float(self.record[0][0])
+            return _perturbation.acting_interval(self.kind, t0, self.span, h)
         return _perturbation.acting_interval(self.kind, float(self.start), float(self.duration), h)
+
+
+# The fields a kind cannot go without (a base pulse also needs magnitude; a recorded one a file).
+REQUIRED = {"force": ("body", "magnitude"), "impulse": ("body", "magnitude"), "base": ("unit",)}
 
 
 def onset(perturbations, ball=None, default: float | None = None) -> float:
@@ -430,13 +489,14 @@ class SweepSpec:
     def runs(self, base, others=()) -> list[dict]:
         """Flat list of run descriptions (dicts), gain setting outermost, then the reflex
         setting (key ``reflex``, when the grid varies it), magnitude innermost. Key
-        ``perturbation``: ``base`` (perturbation[0]) with the run's axis values, for the one
-        pulse builder (:func:`neuromotor.physics.perturbation.build_pulses`); ``onset``: the
+        ``perturbation``: ``base`` (perturbation[0]) with the run's axis values;
+        ``perturbations``: it and ``others`` (the config's other perturbations, which every run
+        keeps), for the one builder (:func:`neuromotor.physics.perturbation.build_pulses`); ``onset``: the
         run's :func:`onset` with ``others`` (the config's other perturbations, which every run keeps)."""
         out, base = [], PerturbationSpec.of(base)
         for g in self.gains:
             for rx in self.reflexes or [None]:
-                for body in self.bodies or [base["body"]]:
+                for body in self.bodies or [base.body]:
                     for d in self.directions or [base["direction"]]:
                         for start in self.starts or [base["start"]]:
                             for m in self.magnitudes:
@@ -455,6 +515,7 @@ class SweepSpec:
                                     duration=p.span,
                                     kind=p.kind,
                                     perturbation=p,
+                                    perturbations=[p, *others],
                                     onset=onset([p, *others]),
                                 )
                                 out.append(run if rx is None else dict(run, reflex=rx))

@@ -16,7 +16,8 @@ The file is a plain NumPy ``.npz`` (no pickles). Its fields, by group:
   none), ``metrics_json`` and ``provenance_json`` (JSON strings), the ball's ``ball_pos`` (T, 3)
   and ``ball_radius`` (scalar > 0), which come together, ``contact_force`` (T, C, 3) and
   ``body_names`` (B,), ``deviation`` (T,) the deviation d(t) in degrees that the metrics were
-  computed from and ``deviation_metric`` its definition (a string: ``geodesic`` or ``euler``,
+  computed from, ``base_offset`` (T, 3) the base motion's displacement of the driven root
+  (world, m), and ``deviation_metric`` its definition (a string: ``geodesic`` or ``euler``,
   see :mod:`neuromotor.studies.metrics`; files without them are drawn with the Euler form);
 * body shapes (``SHAPE_FIELDS``, all or none): ``shape_vertices`` (V, 3) in the body frame less
   the body's COM, ``shape_faces`` (F, 3) and ``shape_body`` (V,) integer, with the poses
@@ -62,6 +63,7 @@ OPTIONAL_FIELDS = (
     "body_names",
     "deviation",
     "deviation_metric",
+    "base_offset",
 )
 SHAPE_FIELDS = (
     "shape_vertices",
@@ -320,6 +322,9 @@ class _Checker:
         if "deviation" in d:
             self.shape("deviation", (T,))
             self.finite("deviation")
+        if "base_offset" in d:
+            self.shape("base_offset", (T, 3))
+            self.finite("base_offset")
 
     def ball(self, T):
         d, fail = self.d, self.fail

@@ -332,6 +332,8 @@ class Data(eqx.Module):
 def init_data(sim: SimModel, params: Params) -> Data:
     """Data at t_0: the reference's initial state, zero diagnostics."""
     model, cfg, state = sim.model, sim.options, sim.ref.init
+    if params.pulses.base_velocity is not None:  # a base motion already moving at t_0
+        state = dataclasses.replace(state, vel=state.vel + params.pulses.base_velocity[0])
     _, force, points = pulse_wrenches(params.pulses, sim.ref.time[0], model.n_bodies, state.pos, state.rot, model.com)
     zero = jnp.zeros((), state.pos.dtype)
     lam = jnp.zeros(constraint_count(model, cfg.driven, cfg.free_root), state.pos.dtype)
@@ -454,20 +456,38 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
         applied + stiff.forces(),
         stiff.damping_times(model, state.v.reshape(model.n_bodies, 6)),
     )
+    root_vel = ref.root_vel[k + 1]
+    if params.pulses.base_velocity is not None:  # the base motion moves the driven root's path
+        root_vel = root_vel + params.pulses.base_velocity[k + 1]
     b = constraint_velocity(
-        model, cfg.driven, rot, ref.root_vel[k + 1], ref.root_omega[k + 1], ref.drive_omega[k + 1], cfg.free_root
+        model, cfg.driven, rot, root_vel, ref.root_omega[k + 1], ref.drive_omega[k + 1], cfg.free_root
     )
     return Eq2(solver.assemble(model, cfg, rot, inertia, stiff, cfg.h), r, b, per_body, points, reflex, history)
 
 
+def pose_targets(sim: SimModel, pulses: ForcePulses, k) -> PoseTargets:
+    """What post-stabilization projects onto at grid step k: the capture's driven root and
+    joints, the root moved by the base motion's displacement when there is one."""
+    targets = sim.ref.pose_targets(k)
+    if pulses.base_offset is None:
+        return targets
+    return dataclasses.replace(targets, root_origin=targets.root_origin + pulses.base_offset[k])
+
+
 def integrate(
-    sim: SimModel, solver: solvers.KKTSolver, k, state: State, dx: Float[Array, "B 6"], v_new: Float[Array, "B 6"]
+    sim: SimModel,
+    solver: solvers.KKTSolver,
+    k,
+    state: State,
+    dx: Float[Array, "B 6"],
+    v_new: Float[Array, "B 6"],
+    pulses: ForcePulses,
 ) -> tuple[State, Float[Array, ""]]:
     """Stages 7 and 8: positions move by dx (quaternions by the exponential map), then
     post-stabilization onto the targets of t_k+1. The new state (velocity ``v_new``) and the
     constraint violation left."""
     pos, quat = retract(state.pos, state.quat, dx)
-    pos, quat, cerr = post_stabilize(sim.model, sim.options, solver, pos, quat, sim.ref.pose_targets(k + 1))
+    pos, quat, cerr = post_stabilize(sim.model, sim.options, solver, pos, quat, pose_targets(sim, pulses, k + 1))
     violation = jnp.max(jnp.abs(cerr)) if cerr.size else jnp.zeros((), pos.dtype)
     return State(pos, quat, v_new[:, :3], v_new[:, 3:]), violation
 
@@ -479,7 +499,7 @@ def step(sim: SimModel, params: Params, data: Data) -> Data:
     eq = equations_of_motion(sim, params, data, solver)
     v_new, aux = solver.solve(eq.system, eq.r, eq.b)  # stage 6
     lam, residual = solver.multipliers(eq.system, eq.r, eq.b, v_new, aux)
-    new, violation = integrate(sim, solver, data.k, data.state, cfg.h * v_new, v_new)
+    new, violation = integrate(sim, solver, data.k, data.state, cfg.h * v_new, v_new, params.pulses)
     return Data(data.k + 1, new, StepInfo(residual, violation, eq.force, eq.points, lam / cfg.h, eq.reflex), eq.history)
 
 

@@ -1,4 +1,4 @@
-"""External perturbations: force pulses and impulses at points on named bodies.
+"""External perturbations: force pulses and impulses at points on named bodies, and the base motion.
 
 A pulse on body b at body-frame point p (metres, relative to the body's joint origin) applies
 the world force ``F(t) = magnitude * direction * shape((t - start) / duration)`` at the moving
@@ -7,9 +7,19 @@ point, i.e. force F on the body and torque ``(x_p - c_b) x F`` about its COM. Sh
 ``magnitude`` N s is a square pulse of one time step and magnitude / h newtons, applied in the
 step that starts at the grid time nearest ``start``.
 
+A base motion (kind ``base``: a sled, a vehicle, a platform) adds a prescribed acceleration a(t)
+to the driven root's path, and through the root and the driven joints to every driven body: a
+pulse of ``magnitude`` (m/s^2) along ``direction`` with a shape, or a recorded series (piecewise
+linear between its samples, zero outside them). The feedforward stays the capture's (the person
+does not anticipate the jolt). On the grid t_k it is the root's added velocity V_k = int a dt
+(exact for both forms) and displacement D_k, with D_0 = 0 and D_k+1 = D_k + h V_k+1: the step's
+own position update, so a base-motion run equals the unperturbed frame's run under the inertial
+forces -m_b (V_k+1 - V_k) / h on every body to round-off (tests/physics/test_base_motion.py).
+
 Every field is an array leaf with a leading axis P (several pulses per run; the shape too, as an
 index into :data:`SHAPES`), so a batch of magnitudes, directions, bodies, start times or shapes is
-a ``vmap`` over this container, and runs that differ only in their pulses share one program.
+a ``vmap`` over this container, and runs that differ only in their pulses share one program. The
+base motion is two (S+1, 3) leaves on the grid (None without one: the step is today's).
 """
 
 from __future__ import annotations
@@ -17,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
@@ -24,18 +35,27 @@ from jaxtyping import Array, Float, Int
 from neuromotor.rotations import mv
 
 SHAPES = ("square", "half_sine", "triangle")
-# Each kind: the fields it reads beside body, point, direction, magnitude and start (the config
-# refuses the others), and its magnitude's unit. A force pulse has a shape and duration; an
-# impulse acts within one step.
-KIND_FIELDS = {"force": ("duration", "shape"), "impulse": ()}
-UNITS = {"force": "N", "impulse": "N s"}
+# Each kind: the fields it reads (the config refuses the others), and its magnitude's unit (a base
+# motion's is its ``unit`` field: g or m/s^2). A force pulse has a shape and duration; an impulse
+# acts within one step; a base motion moves no body point but the driven root's path, as a pulse
+# or as a recorded series (``file``, whose samples replace magnitude, shape and duration).
+KIND_FIELDS = {
+    "force": ("body", "point", "direction", "magnitude", "start", "duration", "shape"),
+    "impulse": ("body", "point", "direction", "magnitude", "start"),
+    "base": ("direction", "magnitude", "start", "duration", "shape", "file", "unit", "time_unit"),
+}
+UNITS = {"force": "N", "impulse": "N s", "base": "m/s^2"}
 KINDS = tuple(KIND_FIELDS)
+STANDARD_GRAVITY = 9.80665  # m/s^2 per g (the unit of accelerations, not the model's gravity)
+ACCELERATION_UNITS = {"g": STANDARD_GRAVITY, "m/s^2": 1.0}  # SI per unit
+TIME_UNITS = {"s": 1.0, "ms": 1e-3}
 
 
 def acting_interval(kind: str, start: float, duration: float, h: float) -> tuple[float, float]:
     """Clip seconds [t0, t1) a perturbation of ``kind`` pushes: an impulse the one step centred
     on ``start`` (exactly one sample of the time grid falls inside, whatever the round-off of
-    t_k = t_0 + k h), a force pulse its ``duration`` from ``start``."""
+    t_k = t_0 + k h), a force pulse or base pulse its ``duration`` from ``start`` (a recorded
+    base series: ``start`` is its first sample, ``duration`` its span)."""
     if kind == "impulse":
         return start - 0.5 * h, start + 0.5 * h
     return start, start + duration
@@ -49,6 +69,10 @@ class ForcePulses(eqx.Module):
     start: Float[Array, " P"]  # s
     duration: Float[Array, " P"]  # s
     shape: Int[Array, " P"]  # index into SHAPES
+    # The base motion on the grid t_0..t_S (world, m/s and m): the driven root's added velocity
+    # V_k and displacement D_k; None: no base motion.
+    base_velocity: Float[Array, "S1 3"] | None = None
+    base_offset: Float[Array, "S1 3"] | None = None
 
     @property
     def count(self) -> int:
@@ -74,7 +98,7 @@ def vector_direction(value, time: float) -> np.ndarray:
     return direction / norm
 
 
-def build_pulses(specs, model, h: float, body_index, direction_of=vector_direction) -> ForcePulses:
+def build_pulses(specs, model, h: float, body_index, direction_of=vector_direction, times=None) -> ForcePulses:
     """The one way from the user's perturbations to the arrays the step consumes.
 
     ``specs``: mappings with every field of :class:`neuromotor.config.specs.PerturbationSpec`
@@ -82,8 +106,20 @@ def build_pulses(specs, model, h: float, body_index, direction_of=vector_directi
     not here). ``point`` None is the body's COM (``model.com``); an impulse (N s) becomes a
     square pulse of one step ``h`` and magnitude / h newtons. ``body_index`` maps a name to an
     index; ``direction_of(value, start)`` a direction (3 numbers or a keyword of the character's
-    frame, taken at the perturbation's start) to a world unit vector.
+    frame, taken at the perturbation's start) to a world unit vector. Base motions need the grid
+    ``times`` (t_0..t_S, s; :func:`base_motion`).
     """
+    bases = [s for s in specs if s["kind"] == "base"]
+    pulses = _force_pulses([s for s in specs if s["kind"] != "base"], model, h, body_index, direction_of)
+    if not bases:
+        return pulses
+    if times is None:
+        raise ValueError("a base motion needs the simulation grid (times)")
+    velocity, offset = base_motion(bases, np.asarray(times, np.float64), h, direction_of)
+    return dataclasses.replace(pulses, base_velocity=jnp.asarray(velocity), base_offset=jnp.asarray(offset))
+
+
+def _force_pulses(specs, model, h: float, body_index, direction_of) -> ForcePulses:
     if not specs:
         return no_pulses()
     rows = [_pulse(s, model, h, body_index, direction_of) for s in specs]
@@ -106,13 +142,85 @@ def _pulse(s, model, h: float, body_index, direction_of) -> tuple:
     direction = direction_of(s["direction"], float(s["start"]))  # host arrays: a sweep builds one per run
     b = body_index(s["body"])
     point = np.asarray(model.com[b] if s["point"] is None else s["point"], np.float64)
-    magnitude, start, duration, shape = float(s["magnitude"]), float(s["start"]), float(s["duration"]), s["shape"]
+    magnitude, start = float(s["magnitude"]), float(s["start"])
+    duration, shape = float(s.get("duration", h)), s.get("shape", "square")  # an impulse has neither
     if s["kind"] == "impulse":  # N s as a square pulse of magnitude / h over its acting step
         start = acting_interval("impulse", start, duration, h)[0]
         magnitude, duration, shape = magnitude / h, h, "square"
     if shape not in SHAPES:
         raise ValueError(f"perturbation shape must be one of {SHAPES}, got {shape!r}")
     return (b, point, direction, magnitude, start, float(duration), shape)
+
+
+def profile_integral(shape: str, s) -> np.ndarray:
+    """int_0^s of the unit-peak profile of ``shape`` (phase units; s clipped to [0, 1])."""
+    c = np.clip(np.asarray(s, np.float64), 0.0, 1.0)
+    if shape == "square":
+        return c
+    if shape == "half_sine":
+        return (1.0 - np.cos(np.pi * c)) / np.pi
+    if shape == "triangle":
+        return np.where(c <= 0.5, c * c, 2.0 * c - c * c - 0.5)
+    raise ValueError(f"perturbation shape must be one of {SHAPES}, got {shape!r}")
+
+
+def series_integral(t_rec, a_rec, t) -> np.ndarray:
+    """int_-inf^t a of the piecewise linear series (t_rec, a_rec), zero outside its samples."""
+    t_rec, a_rec, t = (np.asarray(x, np.float64) for x in (t_rec, a_rec, t))
+    dt = np.diff(t_rec)
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * dt * (a_rec[1:] + a_rec[:-1]))])
+    i = np.clip(np.searchsorted(t_rec, t, side="right") - 1, 0, len(t_rec) - 2)
+    u = np.clip(t, t_rec[i], t_rec[i + 1]) - t_rec[i]
+    inside = cum[i] + a_rec[i] * u + 0.5 * (a_rec[i + 1] - a_rec[i]) / dt[i] * u * u
+    return np.where(t < t_rec[0], 0.0, np.where(t >= t_rec[-1], cum[-1], inside))
+
+
+def base_motion(specs, times: np.ndarray, h: float, direction_of=vector_direction) -> tuple[np.ndarray, np.ndarray]:
+    """The driven root's added velocity V_k and displacement D_k on the grid ``times`` (S+1,) of
+    the base motions ``specs`` (module docstring): V_k exact, D_0 = 0, D_k+1 = D_k + h V_k+1."""
+    velocity = np.zeros((times.shape[0], 3))
+    for s in specs:
+        scale = ACCELERATION_UNITS[s["unit"]]
+        direction = direction_of(s["direction"], float(s["start"]))
+        if s.get("file") is not None:
+            t_rec, a_rec = s["record"]
+            dv = series_integral(float(s["start"]) + np.asarray(t_rec), np.asarray(a_rec) * scale, times)
+        else:
+            duration = float(s["duration"])
+            phase = (times - float(s["start"])) / duration
+            dv = float(s["magnitude"]) * scale * duration * profile_integral(s["shape"], phase)
+        velocity += dv[:, None] * direction
+    offset = np.concatenate([np.zeros((1, 3)), h * np.cumsum(velocity[1:], axis=0)], 0)
+    return velocity, offset
+
+
+def stack_runs(runs) -> ForcePulses:
+    """Runs' perturbations stacked along a new leading axis: runs with fewer pulses are padded
+    with zero-magnitude ones (no force), runs without a base motion get a zero one when another
+    has one, so cases of any kinds share one program."""
+    n = max(r.count for r in runs)
+    grid = next((r.base_velocity.shape for r in runs if r.base_velocity is not None), None)
+    padded = []
+    for r in runs:
+        extra = n - r.count
+        if extra:
+            pad = ForcePulses(
+                jnp.zeros((extra,), jnp.int32),
+                jnp.zeros((extra, 3)),
+                jnp.tile(jnp.asarray([[1.0, 0.0, 0.0]]), (extra, 1)),
+                jnp.zeros((extra,)),
+                jnp.zeros((extra,)),
+                jnp.ones((extra,)),
+                jnp.zeros((extra,), jnp.int32),
+            )
+            r = dataclasses.replace(r, **{f: jnp.concatenate([getattr(r, f), getattr(pad, f)]) for f in POINT_FIELDS})
+        if grid is not None and r.base_velocity is None:
+            r = dataclasses.replace(r, base_velocity=jnp.zeros(grid), base_offset=jnp.zeros(grid))
+        padded.append(r)
+    return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *padded)
+
+
+POINT_FIELDS = ("body", "point", "direction", "magnitude", "start", "duration", "shape")  # the P-axis leaves
 
 
 def replace_first(p: ForcePulses, first: ForcePulses) -> ForcePulses:
@@ -126,13 +234,19 @@ def replace_first(p: ForcePulses, first: ForcePulses) -> ForcePulses:
                 ]
             )
             for f in dataclasses.fields(p)
-        }
+            if f.name in POINT_FIELDS
+        },
     )
 
 
 def unperturbed(p: ForcePulses) -> ForcePulses:
-    """The unperturbed twin: the same pulses at zero magnitude (same shapes, one program)."""
-    return dataclasses.replace(p, magnitude=p.magnitude * 0)
+    """The unperturbed twin: the same pulses at zero magnitude and a zero base motion (same
+    shapes, one program)."""
+    if p.base_velocity is None or p.base_offset is None:
+        return dataclasses.replace(p, magnitude=p.magnitude * 0)
+    return dataclasses.replace(
+        p, magnitude=p.magnitude * 0, base_velocity=p.base_velocity * 0, base_offset=p.base_offset * 0
+    )
 
 
 def pulse_profile(shape, s):

@@ -85,7 +85,7 @@ def _hit(cfg: SimulationConfig) -> tuple[dict, str]:
     """The hit as configured (metrics.json) and as a title names it."""
     if cfg.perturbations:
         p = cfg.perturbations[0]
-        return dict(p), f"{p.label()} on {p.body}"
+        return dict(p), f"{p.label()} {p.place}"
     assert cfg.ball is not None  # the parser requires a perturbation or a ball
     aim = f" at {cfg.ball.target}" if cfg.ball.target is not None else ""
     return {"kind": "ball", **dict(cfg.ball)}, cfg.ball.label() + aim

@@ -209,6 +209,8 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
     arrays["facing"] = facing_direction(
         arrays["skeleton_points_unperturbed"], arrays["skeleton_edges"], int(arrays["up_axis"]), forward
     )
+    if setup.pulses.base_offset is not None:  # the driven root's added path (world, m): the sled's
+        arrays["base_offset"] = np.asarray(setup.pulses.base_offset)[: arrays["time"].shape[0]]
     if getattr(result, "ball", None) is not None:
         from neuromotor.studies.ball_hit import ball_arrays
 
@@ -247,27 +249,42 @@ def _floats(a):
 
 def _perturbation_records(setup: Setup) -> list[dict]:
     """Each perturbation as configured (an impulse in N s, not the one-step pulse the step
-    applies), with its resolved body and point."""
+    applies), with its resolved body, point and world direction; a base motion with its unit,
+    its file and the span it acts over."""
+    from neuromotor.studies.simulate import direction_lookup
+
     p, names = setup.pulses, setup.model.body_names
-    perts = []
-    for i, spec in enumerate(setup.config.perturbations):
-        b = int(np.asarray(p.body)[i])
+    direction_of = direction_lookup(setup.character, setup.config.source)
+    perts, row = [], 0
+    for spec in setup.config.perturbations:
+        common = {
+            "kind": spec.kind,
+            "magnitude": float(spec.magnitude or 0.0),
+            "unit": spec.magnitude_unit,
+            "start": float(spec.start),
+            "duration": float(spec.span),  # an impulse: 0 (it acts within one step)
+            "shape": spec.shape if spec.reads(spec.kind, "shape") and not spec.recorded else None,
+        }
+        if spec.kind == "base":
+            direction = direction_of(spec.direction, float(spec.start))
+            acting = spec.acting(setup.options.h)
+            extra = {"file": spec.file, "acting": [float(acting[0]), float(acting[1])]} if spec.recorded else {}
+            perts.append({**common, "direction": _floats(direction), "direction_given": spec.direction, **extra})
+            continue
+        b = int(np.asarray(p.body)[row])
         perts.append(
             {
-                "kind": spec.kind,
+                **common,
                 "body_requested": spec.body,
                 "body": names[b],
                 "body_index": b,
-                "point": _floats(np.asarray(p.point)[i]),
+                "point": _floats(np.asarray(p.point)[row]),
                 "point_given": spec.point is not None,
-                "direction": _floats(np.asarray(p.direction)[i]),
-                "magnitude": float(spec.magnitude),
-                "unit": spec.unit,
-                "start": float(spec.start),
-                "duration": float(spec.span),  # an impulse: 0 (it acts within one step)
-                "shape": spec.shape if spec.reads(spec.kind, "shape") else None,
+                "direction": _floats(np.asarray(p.direction)[row]),
+                "direction_given": spec.direction,
             }
         )
+        row += 1
     return perts
 
 

@@ -137,7 +137,7 @@ def paths_from_config(path, output, figure=None) -> tuple[PathComparison, dict[s
     curves = {label: comp.curves[n] for label, n in labels.items()}
     metrics = {label: comp.metrics[n] for label, n in labels.items()}
     hit = cfg.perturbations[0]
-    title = f"{hit.label()} on {hit.body} at {hit.start:g} s"
+    title = f"{hit.label()} {hit.place} at {hit.start:g} s"
     for key, target in (("plot", out / "paths.png"), ("figure", figure)):
         if target is not None:
             files[key] = plot_deviation_paths(comp.time, curves, target, comp.hit_start, title, metrics)
@@ -164,7 +164,7 @@ def stability_grid(
     cfg = cfg if cfg.reflex is not None else dataclasses.replace(cfg, reflex=ReflexSpec())
     assert cfg.reflex is not None
     spec = SweepSpec(
-        [cfg.perturbations[0].magnitude],
+        [float(cfg.perturbations[0].magnitude or 0.0)],
         [cfg.gains],
         chunk=chunk,
         inner_batch=inner_batch,
@@ -191,7 +191,7 @@ def implicit_reference(
     c = (cfg.reflex or ReflexSpec()).rate_weight
     base = dataclasses.replace(cfg, reflex=None)
     settings = [GainSetting(cfg.ks + g, cfg.kd + g * c, label=f"implicit +{g:g}") for g in gains]
-    spec = SweepSpec([cfg.perturbations[0].magnitude], settings, chunk=chunk, inner_batch=inner_batch)
+    spec = SweepSpec([float(cfg.perturbations[0].magnitude or 0.0)], settings, chunk=chunk, inner_batch=inner_batch)
     rows = simulate_grid(base, spec, setup or prepare(base), progress=progress).rows
     return [
         dict(
@@ -272,7 +272,7 @@ def stability_from_config(
     hit = cfg.perturbations[0]
     assert cfg.reflex is not None  # the config's reflex axes need a [reflex] table (config.parse)
     title = (
-        f"{hit.label()} on {hit.body} at {hit.start:g} s; muscle feedback ks={cfg.ks:g}, "
+        f"{hit.label()} {hit.place} at {hit.start:g} s; muscle feedback ks={cfg.ks:g}, "
         f"kd={cfg.kd:g} beside the delayed path (rate weight {cfg.reflex.rate_weight:g} s)"
     )
     for key, target in (("plot", out / "stability.png"), ("figure", figure)):

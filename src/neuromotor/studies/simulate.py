@@ -146,7 +146,7 @@ class ActingWindow:
     def check(self, p, body_field: str, start_field: str) -> None:
         """ConfigError (naming the field) when perturbation ``p`` cannot act."""
         p = PerturbationSpec.of(p)
-        if self.index(p["body"]) in self.driven:
+        if p.body is not None and self.index(p.body) in self.driven:
             raise ConfigError(
                 f"{self.source}: field '{body_field}' = {p['body']!r} is a driven body (the root "
                 f"always is; [sim] driven_joints adds more): a push on it does nothing"
@@ -220,7 +220,9 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     gains = gains_for(template, config.gains, reflex=None if config.reflex is None else config.reflex.build(config.h))
     ball = ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
-    pulses = build_pulses(config.perturbations, model, config.h, index, direction_lookup(character, config.source))
+    pulses = build_pulses(
+        config.perturbations, model, config.h, index, direction_lookup(character, config.source), ref.time
+    )
     return Setup(character, traj, ref, gains, options, pulses, config, ball, warnings, window)
 
 

@@ -126,6 +126,8 @@ class Scene:
         sampled value at k (a half-sine's samples are below its peak)."""
         t = float(self.time[k])
         for p in (self.provenance or {}).get("perturbations", []):
+            if p.get("kind") == "base":  # moves the driven root: no force is drawn for it
+                continue
             try:
                 start, dur, mag = float(p["start"]), float(p["duration"]), float(p["magnitude"])
             except (KeyError, TypeError, ValueError):

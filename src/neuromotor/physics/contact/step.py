@@ -359,7 +359,7 @@ def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: Conta
     p, slack = contact_impulses(resp, imp, scene.ball, scene.settings, data.warm[frame.sel])
     mo = motion(frame, resp, imp, p, free, scene.settings, h)
     n = model.n_bodies
-    new, violation = integrate(sim, solver, k, state, mo.d_char.reshape(n, 6), mo.v_char.reshape(n, 6))
+    new, violation = integrate(sim, solver, k, state, mo.d_char.reshape(n, 6), mo.v_char.reshape(n, 6), params.pulses)
     record = contact_info(model, scene, h, data, free, frame, resp, imp, p, slack)
     return ContactData(
         k + 1,

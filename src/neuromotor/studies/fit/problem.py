@@ -18,7 +18,7 @@ from neuromotor.errors import ConfigError
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Params, Reference, Rollout, SimModel, StepOptions, simulate
-from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
+from neuromotor.physics.perturbation import ForcePulses, build_pulses, stack_runs, unperturbed
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.fit import parameters as fp
 from neuromotor.studies.fit.surrogate import acceleration_deg, deviation_deg, joint_acceleration_deg, response_features
@@ -158,10 +158,11 @@ def make_problem(
         raise ConfigError(f"{cfg.source}: a fit needs at least one [[perturbation]] (one per case)")
     index = body_lookup(setup.model, cfg.source, setup.character)
     direction_of = direction_lookup(setup.character, cfg.source)
-    per_case = [build_pulses([s], setup.model, setup.options.h, index, direction_of) for s in specs]
+    times = np.asarray(setup.ref.time)
+    per_case = [build_pulses([s], setup.model, setup.options.h, index, direction_of, times) for s in specs]
     if kind == "features":
         per_case = per_case + [unperturbed(per_case[0])]
-    batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *per_case)
+    batch = jax.tree_util.tree_map(jnp.asarray, stack_runs(per_case))  # cases of any kinds: one program
     sim_time = np.asarray(setup.ref.time[: setup.options.n_steps + 1])
     if window is None:
         window = (float(sim_time[0]), float(sim_time[-1]))

@@ -149,6 +149,8 @@ def simulate_grid(
         )
     index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'", setup.character)  # names or segment keywords
     hit = cfg.perturbations[0]
+    if hit.kind == "base" and spec.bodies:
+        raise ConfigError(f"{cfg.source}: field 'sweep.bodies': perturbation[0] is a base motion, which pushes no body")
     for i, b in enumerate(spec.bodies or []):  # every row of the grid can act (the rule of prepare)
         index(b)
         setup.window.check(dataclasses.replace(hit, body=b), f"sweep.bodies[{i}]", "perturbation[0].start")
@@ -174,7 +176,7 @@ def _gains_map_title(cfg, spec: SweepSpec, name: str) -> str:
         return name + f": {spec.magnitudes[0]:g} m/s ball {aim}, launched at {cfg.ball.launch:g} s"
     if len(spec.magnitudes) == 1:
         hit = cfg.perturbations[0]
-        return name + f": {hit.label(spec.magnitudes[0])} on {hit.body} at {hit.start:g} s"
+        return name + f": {hit.label(spec.magnitudes[0])} {hit.place} at {hit.start:g} s"
     return name
 
 

@@ -13,7 +13,7 @@ from jaxtyping import Array, Float, Int
 
 from neuromotor.errors import ConfigError
 from neuromotor.physics.control import Gains
-from neuromotor.physics.perturbation import ForcePulses, build_pulses, replace_first, vector_direction
+from neuromotor.physics.perturbation import ForcePulses, build_pulses, replace_first, stack_runs, vector_direction
 from neuromotor.physics.reflex import Reflex
 from neuromotor.studies.gains import gains_for
 
@@ -118,12 +118,15 @@ def build_batch(
     h: float,
     model,
     direction_of=vector_direction,
+    times=None,
 ) -> RunBatch:
-    """Batched gains and pulses for ``runs``: pulse 0 of the template is each run's
-    ``perturbation`` (its spec with the grid's axes applied) through the one builder,
-    :func:`~neuromotor.physics.perturbation.build_pulses` at step ``h`` on ``model``; the
-    reflex, for runs that carry one, is built at step ``h``."""
-    if template_pulses.count == 0:
+    """Batched gains and perturbations for ``runs``: each run's ``perturbations`` (its varied
+    ``perturbation`` with the grid's axes applied, then the config's others; a run without the
+    key varies pulse 0 of ``template_pulses``) through the one builder,
+    :func:`~neuromotor.physics.perturbation.build_pulses` at step ``h`` on ``model`` and the
+    grid ``times`` (a base motion needs them); the reflex, for runs that carry one, is built
+    at step ``h``."""
+    if template_pulses.count == 0 and template_pulses.base_velocity is None:
         raise ConfigError("a sweep needs at least one [[perturbation]] to vary")
     settings = {}
     for r in runs:
@@ -132,16 +135,18 @@ def build_batch(
             settings[key] = run_controller(template_gains, r, h)
     gains = _stack([settings[(r["gain"], r.get("reflex"))] for r in runs])
     rows = [
-        replace_first(template_pulses, build_pulses([r["perturbation"]], model, h, body_index, direction_of))
+        build_pulses(r["perturbations"], model, h, body_index, direction_of, times)
+        if "perturbations" in r
+        else replace_first(template_pulses, build_pulses([r["perturbation"]], model, h, body_index, direction_of))
         for r in runs
     ]
-    return RunBatch(gains, _stack(rows))
+    return RunBatch(gains, stack_runs(rows))
 
 
 def gain_keys(batch: RunBatch) -> tuple[np.ndarray, np.ndarray]:
     """Index of the first run with identical gains (the baseline to share) and each run's slot."""
     leaves = [
-        np.asarray(x).reshape(len(np.asarray(batch.pulses.magnitude)), -1)
+        np.asarray(x).reshape(np.asarray(batch.pulses.magnitude).shape[0], -1)
         for x in jax.tree_util.tree_leaves(batch.gains)
     ]
     flat = np.concatenate(leaves, axis=1)

@@ -99,6 +99,7 @@ class Sweeper:
             options = dataclasses.replace(options, solver=options.solver.batched())
         self.options, self.n_steps = options, options.n_steps
         self.model = model  # host copy: the one pulse builder reads each body's COM
+        self.times = np.asarray(ref.time)  # host copy: the grid a base motion is built on
         arrays, static = eqx.partition(model, eqx.is_array)
         self.shared = jax.tree_util.tree_map(lambda x: _put(x, self.mesh, P()), (arrays, ref))
         self._simulate = self._program(static)
@@ -203,8 +204,9 @@ def run_sweep(
     ``direction_of`` resolves a direction keyword (:func:`~neuromotor.studies.simulate.direction_lookup`)."""
     from tqdm.auto import tqdm
 
-    batch = build_batch(gains, pulses, runs, body_index, sweeper.options.h, sweeper.model, direction_of)
-    directions = np.asarray(batch.pulses.direction)[:, 0]  # the world vectors the runs used
+    times = sweeper.times
+    batch = build_batch(gains, pulses, runs, body_index, sweeper.options.h, sweeper.model, direction_of, times)
+    directions = [run_direction(r, direction_of) for r in runs]  # the world vectors the runs used
     first, slot = gain_keys(batch)
     # Baselines: the distinct gain settings without any pulse, simulated with the same program.
     base = jax.tree_util.tree_map(lambda x: np.asarray(x)[first], batch)
@@ -221,7 +223,7 @@ def run_sweep(
             "ks": g.ks,
             "kd": g.kd,
             **reflex_columns(r, gains.reflex),
-            "body": r["body"],
+            "body": r["body"] or "",  # a base motion pushes no body
             "magnitude": r["magnitude"],
             "direction_x": float(d[0]),
             "direction_y": float(d[1]),
@@ -237,6 +239,12 @@ def run_sweep(
     return sweep_batches(
         sweeper, batch, base, slot, row, lambda out: body_names[int(out["diverged_body"])], bar, keep_curves
     )
+
+
+def run_direction(run: dict, direction_of) -> np.ndarray:
+    """The world unit direction of a run's varied perturbation (a keyword resolved at its start)."""
+    p = run["perturbation"]
+    return np.asarray(direction_of(p["direction"], float(p["start"])))
 
 
 def flag_divergence(row: dict, step: int, base_step: int, time, body) -> dict:
