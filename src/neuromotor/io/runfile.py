@@ -17,7 +17,9 @@ The file is a plain NumPy ``.npz`` (no pickles). Its fields, by group:
   and ``ball_radius`` (scalar > 0), which come together, ``contact_force`` (T, C, 3) and
   ``body_names`` (B,), ``deviation`` (T,) the deviation d(t) in degrees that the metrics were
   computed from and ``deviation_metric`` its definition (a string: ``geodesic`` or ``euler``,
-  see :mod:`neuromotor.studies.metrics`; files without them are drawn with the Euler form);
+  see :mod:`neuromotor.studies.metrics`; files without them are drawn with the Euler form),
+  ``clip_still`` (scalar, s) the clip time of the pose a ``[sim] still`` run holds (absent: the
+  clip plays, ``time`` is clip time);
 * body shapes (``SHAPE_FIELDS``, all or none): ``shape_vertices`` (V, 3) in the body frame less
   the body's COM, ``shape_faces`` (F, 3) and ``shape_body`` (V,) integer, with the poses
   ``body_pos`` (T, B, 3), ``body_quat`` (T, B, 4, w x y z) and their ``_unperturbed`` twins.
@@ -62,6 +64,7 @@ OPTIONAL_FIELDS = (
     "body_names",
     "deviation",
     "deviation_metric",
+    "clip_still",
 )
 SHAPE_FIELDS = (
     "shape_vertices",
@@ -320,6 +323,10 @@ class _Checker:
         if "deviation" in d:
             self.shape("deviation", (T,))
             self.finite("deviation")
+        if "clip_still" in d:
+            v = d["clip_still"]
+            if v.shape != () or v.dtype.kind not in "fiu" or not (np.isfinite(v) and float(v) >= 0):
+                fail("clip_still", f"must be a clip time: a scalar >= 0, got {d['clip_still']!r}")
 
     def ball(self, T):
         d, fail = self.d, self.fail
