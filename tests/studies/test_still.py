@@ -18,7 +18,7 @@ from neuromotor.rotations import quat_to_matrix
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.simulate import deviation_curve, prepare, run, simulate_jit, window_steps
 
-FRAME = 150  # the held frame of the MocapBank clip (1.25 s at 120 Hz): mid-stride, arms swinging
+FRAME = 150  # the held frame of the MocapBank clip (5 s at 30 Hz: a crouch, hips at half standing height)
 PUSH = dict(DEFAULT_HIT, body="chest", magnitude=400.0, start=0.2, direction="forward")
 
 
@@ -29,10 +29,10 @@ def bank():
 
 @pytest.fixture(scope="module")
 def still(bank):
-    """The still pose unperturbed (a run of its own) and pushed (run(): both rollouts)."""
+    """The still pose, legs held, unperturbed (a run of its own) and pushed (run(): both rollouts)."""
     character, traj = bank
     t = FRAME * character.clip.frame_time
-    quiet = prepare(SimulationConfig(still=t, duration=1.5), character, traj)
+    quiet = prepare(SimulationConfig(still=t, duration=1.5, driven_joints=["legs"]), character, traj)
     pushed = prepare(dataclasses.replace(quiet.config, perturbations=[PUSH]), character, traj)
     return quiet, simulate_jit(quiet.sim_model, quiet.params), pushed, run(pushed)
 
@@ -124,3 +124,35 @@ def test_still_windows_and_their_errors(bank):
 def test_still_field_is_checked_when_parsed(value, message):
     with pytest.raises(ConfigError, match=rf"^cfg.toml: field 'sim.still' {message}"):
         simulation_config({"sim": {"still": value}}, "cfg.toml")
+
+
+def test_a_still_run_file_records_and_exports_the_held_pose(bank, still, tmp_path):
+    """RUN.npz records the held clip time and the driven bodies by name (the keyword resolved);
+    export-bvh writes the pose of that clip time: the root and the driven legs stay on the
+    file's frame while the pushed upper body moves."""
+    import json
+
+    from neuromotor.io.export import export_bvh
+    from neuromotor.io.runfile import save_npz_atomic
+    from neuromotor.model.bvh import read_bvh
+    from neuromotor.studies.record import run_arrays
+
+    character, _ = bank
+    _, _, pushed, result = still
+    arrays = run_arrays(pushed, result)
+    t = FRAME * character.clip.frame_time
+    assert float(arrays["clip_still"]) == t
+    prov = json.loads(str(arrays["provenance_json"]))
+    legs = [n for n in character.model.body_names if n.endswith(("Hip", "Knee", "Ankle"))]
+    assert prov["still"] == t and prov["driven_joints"] == legs and prov["driven_joints_requested"] == ["legs"]
+    save_npz_atomic(tmp_path / "run.npz", arrays)
+    out = read_bvh(export_bvh(tmp_path / "run.npz", tmp_path / "run.bvh"), units=1.0)
+    source = read_bvh(CLIPS["mocapbank"], units=1.0)
+    pos, _, ends = forward_kinematics(out)
+    want, _, want_ends = forward_kinematics(source, [FRAME])
+    held = [0] + [source.joint_index(n) for n in legs]
+    scale = float(np.abs(want[0]).max())
+    assert np.abs(pos[:, held] - want[:, held]).max() < 1e-5 * scale
+    assert np.abs(ends[:, held] - want_ends[:, held]).max() < 1e-5 * scale
+    arm = source.joint_index("LeftWrist")
+    assert np.abs(pos[:, arm] - want[:, arm]).max() > 1e-3 * scale  # the push moved the free upper body
