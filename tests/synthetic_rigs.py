@@ -439,3 +439,17 @@ def spin_root(text: str, rate: float, up: str = "Y") -> str:
         data[:, rcols] = (turn * Rotation.from_euler(order, data[:, rcols], degrees=True)).as_euler(order, degrees=True)
     body = [" ".join(f"{x:.10f}" for x in row) for row in data]
     return "\n".join(lines[: motion + 3] + body) + "\n"
+
+
+def chain_text(links: int = 3, frames: int = 40) -> str:
+    """A BVH chain of ``links`` links under a 6-channel root, swaying: no limbs, so the anatomy
+    labels every joint trunk (a rig without arms, legs or head)."""
+    text = ["HIERARCHY", "ROOT Base", "{", "OFFSET 0 0 0",
+            "CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation"]
+    for k in range(links):
+        text += [f"JOINT Seg{k + 1}", "{", "OFFSET 0 0.3 0", "CHANNELS 3 Zrotation Xrotation Yrotation"]
+    text += ["End Site", "{", "OFFSET 0 0.3 0", "}"] + ["}"] * (links + 1)
+    motion = [[0, 0.5, 0, 0, 0, 0] + list(10 * np.sin(0.2 * t + np.arange(3 * links))) for t in range(frames)]
+    text += ["MOTION", f"Frames: {frames}", "Frame Time: 0.0333333"]
+    text += [" ".join(f"{v:.4f}" for v in row) for row in motion]
+    return "\n".join(text) + "\n"

@@ -86,3 +86,32 @@ def test_bench_runs_on_any_rig_with_the_clip_options():
     model = setup.model
     assert model.body_names[int(setup.pulses.body[0])] == "Chest" and model.n_bodies == 19
     assert setup.character.anatomy.units == "cm" and float(model.gravity[1]) == -9.81
+
+
+@pytest.mark.parametrize(
+    "sim, needle",
+    [
+        ("still = 99.0", "field 'sim.still' = 99 s is outside the clip (0 to 15.133 s)"),
+        ("still = -1.0", "field 'sim.still' must be >= 0, got -1.0"),
+        ('still = "noon"', "field 'sim.still' must be a finite number, got 'noon'"),
+        ('driven_joints = ["trunk", "tail"]', "field 'sim.driven_joints[1]' = 'tail' matches no body; bodies are "),
+        ('driven_joints = ["arms"]', "field 'sim.driven_joints[0]' = 'arms' matches no body on this rig"),
+    ],
+)
+def test_bad_still_and_driven_joints_are_one_line_errors(sim, needle, tmp_path, capsys):
+    """[sim] still outside the clip, negative or not a number, and a driven_joints entry that
+    matches nothing (a name, or a group this rig lacks: a chain has no arms): exit 2, one line
+    naming the file and the field, no run file."""
+    from synthetic_rigs import chain_text
+
+    clip = ""
+    if "arms" in sim:
+        (tmp_path / "chain.bvh").write_text(chain_text())
+        clip = 'clip = "chain.bvh"\n'
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(f"{clip}[sim]\nduration = 0.5\n{sim}\n")
+    out = tmp_path / "run.npz"
+    assert main(["simulate", str(cfg), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and str(cfg) in err and needle in err, err
+    assert "Traceback" not in err and not out.exists()

@@ -13,9 +13,18 @@ Simulation config (every table and key optional)::
     [sim]
     h = 0.008333333333333333       # time step (s)
     start = 0.0                    # clip time of the first step (s)
-    duration = 3.0                 # simulated seconds (default: to the clip's end)
+    duration = 3.0                 # simulated seconds (default: to the clip's end; with still,
+                                   # the clip's duration, and any duration is allowed)
+    still = 1.25                   # optional: the capture's pose at this clip time (s), held
+                                   # still with zero velocity over the whole window (the
+                                   # feedforward holds it against gravity); start and the
+                                   # perturbations' times are then the window's own clock
     implicit = true                # linearly implicit step (false: K = D = 0)
-    driven_joints = []             # joints driven along the mocap like the root
+    driven_joints = []             # bodies driven along the mocap like the root: body names or
+                                   # trunk | pelvis | legs | arms | head (every body with those
+                                   # segment labels, as `neuromotor inspect` prints them) or a
+                                   # single body: chest | left_hand ...; ["trunk", "pelvis"]:
+                                   # a belted torso on any rig
     stabilization_steps = 2        # Newton steps of post-stabilization per step (1..5): 2 (a
                                    # projection, then a closing step) reach round-off; 1 (the
                                    # projection only, as Cline & Pai) leaves up to ~4e-8 m

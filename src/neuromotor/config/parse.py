@@ -254,6 +254,7 @@ def _sim_fields(top: Fields) -> dict:
         h=sim.number("h", d("h"), positive=True),
         start=sim.number("start", d("start"), nonneg=True),
         duration=sim.number("duration", None, positive=True),
+        still=sim.number("still", None, nonneg=True),
         implicit=sim.boolean("implicit", d("implicit")),
         driven_joints=sim.string_list("driven_joints", []),
     )

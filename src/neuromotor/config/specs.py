@@ -336,9 +336,10 @@ class SimulationConfig:
     simulate_extremities: bool = False
     h: float = 1.0 / 120.0
     start: float = 0.0
-    duration: float | None = None  # None: to the clip's end
+    duration: float | None = None  # None: to the clip's end (with ``still``: the clip's duration)
+    still: float | None = None  # clip time (s) of a pose held still over the window; None: the clip plays
     implicit: bool = True
-    driven_joints: list[str] = dataclasses.field(default_factory=list)
+    driven_joints: list[str] = dataclasses.field(default_factory=list)  # body names or keywords (trunk, arms, ...)
     stabilization_steps: int = 2  # Newton steps of post-stabilization (StepOptions.stabilization_steps)
     dtype: Precision = Precision.FLOAT64  # float64, or float32 for sweeps (docs/float32.md)
     feedforward: Feedforward = Feedforward.DISCRETE  # StepOptions.feedforward: discrete | continuous (Eq. 3)

@@ -1,8 +1,8 @@
 """Write a simulated run back as BVH in the source clip's skeleton, channel orders and units.
 
 Simulated DOFs take the simulated Euler angles; the root (driven along the mocap) and any
-channel that is not simulated take the mocap's values at the simulation times. The frame time
-is the simulation step.
+channel that is not simulated take the mocap's values at the simulation times (a ``[sim] still``
+run: at the held pose's clip time, ``clip_still``). The frame time is the simulation step.
 """
 
 from __future__ import annotations
@@ -34,6 +34,8 @@ def export_bvh(run_path, out_path) -> pathlib.Path:
     if tuple(str(n) for n in run["dof_names"]) != model.dof_names:
         raise UserError(f"{run_path}: its DOFs do not match the clip {clip.path}")
     times = np.asarray(run["time"])
+    if "clip_still" in run:  # a held pose: the capture at that one clip time, every frame
+        times = np.full_like(times, float(run["clip_still"]))
     motion = np.zeros((len(times), clip.n_channels))
     # Every channel from the mocap first (file convention: degrees, metres)...
     frame_times = np.arange(clip.n_frames) * clip.frame_time
@@ -61,7 +63,8 @@ def export_bvh(run_path, out_path) -> pathlib.Path:
         mocap = np.deg2rad(motion[:, columns])
         theta = continuous_angles(np.asarray(run["theta"], dtype=np.float64), mocap)
         motion[:, columns] = np.rad2deg(theta)
-    step = float(times[1] - times[0]) if len(times) > 1 else clip.frame_time
+    sim_time = np.asarray(run["time"])
+    step = float(sim_time[1] - sim_time[0]) if len(sim_time) > 1 else clip.frame_time
     out = dataclasses.replace(clip, frame_time=step, motion=motion)
     write_bvh(out_path, out)
     return pathlib.Path(out_path)

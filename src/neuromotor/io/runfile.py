@@ -18,7 +18,9 @@ The file is a plain NumPy ``.npz`` (no pickles). Its fields, by group:
   ``body_names`` (B,), ``deviation`` (T,) the deviation d(t) in degrees that the metrics were
   computed from, ``base_offset`` (T, 3) the base motion's displacement of the driven root
   (world, m), and ``deviation_metric`` its definition (a string: ``geodesic`` or ``euler``,
-  see :mod:`neuromotor.studies.metrics`; files without them are drawn with the Euler form);
+  see :mod:`neuromotor.studies.metrics`; files without them are drawn with the Euler form),
+  ``clip_still`` (scalar, s) the clip time of the pose a ``[sim] still`` run holds (absent: the
+  clip plays, ``time`` is clip time);
 * body shapes (``SHAPE_FIELDS``, all or none): ``shape_vertices`` (V, 3) in the body frame less
   the body's COM, ``shape_faces`` (F, 3) and ``shape_body`` (V,) integer, with the poses
   ``body_pos`` (T, B, 3), ``body_quat`` (T, B, 4, w x y z) and their ``_unperturbed`` twins.
@@ -64,6 +66,7 @@ OPTIONAL_FIELDS = (
     "deviation",
     "deviation_metric",
     "base_offset",
+    "clip_still",
 )
 SHAPE_FIELDS = (
     "shape_vertices",
@@ -325,6 +328,10 @@ class _Checker:
         if "base_offset" in d:
             self.shape("base_offset", (T, 3))
             self.finite("base_offset")
+        if "clip_still" in d:
+            v = d["clip_still"]
+            if v.shape != () or v.dtype.kind not in "fiu" or not (np.isfinite(v) and float(v) >= 0):
+                fail("clip_still", f"must be a clip time: a scalar >= 0, got {d['clip_still']!r}")
 
     def ball(self, T):
         d, fail = self.d, self.fail

@@ -128,6 +128,19 @@ class Trajectory(eqx.Module):
         return self.angle_spline(t, 0)
 
 
+def still_trajectory(traj: Trajectory, time: float) -> Trajectory:
+    """The capture held still at clip ``time`` (s): q(t) = q(time) and the angle reference at
+    ``time`` for every t, qd = qdd = 0, so the inverse dynamics of it is the static pose's
+    (gravity holding) and a driven body holds the pose. The one construction of ``[sim] still``."""
+
+    def constant(spline: Spline) -> Spline:
+        value = spline(jnp.asarray(time, spline.coeffs.dtype))
+        coeffs = jnp.zeros((4, 1, value.shape[-1]), spline.coeffs.dtype).at[3, 0].set(value)
+        return Spline(jnp.asarray(0.0, spline.t0.dtype), jnp.asarray(1.0, spline.dt.dtype), coeffs)
+
+    return Trajectory(constant(traj.spline), constant(traj.angle_spline), traj.duration)
+
+
 def trajectory_from_clip(model: Model, clip: BvhClip) -> Trajectory:
     q = mocap_coordinates(model, clip)
     times = np.arange(q.shape[0]) * clip.frame_time

@@ -335,3 +335,35 @@ def keyword_body(character: Character, keyword: str) -> int | None:
     side, segment = keyword.split("_", 1)
     found = [k for k in range(len(seg)) if seg[k] == segment and anat.side[k] == side and model.joint_body[k] >= 0]
     return model.joint_body[found[0]] if found else None
+
+
+# Group keywords of a restraint (``[sim] driven_joints``): the anatomy's segment labels each
+# takes (what ``neuromotor inspect`` prints per joint); ``pelvis`` is the one body of
+# :func:`keyword_body`.
+GROUP_KEYWORDS: dict[str, tuple[str, ...]] = {
+    "trunk": ("trunk",),
+    "pelvis": (),
+    "legs": ("thigh", "shank", "foot"),
+    "arms": ("upper_arm", "forearm", "hand"),
+    "head": ("head",),
+}
+RESTRAINT_KEYWORDS = tuple(GROUP_KEYWORDS) + tuple(k for k in BODY_KEYWORDS if k not in GROUP_KEYWORDS)
+
+
+def keyword_bodies(character: Character, keyword: str) -> tuple[int, ...] | None:
+    """The bodies a restraint keyword names, in body order: a group of :data:`GROUP_KEYWORDS`
+    (``trunk``: every body whose joint is labelled trunk, the root included; ``legs``: thigh,
+    shank and foot; ``arms``: upper arm, forearm and hand; ``head``: every head-labelled body;
+    ``pelvis``: the pelvis body), else a single-body keyword of :data:`BODY_KEYWORDS`. ``()``
+    when the keyword matches no body of this rig (no arms, no anatomy), None when ``keyword``
+    is not a keyword. The one rule of :func:`neuromotor.studies.simulate.prepare`."""
+    if keyword not in RESTRAINT_KEYWORDS:
+        return None
+    if keyword in GROUP_KEYWORDS and GROUP_KEYWORDS[keyword]:
+        anat, model = character.anatomy, character.model
+        if anat is None:
+            return ()
+        labels = GROUP_KEYWORDS[keyword]
+        return tuple(sorted(model.joint_body[k] for k in anat.joints_of(*labels) if model.joint_body[k] >= 0))
+    b = keyword_body(character, keyword)
+    return () if b is None else (b,)

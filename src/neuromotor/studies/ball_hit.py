@@ -133,13 +133,17 @@ def ball_from_spec(spec, model: Model, traj, target: int | None = None) -> Ball:
     )
 
 
-def ball_setup(spec, character: Character, traj, body_index, source: str = "config") -> BallSetup:
+def ball_setup(
+    spec, character: Character, traj, body_index, source: str = "config", still: float | None = None
+) -> BallSetup:
     """Build the ball from a parsed ``[ball]`` table (see :func:`neuromotor.config.parse_ball`);
-    ``body_index`` maps a body name to its index (raising ConfigError for an unknown one)."""
+    ``body_index`` maps a body name to its index (raising ConfigError for an unknown one);
+    ``still``: the clip time of a held pose (``[sim] still``), whose frame a keyword direction is in."""
     model = character.model
     if isinstance(spec.get("direction"), str):  # a keyword of the character's frame at launch
         where = f"{source}: field 'ball.direction'"
-        spec = dict(spec, direction=resolve_direction(spec["direction"], character, float(spec["launch"]), where))
+        at = float(spec["launch"]) if still is None else float(still)
+        spec = dict(spec, direction=resolve_direction(spec["direction"], character, at, where))
     try:
         target = body_index(spec["target"]) if _aims(spec) else None
         ball = ball_from_spec(spec, model, traj, target)

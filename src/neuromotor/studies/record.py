@@ -149,6 +149,7 @@ def _source_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
         "source_clip": np.asarray(str(pathlib.Path(clip.path).resolve())),
         "source_units": np.asarray(repr(float(clip.length_scale))),
         "clip_start": np.asarray(setup.config.start),
+        **({} if setup.config.still is None else {"clip_still": np.asarray(float(setup.config.still))}),
         "metrics_json": np.asarray(json.dumps(result.metrics)),
         "provenance_json": np.asarray(json.dumps(provenance(setup), default=_json_default)),
     }
@@ -187,7 +188,8 @@ def anatomy_forward(setup: Setup, base_quat) -> np.ndarray | None:
         ref_frame = getattr(anatomy, "reference_frame", None)
         if ref_frame is not None:
             t_ref = jnp.asarray(float(ref_frame) * setup.character.clip.frame_time)
-            _, rot_ref = body_poses(setup.model, setup.traj.q(t_ref))
+            capture = setup.traj if setup.capture is None else setup.capture  # the clip's, not a still pose
+            _, rot_ref = body_poses(setup.model, capture.q(t_ref))
             local = np.asarray(rot_ref)[0].T @ forward
             forward = np.asarray((quat_to_matrix(jnp.asarray(base_quat[:, 0])) @ local).mean(axis=0))
     except Exception:  # an anatomy without a usable forward: the skeleton estimate
@@ -357,7 +359,10 @@ def provenance(setup: Setup) -> dict:
         "implicit": bool(cfg.implicit),
         "stabilization_steps": int(cfg.stabilization_steps),
         "dtype": str(cfg.dtype),  # float64, or float32 (docs/float32.md)
+        "still": None if cfg.still is None else float(cfg.still),  # clip time of a held pose ([sim] still)
+        # The driven bodies by name (keywords such as "trunk" resolved), and the entries as given.
         "driven_joints": [setup.model.body_names[b] for b in options.driven],
+        "driven_joints_requested": list(cfg.driven_joints),
         "perturbations": _perturbation_records(setup),
         "ball": _ball_record(setup),
         # The delayed reflex (docs/reflex.md), or None: the paper's controller.

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import jax
 import jax.numpy as jnp
@@ -20,9 +20,14 @@ from neuromotor.config import ConfigError, SimulationConfig
 from neuromotor.config.specs import PerturbationSpec, onset
 from neuromotor.io.runfile import read_run_info, save_npz_atomic  # noqa: F401  (re-exported)
 from neuromotor.model.facing import resolve_direction
-from neuromotor.model.kinematics import Trajectory
+from neuromotor.model.kinematics import Trajectory, still_trajectory
 from neuromotor.model.load import DEFAULT_CLIP_NAME, default_clip_path, load_character  # noqa: F401  (re-exported)
-from neuromotor.model.skeleton import BODY_KEYWORDS, Character, Model, keyword_body
+from neuromotor.model.skeleton import (
+    BODY_KEYWORDS,
+    Character,
+    Model,
+    keyword_body,
+)
 from neuromotor.physics.contact import ContactRollout
 from neuromotor.physics.control import Gains, make_gains
 from neuromotor.physics.dynamics import (
@@ -59,6 +64,7 @@ class Setup:
     ball: BallSetup | None = None  # a [ball] config: the flying ball and its contacts
     warnings: tuple[str, ...] = ()  # the clip's (see Character.warnings) and the run's, one line each
     window: ActingWindow | None = None  # where a perturbation can act (sweep axes are checked against it)
+    capture: Trajectory | None = None  # the clip's trajectory when ``traj`` holds a still pose (None: traj)
 
     @property
     def model(self) -> Model:
@@ -114,13 +120,15 @@ def body_lookup(model: Model, source: str = "config", character: Character | Non
     return index
 
 
-def direction_lookup(character: Character | None, source: str = "config"):
+def direction_lookup(character: Character | None, source: str = "config", still: float | None = None):
     """(direction, clip time) -> world unit vector: 3 numbers, or a keyword of the character's
     frame at that time (:func:`neuromotor.model.facing.character_axes`), the one rule for the
-    direction of every perturbation kind and of the ball."""
+    direction of every perturbation kind and of the ball. With ``still`` (``[sim] still``), the
+    frame of the held pose, whatever the time."""
 
     def direction(value, time: float) -> np.ndarray:
-        return resolve_direction(value, character, time, f"{source}: field 'direction'")
+        at = float(time) if still is None else float(still)
+        return resolve_direction(value, character, at, f"{source}: field 'direction'")
 
     return direction
 
@@ -138,18 +146,28 @@ class ActingWindow:
     clip_end: float
     driven: tuple[int, ...]
     index: Callable[[str], int]
+    driven_by: Mapping[int, str] = dataclasses.field(default_factory=dict)  # body -> its driven_joints entry
+    still: float | None = None  # [sim] still: the clip time of the held pose
+    body_names: tuple[str, ...] = ()
 
     @property
     def text(self) -> str:
+        if self.still is not None:
+            held = f"the pose at clip time {self.still:.3f} s held still"
+            return f"the simulated window {self.t0:.3f} to {self.t1:.3f} s ({held})"
         return f"the simulated window {self.t0:.3f} to {self.t1:.3f} s (the clip ends at {self.clip_end:.3f} s)"
 
     def check(self, p, body_field: str, start_field: str) -> None:
         """ConfigError (naming the field) when perturbation ``p`` cannot act."""
         p = PerturbationSpec.of(p)
-        if p.body is not None and self.index(p.body) in self.driven:
+        b = None if p.body is None else self.index(p.body)  # a base motion pushes no body
+        if b is not None and b in self.driven:
+            why = f"by sim.driven_joints entry {self.driven_by[b]!r}" if b in self.driven_by else "the root always is"
+            name = self.body_names[b] if b < len(self.body_names) else p["body"]
+            body = "" if name == p["body"] else f" (body {name})"
             raise ConfigError(
-                f"{self.source}: field '{body_field}' = {p['body']!r} is a driven body (the root "
-                f"always is; [sim] driven_joints adds more): a push on it does nothing"
+                f"{self.source}: field '{body_field}' = {p['body']!r}{body} is a driven body ({why}): "
+                "a push on it does nothing"
             )
         start, end = float(p.start), p.acting(self.h)[1]
         if start >= self.t1 - 1e-9:
@@ -175,26 +193,24 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
         )
     assert traj is not None, "prepare: a character comes with its trajectory"
     model, clip = character.model, character.clip
-    duration = clip.duration - config.start if config.duration is None else config.duration
-    if config.start + duration > clip.duration + 1e-9:
-        raise ConfigError(
-            f"{config.source}: sim.start + sim.duration = {config.start + duration:.3f} s "
-            f"runs past the clip's end ({clip.duration:.3f} s)"
-        )
-    # Rounded down when rounding up would run past the clip's end (by less than a step).
-    n_steps = min(int(round(duration / config.h)), int(np.floor((clip.duration - config.start) / config.h + 1e-9)))
-    if n_steps < 1:
-        raise ConfigError(f"{config.source}: sim.duration is shorter than one step")
+    capture, still = traj, still_time(config, clip.duration)
+    if still is not None:
+        traj = still_trajectory(capture, still)
+    n_steps = window_steps(config, clip.duration)
     index = body_lookup(model, config.source, character)
-    driven_list = []
-    for name in config.driven_joints:
-        b = index(name)
-        if b == 0:
-            raise ConfigError(f"{config.source}: sim.driven_joints: the root is always driven")
-        driven_list.append(b)
-    driven = tuple(sorted(driven_list))
+    driven_by = driven_bodies(character, config.driven_joints, config.source)
+    driven = tuple(sorted(driven_by))
     window = ActingWindow(
-        config.source, config.start, config.start + n_steps * config.h, config.h, clip.duration, (0, *driven), index
+        config.source,
+        config.start,
+        config.start + n_steps * config.h,
+        config.h,
+        clip.duration,
+        (0, *driven),
+        index,
+        driven_by,
+        still,
+        model.body_names,
     )
     for i, p in enumerate(config.perturbations):
         window.check(p, f"perturbation[{i}].body", f"perturbation[{i}].start")
@@ -218,12 +234,13 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
         model, traj, jnp.asarray(config.start), ref.local_axes[0], ref.activation, config.tau_floor
     )
     gains = gains_for(template, config.gains, reflex=None if config.reflex is None else config.reflex.build(config.h))
-    ball = ball_setup(config.ball, character, traj, index, config.source) if config.ball else None
+    ball = ball_setup(config.ball, character, traj, index, config.source, still) if config.ball else None
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
-    pulses = build_pulses(
-        config.perturbations, model, config.h, index, direction_lookup(character, config.source), ref.time
+    directions = direction_lookup(character, config.source, still)
+    pulses = build_pulses(config.perturbations, model, config.h, index, directions, ref.time)
+    return Setup(
+        character, traj, ref, gains, options, pulses, config, ball, warnings, window, None if still is None else capture
     )
-    return Setup(character, traj, ref, gains, options, pulses, config, ball, warnings, window)
 
 
 @compiler.jit

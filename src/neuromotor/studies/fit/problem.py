@@ -157,7 +157,7 @@ def make_problem(
     if not specs:
         raise ConfigError(f"{cfg.source}: a fit needs at least one [[perturbation]] (one per case)")
     index = body_lookup(setup.model, cfg.source, setup.character)
-    direction_of = direction_lookup(setup.character, cfg.source)
+    direction_of = direction_lookup(setup.character, cfg.source, cfg.still)
     times = np.asarray(setup.ref.time)
     per_case = [build_pulses([s], setup.model, setup.options.h, index, direction_of, times) for s in specs]
     if kind == "features":

@@ -166,7 +166,7 @@ def simulate_grid(
         model.body_names,
         keep_curves=keep_curves,
         progress=progress,
-        direction_of=direction_lookup(setup.character, cfg.source),
+        direction_of=direction_lookup(setup.character, cfg.source, cfg.still),
     )
 
 
