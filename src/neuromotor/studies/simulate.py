@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -24,8 +24,11 @@ from neuromotor.model.kinematics import Trajectory, still_trajectory
 from neuromotor.model.load import DEFAULT_CLIP_NAME, default_clip_path, load_character  # noqa: F401  (re-exported)
 from neuromotor.model.skeleton import (
     BODY_KEYWORDS,
+    GROUP_KEYWORDS,
+    RESTRAINT_KEYWORDS,
     Character,
     Model,
+    keyword_bodies,
     keyword_body,
 )
 from neuromotor.physics.contact import ContactRollout
@@ -241,6 +244,72 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     return Setup(
         character, traj, ref, gains, options, pulses, config, ball, warnings, window, None if still is None else capture
     )
+
+
+def still_time(config: SimulationConfig, clip_duration: float) -> float | None:
+    """``[sim] still`` checked against the clip: a clip time in [0, clip duration], or None."""
+    still = config.still
+    if still is None:
+        return None
+    field = f"{config.source}: field 'sim.still'"
+    if isinstance(still, bool) or not isinstance(still, (int, float)) or not np.isfinite(still):
+        raise ConfigError(f"{field} must be a clip time in seconds, got {still!r}")
+    if not 0.0 <= still <= clip_duration + 1e-9:
+        raise ConfigError(f"{field} = {still:g} s is outside the clip (0 to {clip_duration:.3f} s)")
+    return float(min(still, clip_duration))
+
+
+def window_steps(config: SimulationConfig, clip_duration: float) -> int:
+    """The number of steps of the simulated window from ``sim.start``. The clip plays: to the
+    clip's end by default, and never past it. A still pose (``sim.still``) needs no frames: any
+    ``sim.duration``, by default the clip's duration."""
+    source = config.source
+    if config.still is not None:
+        duration = clip_duration if config.duration is None else config.duration
+        n_steps = int(round(duration / config.h))
+    else:
+        duration = clip_duration - config.start if config.duration is None else config.duration
+        if config.start + duration > clip_duration + 1e-9:
+            raise ConfigError(
+                f"{source}: sim.start + sim.duration = {config.start + duration:.3f} s "
+                f"runs past the clip's end ({clip_duration:.3f} s); sim.still holds a pose for any duration"
+            )
+        # Rounded down when rounding up would run past the clip's end (by less than a step).
+        n_steps = min(int(round(duration / config.h)), int(np.floor((clip_duration - config.start) / config.h + 1e-9)))
+    if n_steps < 1:
+        raise ConfigError(f"{source}: sim.duration is shorter than one step")
+    return n_steps
+
+
+def driven_bodies(character: Character, names: Sequence[str], source: str = "config") -> dict[int, str]:
+    """``[sim] driven_joints`` resolved: each driven body (the root left out: it always is) and
+    the entry that names it. An entry is a body (joint) name or a keyword of
+    :func:`~neuromotor.model.skeleton.keyword_bodies` (``trunk``, ``pelvis``, ``legs``, ``arms``,
+    ``head``, or a single body such as ``chest`` or ``left_hand``)."""
+    model = character.model
+    out: dict[int, str] = {}
+    for i, name in enumerate(names):
+        field = f"{source}: field 'sim.driven_joints[{i}]' = {name!r}"
+        if not isinstance(name, str):
+            raise ConfigError(f"{field} must be a body name or a keyword")
+        if name in model.body_names:
+            bodies: tuple[int, ...] = (model.body_names.index(name),)
+        else:
+            found = keyword_bodies(character, name)
+            if found is None:
+                raise ConfigError(
+                    f"{field} matches no body; bodies are {', '.join(model.body_names)}, "
+                    f"keywords are {', '.join(RESTRAINT_KEYWORDS)}"
+                )
+            if not found:
+                labels = GROUP_KEYWORDS.get(name) or ()
+                what = f"no body is labelled {' or '.join(labels)}" if labels else "no such body"
+                raise ConfigError(f"{field} matches no body on this rig ({what}; neuromotor inspect shows the labels)")
+            bodies = found
+        for b in bodies:
+            if b != 0:
+                out.setdefault(b, name)
+    return out
 
 
 @compiler.jit
