@@ -299,6 +299,36 @@ def _toml(data) -> str:
     return "\n".join(lines) + "\n"
 
 
+def test_joint_angle_files_per_case_mix_with_a_body_target(tmp_path, bank):
+    """``files = [...]`` for a joint-angle target too (each file one case, own times), fitted
+    beside a body target: the model output and the target line up (shapes traced, nothing
+    compiled), each case interpolated from its own file."""
+    grid = START + H * np.arange(31)
+    write_targets(tmp_path, np.zeros((2, grid.size, 2)), grid)
+    times = [np.linspace(0.4, 1.1, 8), np.linspace(0.45, 1.05, 13)]
+    for c, t in enumerate(times):
+        rows = ["time,Chest.Xrotation,Neck.Xrotation"] + [f"{x!r},{10 * c + x!r},{-x!r}" for x in t.tolist()]
+        (tmp_path / f"j{c}.csv").write_text("\n".join(rows) + "\n")
+    data = config()
+    data["fit"]["target"].append({"kind": "joint_angles", "files": ["j0.csv", "j1.csv"], "angle_unit": "deg",
+                                  "weights": {"Neck.Xrotation": 2.0}})
+    cal = F.calibration_from_dict(data, "j.toml", tmp_path, character=bank[0], traj=bank[1])
+    y = jax.eval_shape(lambda x: cal.problem.outputs(x)[0], jnp.zeros(2))
+    assert cal.problem.spec.kind == "multiple" and y.shape == cal.target.shape == cal.weights.shape == (2 * 31 * 4,)
+    tgt, w = cal.target.reshape(2, 31, 4), cal.weights.reshape(2, 31, 4)
+    for c in range(2):  # linear in time: interpolation is exact
+        np.testing.assert_allclose(tgt[c, :, 2], np.deg2rad(10 * c + grid), rtol=1e-12)
+        np.testing.assert_allclose(tgt[c, :, 3], np.deg2rad(-grid), rtol=1e-12)
+    assert np.all(w[..., 2] == 1.0) and np.all(w[..., 3] == 2.0)
+    assert cal.labels == ("head: angle about left", "head rel. chest: displacement along forward",
+                          "Chest.Xrotation", "Neck.Xrotation")
+    assert [b["columns"] for b in cal.blocks] == [(0, 1), (1, 2), (2, 4)]
+    (tmp_path / "j1.csv").write_text("case,time,Chest.Xrotation,Neck.Xrotation\n0,0.4,0,0\n0,1.1,0,0\n"
+                                     "1,0.4,0,0\n1,1.1,0,0\n")
+    with pytest.raises(ConfigError, match=r"j1\.csv: holds 2 cases; each of files = \[\.\.\.\] gives one case"):
+        F.calibration_from_dict(data, "j.toml", tmp_path, character=bank[0], traj=bank[1])
+
+
 # ---------------------------------------------------------------------------------------------
 # Config and file errors: one line naming the file and the field (and the line)
 

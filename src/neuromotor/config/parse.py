@@ -545,40 +545,54 @@ def _feature_target(t: Fields, n_perturbations: int) -> FitTargetSpec:
     return FitTargetSpec("features", names=dofs, surrogate=surrogate, cases=rows)
 
 
-def _trajectory_target(t: Fields, kind: str, base_dir) -> FitTargetSpec:
-    file = t.get("file")
-    if not isinstance(file, str):
-        t.fail("file", f"must be the path of an NPZ, CSV or BVH target, got {file!r}")
+def _target_files(t: Fields, n_perturbations: int, what: str) -> tuple[str | None, list[str]]:
+    """``file`` or ``files`` (one per ``[[perturbation]]``), exactly one of them: (file, every name)."""
+    file, files = t.get("file"), t.get("files")
+    if (file is None) == (files is None):
+        t.fail("file", f"or 'files' is required (not both): {what}, or one file per [[perturbation]]")
+    if files is None:
+        if not isinstance(file, str):
+            t.fail("file", f"must be the path of a target file, got {file!r}")
+        return file, [file]
+    if not isinstance(files, list) or not files or not all(isinstance(x, str) for x in files):
+        t.fail("files", f"must be a list of paths, one per [[perturbation]], got {files!r}")
+    if len(files) != n_perturbations:
+        t.fail("files", f"has {len(files)} entries but there are {n_perturbations} [[perturbation]] entries")
+    return None, list(files)
+
+
+def _trajectory_target(t: Fields, kind: str, base_dir, n_perturbations: int) -> FitTargetSpec:
+    file, every = _target_files(t, n_perturbations, "an NPZ, CSV or BVH file with a case column")
+    bvh = [name.lower().endswith(".bvh") for name in every]
     names = tuple(t.string_list("dofs" if kind == "joint_angles" else "bodies", []))
     unit = t.choice("angle_unit", default(FitTargetSpec, "angle_unit"), ("rad", "deg"))
     weights = t.get("weights", {})
     if not isinstance(weights, dict):
         t.fail("weights", f"must be a table of name = weight, got {weights!r}")
     offset = t.number("time_offset", default(FitTargetSpec, "time_offset"))
-    if file.lower().endswith(".bvh") and "angle_unit" in t.table:
+    if any(bvh) and "angle_unit" in t.table:
         t.fail("angle_unit", "does not apply to a BVH target (its rotation channels are degrees, read as such)")
-    if "time_offset" in t.table and not file.lower().endswith(".bvh"):
+    if "time_offset" in t.table and not all(bvh):
         t.fail("time_offset", "applies to a BVH target only (other targets give clip times)")
     t.done()
-    return FitTargetSpec(kind, resolve(file, base_dir), names, unit, dict(weights), time_offset=offset)
+    paths = tuple(resolve(x, base_dir) for x in every) if file is None else ()
+    return FitTargetSpec(
+        kind,
+        None if file is None else resolve(file, base_dir),
+        names,
+        unit,
+        dict(weights),
+        time_offset=offset,
+        files=paths,
+    )
 
 
 def _body_target(t: Fields, kind: str, base_dir, n_perturbations: int) -> FitTargetSpec:
     """``body_angle`` / ``body_position``: one series per case from ``file`` (a ``case`` column
     numbers the cases) or ``files`` (one per ``[[perturbation]]``); the units are required."""
-    file, files = t.get("file"), t.get("files")
-    if (file is None) == (files is None):
-        t.fail("file", "or 'files' is required (not both): a CSV with a case column, or one CSV per [[perturbation]]")
-    if file is not None and not isinstance(file, str):
-        t.fail("file", f"must be the path of a CSV target, got {file!r}")
-    paths: tuple[pathlib.Path, ...] = ()
-    if files is not None:
-        if not isinstance(files, list) or not files or not all(isinstance(x, str) for x in files):
-            t.fail("files", f"must be a list of CSV paths, one per [[perturbation]], got {files!r}")
-        if len(files) != n_perturbations:
-            t.fail("files", f"has {len(files)} entries but there are {n_perturbations} [[perturbation]] entries")
-        paths = tuple(resolve(x, base_dir) for x in files)
-    for i, name in enumerate([file] if file is not None else files):
+    file, every = _target_files(t, n_perturbations, "a CSV with a case column")
+    paths = tuple(resolve(x, base_dir) for x in every) if file is None else ()
+    for i, name in enumerate(every):
         if not name.lower().endswith(".csv"):
             t.fail("file" if file is not None else f"files[{i}]", f"must be a .csv file, got {name!r}")
     body = t.string("body", None, "a body name or segment keyword")
@@ -638,7 +652,7 @@ def _fit_target(table, where: str, source: str, base_dir, n_perturbations: int) 
         return _feature_target(t, n_perturbations)
     if kind in BODY_TARGET_KINDS:
         return _body_target(t, kind, base_dir, n_perturbations)
-    return _trajectory_target(t, kind, base_dir)
+    return _trajectory_target(t, kind, base_dir, n_perturbations)
 
 
 def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:

@@ -511,7 +511,7 @@ def _read_series_file(path: pathlib.Path, time_unit: str, column: str | None) ->
             )
         parsed.setdefault(int(case), []).append((line, row))
     n = max(parsed) + 1
-    if sorted(parsed) != list(range(n)):
+    if len(parsed) != n:
         _fail(src, "case", f"must number the cases 0..C-1 without gaps, got {sorted(parsed)}")
     scale = TIME_UNITS[time_unit]
     out = []

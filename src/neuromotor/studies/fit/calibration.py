@@ -132,41 +132,53 @@ class TargetBlock:
 
 
 def _trajectory_block(setup, table, quantity: str, names=None, weights=None, angle_unit: str = "rad", source=None):
-    """A joint-angle or body-position table on the model (names, weights and case count checked)."""
+    """A joint-angle or body-position table on the model (names, weights and case count checked);
+    ``table`` may be a list of one-case tables, one per case (``files = [...]``). Returns the
+    block and the tables as matched to the model (a list)."""
     from neuromotor.studies.targets import match_trial, resample
 
-    table = match_trial(table, setup.character, setup.options.h)  # a BVH trial: the simulated DOFs only
+    per_case = isinstance(table, list)
+    tables = [match_trial(tb, setup.character, setup.options.h) for tb in (table if per_case else [table])]
     model = setup.model
     src = source or setup.config.source
     known = model.dof_names if quantity == "joint_angles" else model.body_names
     what = "DOF" if quantity == "joint_angles" else "body"
-    unknown = [n for n in table.names if n not in known]
-    if unknown:
-        raise ConfigError(
-            f"{table.source}: field 'names' has unknown {what} name(s) {unknown[:5]}; "
-            f"the model's are e.g. {list(known[:4])}"
-        )
-    names = list(table.names) if names is None else list(names)
+    for tb in tables:
+        unknown = [n for n in tb.names if n not in known]
+        if unknown:
+            raise ConfigError(
+                f"{tb.source}: field 'names' has unknown {what} name(s) {unknown[:5]}; "
+                f"the model's are e.g. {list(known[:4])}"
+            )
+    names = list(tables[0].names) if names is None else list(names)
     for i, n in enumerate(names):
         if n not in known:
             raise ConfigError(
                 f"{src}: field 'fit.target.{'dofs' if what == 'DOF' else 'bodies'}[{i}]' is an "
                 f"unknown {what} name {n!r}"
             )
-        if n not in table.names:
-            raise ConfigError(f"{table.source}: column {n!r} is missing (named by {src} fit.target)")
+        for tb in tables:
+            if n not in tb.names:
+                raise ConfigError(f"{tb.source}: column {n!r} is missing (named by {src} fit.target)")
+    corridors = [tb.sd is not None for tb in tables]
+    if any(corridors) and not all(corridors):
+        bad = tables[corridors.index(False)]
+        raise ConfigError(
+            f"{bad.source}: has no .sd columns but {tables[corridors.index(True)].source} has "
+            f"(a target's files are all corridors or all single trials)"
+        )
     weights = dict(weights or {})
     for n, w in weights.items():
         if n not in names:
             raise ConfigError(f"{src}: field 'fit.target.weights.{n}' names a {what} that is not fitted")
         if not (isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) and w >= 0):
             raise ConfigError(f"{src}: field 'fit.target.weights.{n}' must be a number >= 0, got {w!r}")
-    if table.values.shape[0] != len(setup.config.perturbations):
+    n_cases = sum(tb.values.shape[0] for tb in tables)
+    if n_cases != len(setup.config.perturbations):
         raise ConfigError(
-            f"{table.source}: holds {table.values.shape[0]} case(s) but {src} has "
+            f"{tables[0].source}: holds {n_cases} case(s) but {src} has "
             f"{len(setup.config.perturbations)} [[perturbation]] entries (one per case)"
         )
-    pick = [table.names.index(n) for n in names]
     w = np.array([float(weights.get(n, 1.0)) for n in names])
     if quantity == "body_positions":
         w = np.repeat(w, 3)
@@ -175,20 +187,25 @@ def _trajectory_block(setup, table, quantity: str, names=None, weights=None, ang
         labels = tuple(names)
 
     def on_grid(times):
-        vals = resample(table, times, "fit.window")[:, :, pick]  # (C, T, k[, 3])
-        # A corridor weighs each sample by 1 / sd(t): the residual counts in standard deviations.
-        sd = None if table.sd is None else resample(dataclasses.replace(table, values=table.sd), times)[:, :, pick]
-        if quantity == "joint_angles" and angle_unit == "deg" and not table.radians:
-            vals = np.deg2rad(vals)
-            sd = None if sd is None else np.deg2rad(sd)
-        flat = lambda a: a.reshape(a.shape[0], a.shape[1], -1)
-        return flat(vals), None if sd is None else flat(sd), w
+        vals, sds = [], []
+        for tb in tables:
+            pick = [tb.names.index(n) for n in names]
+            v = resample(tb, times, "fit.window")[:, :, pick]  # (c, T, k[, 3])
+            # A corridor weighs each sample by 1 / sd(t): the residual counts in standard deviations.
+            sd = None if tb.sd is None else resample(dataclasses.replace(tb, values=tb.sd), times)[:, :, pick]
+            if quantity == "joint_angles" and angle_unit == "deg" and not tb.radians:
+                v = np.deg2rad(v)
+                sd = None if sd is None else np.deg2rad(sd)
+            flat = lambda a: a.reshape(a.shape[0], a.shape[1], -1)
+            vals.append(flat(v))
+            sds.append(None if sd is None else flat(sd))
+        return np.concatenate(vals), None if sds[0] is None else np.concatenate(sds), w
 
-    span = (float(table.time[0]), float(table.time[-1]))
+    spans = [(float(tb.time[0]), float(tb.time[-1])) for tb in tables for _ in range(tb.values.shape[0])]
     unit, scale = ("deg", 180.0 / math.pi) if quantity == "joint_angles" else ("m", 1.0)
     part = Part(quantity, tuple(known.index(n) for n in names))
-    info = {"label": quantity, "kind": quantity, "unit": unit, "scale": scale, "files": [table.source]}
-    return TargetBlock(part, labels, [span] * table.values.shape[0], on_grid, info), table
+    info = {"label": quantity, "kind": quantity, "unit": unit, "scale": scale, "files": [tb.source for tb in tables]}
+    return TargetBlock(part, labels, spans, on_grid, info), tables
 
 
 def _assemble(setup, blocks: list[TargetBlock], window, parameters, axes=None, kind=None):
@@ -362,19 +379,24 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
         if t.kind in BODY_TARGET_KINDS:
             read.append(read_series(t.paths, t.time_unit, t.column, n_cases))
             continue
-        table = read_target(t.file, t.kind, t.time_offset or 0.0)
-        if table.bvh is not None:  # a recorded trial: checked against the clip before the inverse dynamics too
-            from neuromotor.studies.simulate import load_character
-            from neuromotor.studies.targets import match_trial
+        tables = []
+        for path in t.paths:
+            table = read_target(path, t.kind, t.time_offset or 0.0)
+            if t.files and table.values.shape[0] != 1:
+                raise ConfigError(f"{path}: holds {table.values.shape[0]} cases; each of files = [...] gives one case")
+            if table.bvh is not None:  # a recorded trial: checked against the clip before the inverse dynamics too
+                from neuromotor.studies.simulate import load_character
+                from neuromotor.studies.targets import match_trial
 
-            if character is None:
-                character, traj = load_character(cfg.clip, cfg.units, cfg.up_axis, cfg.stature, cfg.mass_options())
-            table = match_trial(table, character, cfg.h)
-        read.append(table)
+                if character is None:
+                    character, traj = load_character(cfg.clip, cfg.units, cfg.up_axis, cfg.stature, cfg.mass_options())
+                table = match_trial(table, character, cfg.h)
+            tables.append(table)
+        read.append(tables if t.files else tables[0])
     setup = prepare(cfg, character, traj)
     blocks: list[TargetBlock] = []
     axes: list[list[np.ndarray]] = []
-    tables: list = []
+    matched: list = []
     many = len(spec.targets) > 1
     for i, (t, data) in enumerate(zip(spec.targets, read)):
         where = f"fit.target[{i}]" if many else "fit.target"
@@ -383,8 +405,8 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
             axes.append(resolved)
         else:
             block, data = _trajectory_block(setup, data, t.kind, t.names or None, t.weights, t.angle_unit, cfg.source)
-            block.info["label"] = t.kind if not many else f"{t.kind} ({pathlib.Path(t.file or '').name})"
-            tables.append(data)
+            block.info["label"] = t.kind if not many else f"{t.kind} ({t.paths[0].name})"
+            matched += data
         blocks.append(block)
     window = spec.window
     if window is None and axes:
@@ -399,8 +421,8 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
         weights=w,
         labels=labels,
         target_file=", ".join(str(p) for t in spec.targets for p in t.paths),
-        not_fitted="; ".join(tb.not_fitted for tb in tables if tb.not_fitted),
-        converted="; ".join(tb.converted for tb in tables if tb.converted),
+        not_fitted="; ".join(dict.fromkeys(tb.not_fitted for tb in matched if tb.not_fitted)),
+        converted="; ".join(dict.fromkeys(tb.converted for tb in matched if tb.converted)),
         sd=sd,
         blocks=infos,
         **common,
