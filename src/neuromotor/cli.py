@@ -345,7 +345,7 @@ def cmd_fit(args) -> int:
         for line in (cal.not_fitted, cal.converted):
             if line:
                 print(f"neuromotor fit: {line}", file=sys.stderr)
-        res, _ = calibrate(cal, args.output, progress=not args.quiet)
+        res, doc = calibrate(cal, args.output, progress=not args.quiet)
     except FitError as e:  # the fit ran and failed: not bad input, a status of its own
         print(f"neuromotor fit: error: {e}", file=sys.stderr)
         return 3
@@ -356,6 +356,9 @@ def cmd_fit(args) -> int:
         f"{res.solver}: {fitted} (corr {res.correlation:+.2f}); residual {res.residual_norm:.4g}, "
         f"{res.iterations} iterations, {res.wall_time_s:.1f} s; wrote {args.output}/fit.json, fit.png"
     )
+    for row in doc.get("leave_one_out", []):
+        errs = ", ".join(_rms_text(e) for e in row["predicted"])
+        print(f"leave-one-out: case {row['case']} predicted by a fit on the others: RMS {errs}")
     if not all(res.identifiable.values()):
         print(f"neuromotor fit: warning: {res.identifiability}", file=sys.stderr)
     if not res.converged:
@@ -364,6 +367,15 @@ def cmd_fit(args) -> int:
     if res.status != "converged":  # converged (loss flat): a success, said so
         print(f"neuromotor fit: {res.message}", file=sys.stderr)
     return 0
+
+
+def _rms_text(e: dict) -> str:
+    """One target's error of a fit report: ``head: angle about left 1.2 deg (0.8 sd)``."""
+    parts = ([f"{e['rms']:.4g} {e['unit']}"] if e["rms"] is not None else []) + (
+        [f"{e['rms_sd']:.3g} sd"] if e["rms_sd"] is not None else []
+    )
+    text = parts[0] + (f" ({parts[1]})" if len(parts) > 1 else "") if parts else "n/a"
+    return f"{e['target']} {text}"
 
 
 def _truth(values) -> tuple[float | None, float | None, dict[str, float]]:
@@ -882,7 +894,8 @@ def _fit_paths(args) -> tuple[list, list, list]:
         file = target.get("file") if isinstance(target, dict) else None
         return [args.config, cfg.clip], [path.parent / file if isinstance(file, str) else None], []
     d = pathlib.Path(args.output)
-    return [args.config, cfg.clip, fit_spec(data, cfg, path.parent).target.file], [d / "fit.json", d / "fit.png"], [d]
+    targets = fit_spec(data, cfg, path.parent).targets
+    return [args.config, cfg.clip, *(f for t in targets for f in t.paths)], [d / "fit.json", d / "fit.png"], [d]
 
 
 def _preflight(args) -> None:

@@ -15,18 +15,21 @@ import numpy as np
 
 from neuromotor.config.fields import Fields, read_toml, resolve
 from neuromotor.config.specs import (
+    BODY_TARGET_KINDS,
     CONTROLLERS,
     DEVIATION_METRICS,
     EXPERIMENT_KINDS,
     FEATURE_NAMES,
     FIT_SOLVERS,
     JACOBIANS,
+    LENGTH_UNITS,
     PERTURBATION_KINDS,
     REFLEX_AXES,
     REFLEX_DELAY_LIMIT,
     REQUIRED,
     SEXES,
     TARGET_KINDS,
+    TIME_UNITS,
     BallSpec,
     ExperimentSpec,
     FeatureTarget,
@@ -614,22 +617,114 @@ def _feature_target(t: Fields, n_perturbations: int) -> FitTargetSpec:
     return FitTargetSpec("features", names=dofs, surrogate=surrogate, cases=rows)
 
 
-def _trajectory_target(t: Fields, kind: str, base_dir) -> FitTargetSpec:
-    file = t.get("file")
-    if not isinstance(file, str):
-        t.fail("file", f"must be the path of an NPZ, CSV or BVH target, got {file!r}")
+def _target_files(t: Fields, n_perturbations: int, what: str) -> tuple[str | None, list[str]]:
+    """``file`` or ``files`` (one per ``[[perturbation]]``), exactly one of them: (file, every name)."""
+    file, files = t.get("file"), t.get("files")
+    if (file is None) == (files is None):
+        t.fail("file", f"or 'files' is required (not both): {what}, or one file per [[perturbation]]")
+    if files is None:
+        if not isinstance(file, str):
+            t.fail("file", f"must be the path of a target file, got {file!r}")
+        return file, [file]
+    if not isinstance(files, list) or not files or not all(isinstance(x, str) for x in files):
+        t.fail("files", f"must be a list of paths, one per [[perturbation]], got {files!r}")
+    if len(files) != n_perturbations:
+        t.fail("files", f"has {len(files)} entries but there are {n_perturbations} [[perturbation]] entries")
+    return None, list(files)
+
+
+def _trajectory_target(t: Fields, kind: str, base_dir, n_perturbations: int) -> FitTargetSpec:
+    file, every = _target_files(t, n_perturbations, "an NPZ, CSV or BVH file with a case column")
+    bvh = [name.lower().endswith(".bvh") for name in every]
     names = tuple(t.string_list("dofs" if kind == "joint_angles" else "bodies", []))
     unit = t.choice("angle_unit", default(FitTargetSpec, "angle_unit"), ("rad", "deg"))
     weights = t.get("weights", {})
     if not isinstance(weights, dict):
         t.fail("weights", f"must be a table of name = weight, got {weights!r}")
     offset = t.number("time_offset", default(FitTargetSpec, "time_offset"))
-    if file.lower().endswith(".bvh") and "angle_unit" in t.table:
+    if any(bvh) and "angle_unit" in t.table:
         t.fail("angle_unit", "does not apply to a BVH target (its rotation channels are degrees, read as such)")
-    if "time_offset" in t.table and not file.lower().endswith(".bvh"):
+    if "time_offset" in t.table and not all(bvh):
         t.fail("time_offset", "applies to a BVH target only (other targets give clip times)")
     t.done()
-    return FitTargetSpec(kind, resolve(file, base_dir), names, unit, dict(weights), time_offset=offset)
+    paths = tuple(resolve(x, base_dir) for x in every) if file is None else ()
+    return FitTargetSpec(
+        kind,
+        None if file is None else resolve(file, base_dir),
+        names,
+        unit,
+        dict(weights),
+        time_offset=offset,
+        files=paths,
+    )
+
+
+def _body_target(t: Fields, kind: str, base_dir, n_perturbations: int) -> FitTargetSpec:
+    """``body_angle`` / ``body_position``: one series per case from ``file`` (a ``case`` column
+    numbers the cases) or ``files`` (one per ``[[perturbation]]``); the units are required."""
+    file, every = _target_files(t, n_perturbations, "a CSV with a case column")
+    paths = tuple(resolve(x, base_dir) for x in every) if file is None else ()
+    for i, name in enumerate(every):
+        if not name.lower().endswith(".csv"):
+            t.fail("file" if file is not None else f"files[{i}]", f"must be a .csv file, got {name!r}")
+    body = t.string("body", None, "a body name or segment keyword")
+    if not body:
+        t.fail("body", "is required (a body name or a segment keyword such as 'head')")
+    relative_to = t.string("relative_to", "world", "'world' or a body name or segment keyword")
+    axis = (
+        t.direction("axis", None)
+        if "axis" in t.table
+        else t.fail("axis", "is required (a direction keyword or 3 numbers)")
+    )
+    point = None
+    if kind == "body_position" and "point" in t.table:
+        point = tuple(t.vector("point", None))
+    t.get("point")
+    units = {"time_unit": list(TIME_UNITS)}
+    units.update({"angle_unit": ["deg", "rad"]} if kind == "body_angle" else {"length_unit": list(LENGTH_UNITS)})
+    for key, options in units.items():
+        if key not in t.table:
+            t.fail(key, f"is required: one of {options} (the unit of the file's {key.split('_')[0]} column)")
+    other = "length_unit" if kind == "body_angle" else "angle_unit"
+    if other in t.table:
+        t.fail(
+            other,
+            f"does not apply to kind = {kind!r} (its unit field is {next(k for k in units if k != 'time_unit')!r})",
+        )
+    if "point" in t.table and kind == "body_angle":
+        t.fail("point", "applies to kind = 'body_position' only")
+    time_unit = t.choice("time_unit", None, list(TIME_UNITS))
+    angle_unit = t.choice("angle_unit", None, ["deg", "rad"]) if kind == "body_angle" else "rad"
+    length_unit = t.choice("length_unit", None, list(LENGTH_UNITS)) if kind == "body_position" else "m"
+    offset = t.number("time_offset", None)
+    column = t.string("column", None, "the name of a data column of the file")
+    weight = t.number("weight", 1.0, positive=True)
+    t.done()
+    return FitTargetSpec(
+        kind,
+        file=resolve(file, base_dir) if file is not None else None,
+        angle_unit=angle_unit,
+        time_offset=offset,
+        files=paths,
+        body=body,
+        relative_to=relative_to,
+        axis=axis if isinstance(axis, str) else tuple(axis),
+        point=point,
+        time_unit=time_unit,
+        length_unit=length_unit,
+        column=column,
+        weight=weight,
+    )
+
+
+def _fit_target(table, where: str, source: str, base_dir, n_perturbations: int) -> FitTargetSpec:
+    t = Fields(table, where, source)
+    kind = t.choice("kind", None, TARGET_KINDS)
+    if kind == "features":
+        return _feature_target(t, n_perturbations)
+    if kind in BODY_TARGET_KINDS:
+        return _body_target(t, kind, base_dir, n_perturbations)
+    return _trajectory_target(t, kind, base_dir, n_perturbations)
 
 
 def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
@@ -656,11 +751,23 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
         f.string_list("parameters", list(default(FitSpec, "parameters"))), cfg.reflex is not None, source
     )
     window = _fit_window(f)
-    t = Fields(f.get("target", None) or f.fail("target", "is required ([fit.target] table)"), "fit.target", source)
+    n_cases = len(cfg.perturbations)
+    loo = f.get("leave_one_out", None)
+    if loo is not None:
+        loo = f.boolean("leave_one_out", None)
+        if loo and n_cases < 2:
+            f.fail("leave_one_out", f"needs 2 or more [[perturbation]] cases, there are {n_cases}")
+    raw = f.get("target", None)
+    if raw is None:
+        f.fail("target", "is required ([fit.target] table, or [[fit.target]] tables)")
     f.done()
-    kind = t.choice("kind", None, TARGET_KINDS)
-    if kind == "features":
-        target = _feature_target(t, len(cfg.perturbations))
+    if isinstance(raw, list):  # [[fit.target]]: several targets fitted together
+        if not raw:
+            f.fail("target", "must hold at least one [[fit.target]] table")
+        targets = tuple(_fit_target(t, f"fit.target[{i}]", source, base_dir, n_cases) for i, t in enumerate(raw))
+        if len(targets) > 1 and any(t.kind == "features" for t in targets):
+            i = next(i for i, t in enumerate(targets) if t.kind == "features")
+            f.fail(f"target[{i}].kind", "= 'features' cannot be fitted together with other targets (use it alone)")
     else:
-        target = _trajectory_target(t, kind, base_dir)
-    return FitSpec(target, solver, opts, jacobian, window, names)
+        targets = (_fit_target(raw, "fit.target", source, base_dir, n_cases),)
+    return FitSpec(targets[0], solver, opts, jacobian, window, names, targets, loo)

@@ -27,7 +27,12 @@ SEXES = ("average", "male", "female")
 CONTROLLERS = ("neuromotor", "pd")  # the paper's model, or the high-gain PD tracker
 FIT_SOLVERS = ("optimistix_lm", "optimistix_gn", "optimistix_bfgs", "jaxopt_lm", "jaxopt_lbfgs")
 JACOBIANS = ("forward", "reverse")
-TARGET_KINDS = ("joint_angles", "body_positions", "features")
+TARGET_KINDS = ("joint_angles", "body_positions", "features", "body_angle", "body_position")
+# Targets on one body's orientation or one point's position, relative to the world or another body,
+# read as the change since the case's onset (neuromotor.studies.fit.observables; docs/fitting.md).
+BODY_TARGET_KINDS = ("body_angle", "body_position")
+TIME_UNITS = {"s": 1.0, "ms": 1e-3}  # seconds per unit
+LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}  # metres per unit
 FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg", "peak_acceleration_deg_s2")
 EXPERIMENT_KINDS = ("arm", "full_body", "contrast")
 # What a fit may tune (neuromotor.studies.fit.parameters): the muscle feedback pair and the reflex paths.
@@ -417,7 +422,9 @@ class FeatureTarget:
 
 @dataclasses.dataclass(frozen=True)
 class FitTargetSpec:
-    """``[fit.target]``: a trajectory file (joint angles, body positions) or feature values."""
+    """One ``[fit.target]`` (or one entry of ``[[fit.target]]``): a trajectory file (joint angles,
+    body positions), feature values, or a body's angle or a point's displacement about/along an
+    axis (``body_angle``, ``body_position``: one series per case, trial or corridor)."""
 
     kind: str
     file: pathlib.Path | None = None
@@ -426,12 +433,40 @@ class FitTargetSpec:
     weights: dict = dataclasses.field(default_factory=dict)
     surrogate: Surrogate = Surrogate()
     cases: tuple[dict, ...] = ()  # features: per case, feature name -> FeatureTarget
-    time_offset: float = 0.0  # BVH target: clip time (s) of the recorded trial's frame 0
+    # Clip time (s) of the file's time 0: a BVH trial's frame 0 (default 0); for body_angle and
+    # body_position None = each case's onset (the perturbation's start).
+    time_offset: float | None = 0.0
+    # body_angle / body_position only:
+    files: tuple[pathlib.Path, ...] = ()  # one per [[perturbation]] case (instead of file with a case column)
+    body: str = ""  # a body name or a segment keyword
+    relative_to: str = "world"  # "world" or a body name / keyword
+    axis: str | tuple[float, ...] | None = None  # a direction keyword of the character's frame, or 3 numbers
+    point: tuple[float, ...] | None = None  # body_position: body frame, from the joint origin (None: the COM)
+    time_unit: str = "s"  # of the file's time column: s | ms
+    length_unit: str = "m"  # body_position: m | mm
+    column: str | None = None  # the file's data column (None: its only one)
+    weight: float = 1.0  # multiplies every residual of this target
+
+    @property
+    def paths(self) -> tuple[pathlib.Path, ...]:
+        """Every file this target reads."""
+        return self.files or ((self.file,) if self.file is not None else ())
+
+    @property
+    def label(self) -> str:
+        """A short name for reports and plots."""
+        if self.kind in BODY_TARGET_KINDS:
+            axis = self.axis if isinstance(self.axis, str) else list(self.axis or ())
+            rel = "" if self.relative_to == "world" else f" rel. {self.relative_to}"
+            what = "angle about" if self.kind == "body_angle" else "displacement along"
+            return f"{self.body}{rel}: {what} {axis}"
+        return self.kind
 
 
 @dataclasses.dataclass(frozen=True)
 class FitSpec:
-    """The ``[fit]`` table."""
+    """The ``[fit]`` table. ``target`` is the first of ``targets`` (``[fit.target]`` gives one,
+    ``[[fit.target]]`` several, fitted together)."""
 
     target: FitTargetSpec
     solver: str = "optimistix_lm"
@@ -441,6 +476,17 @@ class FitSpec:
     # The fitted parameters (studies.fit.parameters): any of ks, kd, reflex_gain, reflex_delay,
     # long_latency_gain, long_latency_delay; they start from the config's [gains] and [reflex].
     parameters: tuple[str, ...] = ("ks", "kd")
+    targets: tuple[FitTargetSpec, ...] = ()  # every target; () = (target,)
+    # Leave-one-out over the cases (a fit on the others, predicting the one left out); None: on
+    # for 2 to LEAVE_ONE_OUT_MAX_CASES cases.
+    leave_one_out: bool | None = None
+
+    def __post_init__(self):
+        if not self.targets:
+            object.__setattr__(self, "targets", (self.target,))
+
+
+LEAVE_ONE_OUT_MAX_CASES = 8
 
 
 # The reflex axes of a sweep: [sweep] key -> ReflexSpec field.

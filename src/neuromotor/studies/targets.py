@@ -51,6 +51,20 @@ rates), with smooth surrogates so the fit can differentiate them.
 
 Trajectory targets (the files above, recorded BVH trials, corridors) stay per Euler DOF: they
 give Euler angles, and the residuals are simulated minus target angles in radians.
+
+Body targets
+------------
+``body_angle`` and ``body_position`` (:mod:`neuromotor.studies.fit.observables`) read one series
+per case from CSV (:func:`read_series`): a ``time`` column in the config's ``time_unit`` (ms or
+s), one data column (the config's ``column``, or the file's only one) in its ``angle_unit`` or
+``length_unit``, optionally its ``NAME.sd`` (a corridor) and a ``case`` column (0-based; or one
+file per case, ``files = [...]``)::
+
+    time,head,head.sd
+    0,0.0,0.5
+    10,0.4,0.6
+
+Time 0 of the file sits at clip time ``time_offset`` (default: the case's onset).
 """
 
 from __future__ import annotations
@@ -64,6 +78,7 @@ import numpy as np
 
 from neuromotor.atomic import atomic_path
 from neuromotor.config import ConfigError
+from neuromotor.config.specs import TIME_UNITS
 
 if TYPE_CHECKING:
     from neuromotor.model.bvh import BvhClip
@@ -407,4 +422,169 @@ def write_target_csv(path, time, names, values, quantity="joint_angles", header_
         for c in range(flat.shape[0]):
             for i, t in enumerate(time):
                 w.writerow([c, repr(float(t))] + [f"{float(v):.10g}" for v in flat[c, i]])
+    return path
+
+
+# ----------------------------------------------------------------------------- body targets
+
+
+@dataclasses.dataclass
+class Series:
+    """One case's series of a body target: file time in seconds (from the file's time 0), the
+    values and, for a corridor, their standard deviation (file units)."""
+
+    time: np.ndarray  # (T,) s
+    value: np.ndarray  # (T,)
+    sd: np.ndarray | None
+    source: str  # the file
+    column: str
+    lines: np.ndarray  # (T,) the file's line of each sample
+
+
+def _series_rows(path: pathlib.Path) -> tuple[list[str], list[tuple[int, list[str]]]]:
+    """Header and (line number, cells) of every data row; ``#`` lines and blank lines skipped."""
+    src = str(path)
+    if not path.exists():
+        raise ConfigError(f"{src}: target file not found")
+    if path.suffix.lower() != ".csv":
+        raise ConfigError(f"{src}: a body target must be a .csv file, got {path.suffix!r}")
+    rows = []
+    with open(path, newline="", encoding="utf-8") as fh:
+        reader = csv.reader(fh)
+        for r in reader:
+            if r and any(x.strip() for x in r) and not r[0].lstrip().startswith("#"):
+                rows.append((reader.line_num, [x.strip() for x in r]))
+    if not rows:
+        raise ConfigError(f"{src}: empty CSV target")
+    return rows[0][1], rows[1:]
+
+
+def _read_series_file(path: pathlib.Path, time_unit: str, column: str | None) -> list[Series]:
+    """Every case of one file (a ``case`` column numbers them; without it, one case)."""
+    src = str(path)
+    header, data = _series_rows(path)
+    if "time" not in header:
+        _fail(src, "time", f"column is missing (header: {header})")
+    dup = sorted({h for h in header if header.count(h) > 1})
+    if dup:
+        raise ConfigError(f"{src}: column {dup[0]!r} appears twice in the header")
+    if not data:
+        raise ConfigError(f"{src}: CSV target has a header but no rows")
+    means = [h for h in header if h not in ("time", "case") and not h.endswith(SD_SUFFIX)]
+    for h in header:
+        if h.endswith(SD_SUFFIX) and h[: -len(SD_SUFFIX)] not in means:
+            _fail(src, h, "has no mean column")
+    if column is not None:
+        if column not in means:
+            raise ConfigError(f"{src}: column {column!r} (fit.target.column) is missing; data columns: {means}")
+    elif len(means) != 1:
+        raise ConfigError(
+            f"{src}: has {len(means)} data columns {means}; name the one to fit with fit.target.column"
+            if means
+            else f"{src}: has no data column besides time and case"
+        )
+    name = column or means[0]
+    cols = {"time": header.index("time"), "value": header.index(name)}
+    if name + SD_SUFFIX in header:
+        cols["sd"] = header.index(name + SD_SUFFIX)
+    if "case" in header:
+        cols["case"] = header.index("case")
+    shown = {"time": "time", "value": name, "sd": name + SD_SUFFIX, "case": "case"}
+    parsed: dict[int, list] = {}
+    for line, cells in data:
+        if len(cells) != len(header):
+            raise ConfigError(f"{src}: line {line} has {len(cells)} columns, the header has {len(header)}")
+        row = {}
+        for key, i in cols.items():
+            try:
+                row[key] = float(cells[i])
+            except ValueError:
+                raise ConfigError(f"{src}: line {line}: field '{shown[key]}' is not a number: {cells[i]!r}") from None
+            if not np.isfinite(row[key]):
+                raise ConfigError(f"{src}: line {line}: field '{shown[key]}' is not finite: {cells[i]!r}")
+        if "sd" in row and not row["sd"] > 0:
+            raise ConfigError(f"{src}: line {line}: field '{shown['sd']}' must be > 0, got {cells[cols['sd']]!r}")
+        case = row.get("case", 0.0)
+        if case != int(case) or case < 0:
+            raise ConfigError(
+                f"{src}: line {line}: field 'case' must be a case number 0, 1, ..., got {cells[cols['case']]!r}"
+            )
+        parsed.setdefault(int(case), []).append((line, row))
+    n = max(parsed) + 1
+    if len(parsed) != n:
+        _fail(src, "case", f"must number the cases 0..C-1 without gaps, got {sorted(parsed)}")
+    scale = TIME_UNITS[time_unit]
+    out = []
+    for c in range(n):
+        rows = parsed[c]
+        for (_, prev), (line, row) in zip(rows, rows[1:]):
+            if not row["time"] > prev["time"]:
+                raise ConfigError(
+                    f"{src}: line {line}: field 'time' = {row['time']:g} is not after the previous "
+                    f"{prev['time']:g} (times must increase{' within each case' if n > 1 else ''})"
+                )
+        if len(rows) < 2:
+            _fail(src, "time", f"has {len(rows)} sample(s){f' in case {c}' if n > 1 else ''}; at least 2 are needed")
+        arr = lambda key: np.array([r[key] for _, r in rows])
+        sd = arr("sd") if "sd" in cols else None
+        lines = np.array([ln for ln, _ in rows])
+        out.append(Series(scale * arr("time"), arr("value"), sd, src, name, lines))
+    return out
+
+
+def read_series(paths, time_unit: str, column: str | None = None, n_cases: int | None = None) -> list[Series]:
+    """One :class:`Series` per case of a body target: from one file (a ``case`` column numbers
+    the cases; layout in the module docstring) or one file per case. ``time_unit``: ``s`` or
+    ``ms``. Refused (:class:`ConfigError` naming the file, and the line where it applies): a
+    missing or non-increasing time column, a non-numeric or non-finite entry, an sd <= 0, a
+    ``.sd`` column without its mean, several data columns and no ``column``, a case count other
+    than ``n_cases``, and files of one target of which some are corridors and some are not."""
+    paths = [pathlib.Path(p) for p in paths]
+    if time_unit not in TIME_UNITS:
+        raise ConfigError(f"{paths[0]}: unknown time unit {time_unit!r}; use one of {list(TIME_UNITS)}")
+    if len(paths) == 1:
+        series = _read_series_file(paths[0], time_unit, column)
+        if n_cases is not None and len(series) != n_cases:
+            raise ConfigError(
+                f"{paths[0]}: holds {len(series)} case(s) but there are {n_cases} [[perturbation]] entries "
+                f"(one series per case: a 'case' column numbering them from 0, or files = [...] one per case)"
+            )
+    else:
+        series = []
+        for p in paths:
+            got = _read_series_file(p, time_unit, column)
+            if len(got) != 1:
+                raise ConfigError(f"{p}: holds {len(got)} cases; each of files = [...] gives one case")
+            series += got
+    corridor = [s for s in series if s.sd is not None]
+    if corridor and len(corridor) != len(series):
+        bad = next(s for s in series if s.sd is None)
+        raise ConfigError(
+            f"{bad.source}: field '{bad.column}{SD_SUFFIX}' column is missing but {corridor[0].source} has one "
+            f"(a target's cases are all corridors, mean and {SD_SUFFIX}, or all single trials)"
+        )
+    return series
+
+
+def write_series_csv(
+    path, time, value, sd=None, name: str = "value", time_unit: str = "s", header_comment: str | None = None
+) -> pathlib.Path:
+    """Write a body target (:func:`read_series` layout): ``time`` (T,) in seconds (written in
+    ``time_unit``), ``value`` (T,) or (C, T) (then with a ``case`` column) and optionally its
+    ``sd`` (same shape: a corridor), in the units the config will declare (temp file then rename)."""
+    path = pathlib.Path(path)
+    value = np.asarray(value, float)
+    cases = value.ndim == 2
+    value = value if cases else value[None]
+    sd_arr = None if sd is None else np.broadcast_to(np.asarray(sd, float), value.shape)
+    t = np.asarray(time, float) / TIME_UNITS[time_unit]
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        for line in (header_comment or "").splitlines():
+            fh.write(f"# {line}\n")
+        w = csv.writer(fh)
+        w.writerow((["case"] if cases else []) + ["time", name] + ([name + SD_SUFFIX] if sd_arr is not None else []))
+        for c in range(value.shape[0]):
+            for i, ti in enumerate(t):
+                row = ([c] if cases else []) + [repr(float(ti)), f"{float(value[c, i]):.12g}"]
+                w.writerow(row + ([f"{float(sd_arr[c, i]):.12g}"] if sd_arr is not None else []))
     return path

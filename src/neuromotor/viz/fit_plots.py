@@ -1,5 +1,6 @@
-"""The figure of a calibration (fit.png): the target, the fitted response and the response at the
-starting gains, one row per perturbation case."""
+"""The figure of a calibration (fit.png): the target (a corridor as its mean +- sd band), the
+fitted response and the response at the starting gains, one row per perturbation case and a
+panel per target (per curve the gains move most, for targets of several DOFs or bodies)."""
 
 from __future__ import annotations
 
@@ -37,9 +38,20 @@ def _feature_panel(ax, cal, c: int, col: int, unit: str) -> None:
 def _columns(cal, ev_start, ev_fit, max_columns: int) -> list[int]:
     if cal.problem.spec.kind == "features":  # deviation, and the acceleration when it is fitted
         return [0, 1] if "peak_acceleration_deg_s2" in cal.problem.spec.features else [0]
-    # Show the columns the gains move most (start vs fitted), not those the mocap moves most.
+    # Show the columns the gains move most (start vs fitted), not those the mocap moves most:
+    # every target gets its own panels.
     spread = np.abs(ev_start.curves - ev_fit.curves).max(axis=(0, 1))
-    return list(np.argsort(-spread)[:max_columns])
+    cols: list[int] = []
+    blocks = cal.report_blocks()
+    share = max(1, max_columns // len(blocks))
+    for b in blocks:
+        c0, c1 = b["columns"]
+        cols += [c0 + int(k) for k in np.argsort(-spread[c0:c1])[:share]]
+    return cols
+
+
+def _block_of(cal, col: int) -> dict:
+    return next(b for b in cal.report_blocks() if b["columns"][0] <= col < b["columns"][1])
 
 
 def _title(res) -> str:
@@ -58,20 +70,32 @@ def plot_fit(cal, ev_start, ev_fit, path, res=None, max_columns: int = 4) -> pat
     cols = _columns(cal, ev_start, ev_fit, max_columns)
     tgt = None if feats else cal.target_curves()
     fig, axes = plt.subplots(
-        n_cases, len(cols), figsize=(max(3.6 * len(cols), 7.0), 2.7 * n_cases + 0.6), squeeze=False
+        n_cases, len(cols), figsize=(max(4.2 * len(cols), 7.0), 2.7 * n_cases + 0.6), squeeze=False
     )
-    scale = 1.0 if feats or kind == "body_positions" else 180.0 / np.pi
-    unit = "deg" if feats or kind == "joint_angles" else "m"
+    sd = None if feats or cal.sd is None else cal.sd.reshape(tgt.shape)  # type: ignore[union-attr]
     for c in range(n_cases):
+        start = float(cal.problem.start[c])
         for j, col in enumerate(cols):
             ax = axes[c, j]
-            if tgt is not None:  # trajectory targets
-                ax.plot(t, scale * tgt[c, :, col], "k.", ms=3, label="target")
+            if feats:
+                scale, unit = 1.0, "deg"
+            else:
+                block = _block_of(cal, col)
+                scale, unit = block["scale"], block["unit"]
+                mean = scale * tgt[c, :, col]  # type: ignore[index]
+                band = None if sd is None or not np.all(np.isfinite(sd[c, :, col])) else scale * sd[c, :, col]
+                if band is not None:  # a corridor: mean +- sd over subjects
+                    ax.fill_between(t, mean - band, mean + band, color="k", alpha=0.15, lw=0, label="target ± sd")
+                    ax.plot(t, mean, "k-", lw=0.8)
+                else:
+                    ax.plot(t, mean, "k.", ms=3, label="target")
             ax.plot(t, scale * ev_fit.curves[c, :, col], "C0-", lw=1.6, label="fitted")
             ax.plot(t, scale * ev_start.curves[c, :, col], "C3--", lw=1.2, label="start")
             if feats:
                 _feature_panel(ax, cal, c, col, unit)
             else:
+                if t[0] <= start <= t[-1]:
+                    ax.axvline(start, color="0.6", lw=0.8, ls=":")
                 ax.set_title(f"case {c}: {cal.labels[col]}", fontsize=9)
                 ax.set_ylabel(unit)
             ax.set_xlabel("clip time (s)")

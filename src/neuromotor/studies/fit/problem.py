@@ -13,16 +13,50 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from neuromotor.config.specs import FEATURE_NAMES, TARGET_KINDS as KINDS, Surrogate, check_fit_parameters, onset
+from neuromotor.config.specs import (
+    BODY_TARGET_KINDS,
+    FEATURE_NAMES,
+    TARGET_KINDS as KINDS,
+    Surrogate,
+    check_fit_parameters,
+    onset,
+)
 from neuromotor.errors import ConfigError
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Params, Reference, Rollout, SimModel, StepOptions, simulate
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, stack_runs, unperturbed
 from neuromotor.studies import metrics as mx
-from neuromotor.studies.fit import parameters as fp
+from neuromotor.studies.fit import observables as ob, parameters as fp
 from neuromotor.studies.fit.surrogate import acceleration_deg, deviation_deg, joint_acceleration_deg, response_features
 from neuromotor.studies.gains import gains_for
+
+MULTIPLE = "multiple"  # ResponseSpec.kind of several targets fitted together
+
+
+@dataclasses.dataclass(frozen=True)
+class Part:
+    """One trajectory target's share of the model output (static).
+
+    ``joint_angles``: the DOFs ``columns`` (rad); ``body_positions``: the COMs of the bodies
+    ``columns`` (m, x y z each); ``body_angle`` / ``body_position``: one curve, the observable of
+    :mod:`.observables` of body ``body`` relative to body ``other`` (-1: the world), about/along
+    the problem's ``axes[:, slot]``; ``lever`` is the point from the body's COM (body frame, m).
+    """
+
+    kind: str
+    columns: tuple[int, ...] = ()
+    body: int = -1
+    other: int = -1
+    lever: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    slot: int = 0
+
+    @property
+    def width(self) -> int:
+        """Curve columns it adds."""
+        if self.kind in BODY_TARGET_KINDS:
+            return 1
+        return len(self.columns) * (3 if self.kind == "body_positions" else 1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,6 +84,15 @@ class ResponseSpec:
     floor_deg: float = Surrogate.floor_deg
     accel_beta: float = Surrogate.accel_beta
     metric: str = "geodesic"  # the deviation of feature targets ([sim] metric; studies.metrics)
+    # Trajectory targets: the curves, side by side (y = curves (C, T, sum of widths) flattened);
+    # () = one part of ``kind`` over ``columns``.
+    parts: tuple[Part, ...] = ()
+
+    @property
+    def trajectory_parts(self) -> tuple[Part, ...]:
+        if self.parts or self.kind == "features":
+            return self.parts
+        return (Part(self.kind, self.columns),)
 
 
 class FitProblem(eqx.Module):
@@ -67,6 +110,10 @@ class FitProblem(eqx.Module):
     options: StepOptions = eqx.field(static=True)
     spec: ResponseSpec = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True, default=fp.DEFAULT)  # the fitted parameters, in x's order
+    # Body targets (Part.slot): each case's axis as a world unit vector at its onset, and the
+    # onset sample (the last simulation sample at or before the case's onset).
+    axes: Float[Array, "C K 3"] | None = None
+    onset_step: Int[Array, " C"] | None = None
 
     @property
     def n_cases(self) -> int:
@@ -95,12 +142,9 @@ class FitProblem(eqx.Module):
         """
         runs = self.rollouts(x)
         s = self.spec
-        if s.kind == "joint_angles":
-            cur = runs.theta[:, s.i0 : s.i1][:, :, jnp.asarray(s.columns)]
+        if s.kind != "features":
+            cur = jnp.concatenate([self.part_curves(runs, p) for p in s.trajectory_parts], -1)
             return cur.reshape(-1), cur, runs.diverged_step
-        if s.kind == "body_positions":
-            cur = runs.states.pos[:, s.i0 : s.i1][:, :, jnp.asarray(s.columns)]
-            return cur.reshape(-1), cur.reshape(cur.shape[0], cur.shape[1], -1), runs.diverged_step
         time = runs.time[0, s.i0 : s.i1]
         h = self.options.h
         if s.metric == "geodesic":
@@ -127,6 +171,33 @@ class FitProblem(eqx.Module):
             devs.append(jnp.stack([dev, acc], axis=-1))
         return jnp.concatenate(feats), jnp.stack(devs), runs.diverged_step
 
+    def part_curves(self, runs: Rollout, part: Part) -> Float[Array, "C T w"]:
+        """One trajectory part's curves inside the window, every case (SI units: rad, m)."""
+        s = self.spec
+        if part.kind == "joint_angles":
+            return runs.theta[:, s.i0 : s.i1][:, :, jnp.asarray(part.columns)]
+        if part.kind == "body_positions":
+            cur = runs.states.pos[:, s.i0 : s.i1][:, :, jnp.asarray(part.columns)]
+            return cur.reshape(cur.shape[0], cur.shape[1], -1)
+        if self.axes is None or self.onset_step is None:
+            raise ValueError("a body target needs the problem's axes and onset steps (make_problem(..., axes=...))")
+        quat, pos = runs.states.quat, runs.states.pos  # (C, S1, B, 4), (C, S1, B, 3)
+        qb, pb = quat[:, :, part.body], pos[:, :, part.body]
+        if part.other >= 0:
+            qo, po = quat[:, :, part.other], pos[:, :, part.other]
+        else:
+            qo = jnp.broadcast_to(ob.identity_quats(1, quat.dtype), qb.shape)
+            po = jnp.zeros_like(pb)
+        axis = self.axes[:, part.slot]
+        if part.kind == "body_angle":
+            cur = jax.vmap(ob.body_angle)(qb, qo, self.onset_step, axis)
+        else:
+            lever = jnp.asarray(part.lever, pos.dtype)
+            cur = jax.vmap(lambda a, b, c, d, k, e: ob.body_displacement(a, b, lever, c, d, k, e))(
+                pb, qb, po, qo, self.onset_step, axis
+            )
+        return cur[:, s.i0 : s.i1, None]
+
     def residuals(self, x, target, weights) -> Float[Array, " m"]:
         """Pure-JAX residual r(x) = w * (y(x) - target)."""
         return weights * (self.outputs(x)[0] - target)
@@ -139,18 +210,28 @@ def loss(problem: FitProblem, x, target, weights) -> Float[Array, ""]:
 
 
 def make_problem(
-    setup, kind: str, columns=(), window=None, features=FEATURE_NAMES, names=fp.DEFAULT, **surrogate
+    setup,
+    kind: str,
+    columns=(),
+    window=None,
+    features=FEATURE_NAMES,
+    names=fp.DEFAULT,
+    parts: tuple[Part, ...] = (),
+    axes=None,
+    **surrogate,
 ) -> FitProblem:
     """A :class:`FitProblem` over the perturbation cases of ``setup.config.perturbations``.
 
     Each ``[[perturbation]]`` entry is one case (one rollout), of any kind and shape (the
     shape is an array leaf). ``window`` = (t0, t1) in clip
-    seconds (default: the whole simulation).
+    seconds (default: the whole simulation). ``parts``: several trajectory targets side by side
+    (``kind`` is then the one part's kind or ``"multiple"``); ``axes`` (C, K, 3): the world axis
+    of each case's body target ``slot`` k at the case's onset.
     """
     from neuromotor.studies.simulate import body_lookup, direction_lookup
     from neuromotor.studies.targets import window_indices
 
-    if kind not in KINDS:
+    if kind not in KINDS and kind != MULTIPLE:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
     cfg = setup.config
     specs = cfg.perturbations
@@ -169,8 +250,33 @@ def make_problem(
     i0, i1 = window_indices(sim_time, window, cfg.source, "fit.window")
     surrogate.setdefault("metric", cfg.metric)
     spec = ResponseSpec(
-        kind, tuple(int(c) for c in columns), i0, i1, tuple(features) if kind == "features" else (), **surrogate
+        kind,
+        tuple(int(c) for c in columns),
+        i0,
+        i1,
+        tuple(features) if kind == "features" else (),
+        parts=tuple(parts),
+        **surrogate,
     )
-    start = jnp.asarray([onset([s]) for s in specs])  # each case measured from its own onset
+    onsets = [onset([s]) for s in specs]  # each case measured from its own onset
+    start = jnp.asarray(onsets)
     names = check_fit_parameters(names, setup.gains.reflex is not None, cfg.source)
-    return FitProblem(setup.model, setup.gains, batch, setup.ref, start, setup.options, spec, names)
+    steps = np.array([onset_step(sim_time, t) for t in onsets])
+    return FitProblem(
+        setup.model,
+        setup.gains,
+        batch,
+        setup.ref,
+        start,
+        setup.options,
+        spec,
+        names,
+        None if axes is None else jnp.asarray(np.asarray(axes, np.float64)),
+        jnp.asarray(steps),
+    )
+
+
+def onset_step(sim_time, t: float) -> int:
+    """The last simulation sample at or before clip time ``t`` (the first sample if ``t`` is before it)."""
+    k = int(np.searchsorted(np.asarray(sim_time), float(t) + 1e-9, side="right")) - 1
+    return int(np.clip(k, 0, len(sim_time) - 1))
