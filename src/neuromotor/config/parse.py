@@ -49,7 +49,6 @@ from neuromotor.config.specs import (
 from neuromotor.errors import ConfigError
 from neuromotor.model.facing import DIRECTION_KEYWORDS
 from neuromotor.physics.options import Feedforward, JointLaw
-from neuromotor.physics.perturbation import TIME_UNITS
 from neuromotor.physics.precision import Precision
 
 TABLES = ("fit", "sweep", "experiment", "ball", "reflex")  # top-level tables beside [sim], [gains], [[perturbation]]

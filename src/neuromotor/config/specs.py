@@ -31,7 +31,7 @@ TARGET_KINDS = ("joint_angles", "body_positions", "features", "body_angle", "bod
 # Targets on one body's orientation or one point's position, relative to the world or another body,
 # read as the change since the case's onset (neuromotor.studies.fit.observables; docs/fitting.md).
 BODY_TARGET_KINDS = ("body_angle", "body_position")
-TIME_UNITS = {"s": 1.0, "ms": 1e-3}  # seconds per unit
+TIME_UNITS = _perturbation.TIME_UNITS  # seconds per unit (one table for every time column)
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}  # metres per unit
 FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg", "peak_acceleration_deg_s2")
 EXPERIMENT_KINDS = ("arm", "full_body", "contrast")
@@ -140,7 +140,7 @@ class PerturbationSpec(_KeyView):
     unit: str | None = dataclasses.field(
         default=None, metadata=_rule("choice", choices=tuple(_perturbation.ACCELERATION_UNITS))
     )
-    time_unit: str = dataclasses.field(default="s", metadata=_rule("choice", choices=tuple(_perturbation.TIME_UNITS)))
+    time_unit: str = dataclasses.field(default="s", metadata=_rule("choice", choices=tuple(TIME_UNITS)))
     # The file's samples as read (times in s from the file's 0, values in ``unit``); set by the parser.
     record: tuple[tuple[float, ...], tuple[float, ...]] | None = dataclasses.field(
         default=None, metadata=_rule("derived")

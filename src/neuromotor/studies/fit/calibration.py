@@ -293,7 +293,8 @@ def _body_block(setup, t: FitTargetSpec, series, where: str, slot: int) -> tuple
         lever = (x, y, z)
     onsets = [onset([p]) for p in cfg.perturbations]
     offsets = [o if t.time_offset is None else float(t.time_offset) for o in onsets]
-    axes = [resolve_direction(t.axis, setup.character, o, f"{cfg.source}: field '{where}.axis'") for o in onsets]
+    frame_at = onsets if cfg.still is None else [float(cfg.still)] * len(onsets)  # a held pose: its frame
+    axes = [resolve_direction(t.axis, setup.character, o, f"{cfg.source}: field '{where}.axis'") for o in frame_at]
     spans = [(off + float(s.time[0]), off + float(s.time[-1])) for off, s in zip(offsets, series)]
     if t.kind == "body_angle":
         unit, to_si = t.angle_unit, (math.pi / 180.0 if t.angle_unit == "deg" else 1.0)
