@@ -12,6 +12,7 @@ import dataclasses
 import inspect
 import pathlib
 from collections.abc import Mapping
+from types import MappingProxyType
 from typing import ClassVar
 
 from neuromotor.errors import ConfigError
@@ -37,6 +38,16 @@ FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "ove
 EXPERIMENT_KINDS = ("arm", "full_body", "contrast")
 # What a fit may tune (neuromotor.studies.fit.parameters): the muscle feedback pair and the reflex paths.
 FIT_PARAMETERS = ("ks", "kd", "reflex_gain", "reflex_delay", "long_latency_gain", "long_latency_delay")
+PARAMETER_UNITS = MappingProxyType(
+    {
+        "ks": "1/s^2",
+        "kd": "1/s",
+        "reflex_gain": "1/s^2",
+        "reflex_delay": "s",
+        "long_latency_gain": "1/s^2",
+        "long_latency_delay": "s",
+    }
+)
 # The recovery metrics (neuromotor.studies.metrics): the deviation's definition ([sim] metric, the first
 # the default) and the recovery threshold max(RECOVERY_FRACTION * peak, RECOVERY_FLOOR_DEG).
 DEVIATION_METRICS = ("geodesic", "euler")

@@ -20,21 +20,12 @@ from types import MappingProxyType
 
 import jax.numpy as jnp
 
-from neuromotor.config.specs import FIT_PARAMETERS as PARAMETERS, GainSetting
+from neuromotor.config.specs import FIT_PARAMETERS as PARAMETERS, PARAMETER_UNITS, GainSetting
 from neuromotor.physics.control import Gains, pd_tracking_gains
 from neuromotor.physics.reflex import Reflex
 
 # The unit of each named parameter (by name: the order of PARAMETERS does not matter).
-UNITS = MappingProxyType(
-    {
-        "ks": "1/s^2",
-        "kd": "1/s",
-        "reflex_gain": "1/s^2",
-        "reflex_delay": "s",
-        "long_latency_gain": "1/s^2",
-        "long_latency_delay": "s",
-    }
-)
+UNITS = PARAMETER_UNITS
 # Where a named reflex parameter lives in Gains.reflex: (path, leaf).
 _REFLEX = MappingProxyType(
     {

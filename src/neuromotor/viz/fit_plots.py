@@ -54,14 +54,20 @@ def _block_of(cal, col: int) -> dict:
     return next(b for b in cal.report_blocks() if b["columns"][0] <= col < b["columns"][1])
 
 
-def _title(res) -> str:
-    return (
-        f"{res.solver}: ks = {res.ks:.4g} ± {res.se_ks:.2g} 1/s², kd = {res.kd:.4g} ± {res.se_kd:.2g} 1/s\n"
-        f"(start ks = {res.ks0:.4g}, kd = {res.kd0:.4g}; {res.status}, {res.iterations} iterations)"
-    )
+def _title(res, units=None) -> str:
+    """Every fitted parameter with its standard error and unit (``units``: name -> unit), and
+    where the fit started."""
+    units = units or {"ks": "1/s²", "kd": "1/s"}
+    names = list(res.values) or ["ks", "kd"]
+    values = res.values or {"ks": res.ks, "kd": res.kd}
+    start = res.start_values or {"ks": res.ks0, "kd": res.kd0}
+    se = res.standard_errors or {"ks": res.se_ks, "kd": res.se_kd}
+    fitted = ", ".join(f"{n} = {values[n]:.4g} ± {se[n]:.2g} {units.get(n, '')}".rstrip() for n in names)
+    began = ", ".join(f"{n} = {start[n]:.4g}" for n in names)
+    return f"{res.solver}: {fitted}\n(start {began}; {res.status}, {res.iterations} iterations)"
 
 
-def plot_fit(cal, ev_start, ev_fit, path, res=None, max_columns: int = 4) -> pathlib.Path:
+def plot_fit(cal, ev_start, ev_fit, path, res=None, max_columns: int = 4, units=None) -> pathlib.Path:
     """PNG: the target, the fitted response and the response at the starting gains of a
     :class:`~neuromotor.studies.fit.Calibration` (evaluations at the start and fitted gains)."""
     plt = pyplot()
@@ -102,6 +108,6 @@ def plot_fit(cal, ev_start, ev_fit, path, res=None, max_columns: int = 4) -> pat
             if c == 0 and (j == 0 or feats):
                 ax.legend(fontsize=7)
     if res is not None:
-        fig.suptitle(_title(res), fontsize=9)
+        fig.suptitle(_title(res, units), fontsize=9)
     fig.tight_layout()
     return save_png(fig, pathlib.Path(path), dpi=110)

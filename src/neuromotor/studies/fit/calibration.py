@@ -509,7 +509,9 @@ def calibrate(
         from neuromotor.viz.fit_plots import plot_fit
 
         write_json(outdir / "fit.json", doc)
-        plot_fit(cal, ev(cal.x0), ev(res.x), outdir / "fit.png", res)
+        from neuromotor.config.specs import PARAMETER_UNITS
+
+        plot_fit(cal, ev(cal.x0), ev(res.x), outdir / "fit.png", res, units=PARAMETER_UNITS)
     if strict and not res.converged:
         raise FitError(f"fit with {res.solver} failed ({res.status}): {res.message}", res)
     return res, doc
