@@ -176,3 +176,19 @@ def test_csv_errors_name_the_file_and_line(tmp_path, text, message):
     assert "field 'perturbation[0].file'" in str(e.value) and message in str(e.value), str(e.value)
     with pytest.raises(ConfigError, match="does not apply to a recorded base motion"):
         config(dict(rec, shape="square"))
+
+
+def test_the_record_shows_the_directions_the_run_used(character):
+    """RUN.npz's provenance gives each perturbation's world direction as built, a held pose's
+    keywords in that pose's frame (backward and left at right angles)."""
+    from neuromotor.studies.record import _perturbation_records
+
+    still = character[0].anatomy.reference_frame * character[0].clip.frame_time
+    push = dict(kind="impulse", body="head", direction="left", magnitude=2.0, start=0.1)
+    setup = prepare(config(dict(SLED, start=0.05), push, still=still, start=0.0, duration=0.2), *character)
+    base, imp = _perturbation_records(setup)
+    V = np.asarray(setup.pulses.base_velocity)[-1]
+    assert np.allclose(base["direction"], V / np.linalg.norm(V), atol=1e-12)
+    assert np.allclose(imp["direction"], np.asarray(setup.pulses.direction)[0], atol=1e-12)
+    assert abs(np.dot(base["direction"], imp["direction"])) < 1e-12
+    assert base["direction_given"] == "backward" and imp["body"] == "Head"

@@ -253,10 +253,9 @@ def _perturbation_records(setup: Setup) -> list[dict]:
     """Each perturbation as configured (an impulse in N s, not the one-step pulse the step
     applies), with its resolved body, point and world direction; a base motion with its unit,
     its file and the span it acts over."""
-    from neuromotor.studies.simulate import direction_lookup
 
     p, names = setup.pulses, setup.model.body_names
-    direction_of = direction_lookup(setup.character, setup.config.source)
+    direction_of = setup.direction_of
     perts, row = [], 0
     for spec in setup.config.perturbations:
         common = {

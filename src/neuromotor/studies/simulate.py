@@ -79,6 +79,12 @@ class Setup:
         return SimModel(self.character.model, self.ref, self.options)
 
     @property
+    def direction_of(self):
+        """(direction, clip time) -> world unit vector for this setup's character (a held pose:
+        its frame): the one lookup every command builds its perturbations with."""
+        return direction_lookup(self.character, self.config.source, self.config.still)
+
+    @property
     def params(self) -> Params:
         """What the rollouts vary: this setup's gains and pulses."""
         return Params(self.gains, self.pulses)

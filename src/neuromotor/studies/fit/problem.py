@@ -228,7 +228,7 @@ def make_problem(
     (``kind`` is then the one part's kind or ``"multiple"``); ``axes`` (C, K, 3): the world axis
     of each case's body target ``slot`` k at the case's onset.
     """
-    from neuromotor.studies.simulate import body_lookup, direction_lookup
+    from neuromotor.studies.simulate import body_lookup
     from neuromotor.studies.targets import window_indices
 
     if kind not in KINDS and kind != MULTIPLE:
@@ -238,7 +238,7 @@ def make_problem(
     if not specs:
         raise ConfigError(f"{cfg.source}: a fit needs at least one [[perturbation]] (one per case)")
     index = body_lookup(setup.model, cfg.source, setup.character)
-    direction_of = direction_lookup(setup.character, cfg.source, cfg.still)
+    direction_of = setup.direction_of
     times = np.asarray(setup.ref.time)
     per_case = [build_pulses([s], setup.model, setup.options.h, index, direction_of, times) for s in specs]
     if kind == "features":

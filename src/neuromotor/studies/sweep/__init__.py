@@ -125,7 +125,7 @@ def simulate_grid(
     (``spec.kind == "ball"``) ball speeds; ``chunk`` and ``inner_batch`` default to the spec's;
     ``keep_curves``: keep every run's deviation curve d(t)."""
     from neuromotor.studies.ball_hit import balls_at_speeds
-    from neuromotor.studies.simulate import body_lookup, direction_lookup
+    from neuromotor.studies.simulate import body_lookup
 
     if (cfg.ball is not None) != (spec.kind == "ball") or (spec.kind == "ball" and cfg.perturbations):
         # A pulse sweep's rollouts have no contact, a ball sweep's twins no pulses: never half a config.
@@ -166,7 +166,7 @@ def simulate_grid(
         model.body_names,
         keep_curves=keep_curves,
         progress=progress,
-        direction_of=direction_lookup(setup.character, cfg.source, cfg.still),
+        direction_of=setup.direction_of,
     )
 
 
