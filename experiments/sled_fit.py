@@ -10,7 +10,7 @@ corridor's sd; the fit starts 3x off and must come back within 2 % (the delay wi
 Repeated over noise seeds, the fraction of fits whose 95 % interval holds the truth says whether
 the reported standard errors are honest; the leave-one-out errors are the fit's own report.
 
-    python experiments/sled_fit.py [--out out/sled_fit] [--seeds 20] [--subjects 4] [--clip CLIP.bvh]
+    python experiments/sled_fit.py [--out out/sled_fit] [--seeds 20] [--first-seed 0] [--subjects 4] [--clip CLIP.bvh]
     python experiments/sled_fit.py --write-example configs/targets/sled   # the shipped worked example
 
 ``--write-example`` writes the inputs and the corridors of one seed beside
@@ -131,6 +131,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="out/sled_fit")
     ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--first-seed", type=int, default=0, help="noise seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--subjects", type=int, default=4)
     ap.add_argument("--clip", default=None, help="a BVH clip (default: the embedded one)")
     ap.add_argument("--write-example", default=None, help="write the inputs and seed 0's corridors to this folder")
@@ -157,10 +158,10 @@ def main(argv=None) -> int:
     out = pathlib.Path(args.out)
     names = list(TRUTH)
     rows = []
-    for seed in range(args.seeds):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         write_corridors(folder, n, truth, seed)
         t1 = time.perf_counter()
-        res, doc = fit_once(folder, n, args.clip, still, character, out / "seed0" if seed == 0 else None)
+        res, doc = fit_once(folder, n, args.clip, still, character, out / f"seed{seed}" if not rows else None)
         err = {k: res.values[k] / TRUTH[k] - 1.0 for k in names}
         z = {k: (res.values[k] - TRUTH[k]) / res.standard_errors[k] for k in names}
         rows.append({"seed": seed, "status": res.status, "iterations": res.iterations, "values": res.values,
@@ -174,7 +175,7 @@ def main(argv=None) -> int:
     coverage = np.mean(np.abs(z) < 1.96, axis=0)
     summary = {
         "truth": TRUTH, "start": START, "reflex_gain": REFLEX_GAIN, "sd": SD, "h": H, "subjects": n, "still": still,
-        "clip": args.clip or "embedded", "seeds": args.seeds,
+        "clip": args.clip or "embedded", "seeds": list(range(args.first_seed, args.first_seed + args.seeds)),
         "coverage_95": dict(zip(names, coverage.tolist())),
         "z_sd": dict(zip(names, z.std(axis=0, ddof=1).tolist())) if len(rows) > 1 else None,
         "max_abs_relative_error": dict(zip(names, np.max(np.abs(rel), axis=0).tolist())),
