@@ -471,7 +471,13 @@ def cmd_info(args) -> int:
         print(json.dumps(_strict_json(info), indent=2, default=str))
         return 0
     print(f"run       {info['file']}")
-    for title, key in (("provenance", "provenance"), ("metrics", "metrics")):
+    # The residuals (issue 38, docs/residuals.md) only where the run recorded them.
+    sections = (("provenance", "provenance"), ("metrics", "metrics")) + (
+        (("residuals (the capture's inverse dynamics with the ground; docs/residuals.md)", "residuals"),)
+        if info.get("residuals") is not None
+        else ()
+    )
+    for title, key in sections:
         print()
         if info[key] is None:
             print(f"{title}: not recorded (a run file from an older neuromotor)")
@@ -651,7 +657,12 @@ def _add_clip_commands(sub) -> None:
     _body_args(sp, defaults=False)
     sp.add_argument("--json", action="store_true", help="print the recovery metrics as JSON (deg, s)")
     sp.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
-    sp.add_argument("--opensim-dir", default=None, help=OPENSIM_HELP + "perturbed.mot and unperturbed.mot")
+    sp.add_argument(
+        "--opensim-dir",
+        default=None,
+        help=OPENSIM_HELP + "perturbed.mot, unperturbed.mot and, with the capture's residuals "
+        "(docs/residuals.md), external_loads.sto/.xml and residuals.sto",
+    )
 
 
 def _add_run_commands(sub) -> None:

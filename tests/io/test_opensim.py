@@ -287,3 +287,58 @@ if __name__ == "__main__":  # the figures of docs/opensim.md: python tests/io/te
             _, max_err, rms = tool_agreement(model, character, files, folder)
         print(f"{hz:5.0f} Hz, t = {times[0]:.2f} .. {times[-1]:.2f} s: max |ID tool - idyn| = {max_err:.2e} "
               f"of the body weight, relative RMS {rms:.2e}", file=sys.stdout, flush=True)
+
+
+def test_external_loads_enter_opensim_inverse_dynamics_as_our_ground_reaction_forces(tmp_path):
+    """The capture's ground reaction forces (issue 38, studies/residuals.py) as OpenSim's
+    ExternalLoads: its Inverse Dynamics Tool with them, less without them, is minus their
+    generalized forces on the root: their sum on the translations and their moment about the
+    root joint's origin on the rotation axes (1e-6 N and N m; measured 1e-8), whatever the
+    accelerations OpenSim estimates (the same motion both times). The walk, 4.6-4.8 s, where
+    the left foot leaves the ground."""
+    from conftest import CLIPS
+    from neuromotor.physics.dynamics import StepOptions, make_reference
+    from neuromotor.studies import residuals as rs
+
+    character, traj = load_character(CLIPS["walk"])
+    model, options = character.model, StepOptions(n_steps=24)
+    ref = make_reference(model, traj, 4.6, options)
+    arrays = {"time": np.asarray(ref.time), **rs.residual_arrays(rs.capture_residuals(character, traj, ref, options))}
+    loads = nos.write_ground_storage(tmp_path, character, arrays)
+    osim_model = nos.export_osim(character, tmp_path / "model.osim")
+    motion = nos.write_motion(tmp_path / "motion.mot", model, ref.time, ref.root_origin, ref.root_rot, ref.theta)
+
+    def tool_forces(external: bool):
+        model_ = osim.Model(str(osim_model))  # kept alive: the tool holds a bare pointer to it
+        model_.initSystem()
+        tool = osim.InverseDynamicsTool()
+        tool.setModel(model_)
+        tool.setCoordinatesFileName(str(motion))
+        tool.setLowpassCutoffFrequency(-1)
+        tool.setStartTime(float(ref.time[0]))
+        tool.setEndTime(float(ref.time[-1]))
+        if external:
+            tool.setExternalLoadsFileName(str(loads["external_loads_setup"]))
+        name = f"id_{external}.sto"
+        tool.setResultsDir(str(tmp_path))
+        tool.setOutputGenForceFileName(name)
+        assert tool.run()
+        table = osim.TimeSeriesTable(str(tmp_path / name))
+        return list(table.getColumnLabels()), np.array(table.getMatrix().to_numpy())
+
+    labels, with_loads = tool_forces(True)
+    labels_without, without = tool_forces(False)
+    assert labels_without == labels
+    diff = with_loads - without
+    force = arrays["grf_force"].sum(1)
+    assert np.abs(force[:, 1]).max() > 300.0  # N: the feet bear the body
+    origin = np.asarray(ref.root_origin)
+    moment = (np.cross(arrays["grf_point"] - origin[:, None], arrays["grf_force"]) + arrays["grf_torque"]).sum(1)
+    order = model.joint_order[model.body_joint[0]]
+    axes = nos.channel_axes(np.eye(3), nos.euler_angles(np.asarray(ref.root_rot), order), order)
+    root = nos.layout(model).bodies[0]
+    for i, a in enumerate("XYZ"):
+        assert np.abs(diff[:, labels.index(f"{root}_{a}position_force")] + force[:, i]).max() < 1e-6
+    for i, a in enumerate(order):
+        generalized = np.einsum("tj,tj->t", axes[:, i], moment)
+        assert np.abs(diff[:, labels.index(f"{root}_{a}rotation_moment")] + generalized).max() < 1e-6

@@ -445,7 +445,8 @@ def root_pose_of_bodies(model: Model, body_pos, body_quat) -> tuple[np.ndarray, 
 
 def write_run_storage(folder, character: Character, arrays: dict) -> dict[str, pathlib.Path]:
     """``model.osim``, ``perturbed.mot`` and ``unperturbed.mot`` of a simulated run's arrays
-    (RUN.npz fields ``time``, ``theta``, ``body_pos``, ``body_quat`` and their twins)."""
+    (RUN.npz fields ``time``, ``theta``, ``body_pos``, ``body_quat`` and their twins); with the
+    capture's residuals (``grf_force`` ...), the files of :func:`write_ground_storage` too."""
     folder, model = pathlib.Path(folder), character.model
     out = {"model": export_osim(character, folder / "model.osim")}
     for key, suffix in (("perturbed", ""), ("unperturbed", "_unperturbed")):
@@ -453,4 +454,67 @@ def write_run_storage(folder, character: Character, arrays: dict) -> dict[str, p
         out[key] = write_motion(
             folder / f"{key}.mot", model, arrays["time"], origin, rot, arrays["theta" + suffix], name=key
         )
+    if "grf_force" in arrays:
+        out.update(write_ground_storage(folder, character, arrays))
     return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Ground reaction forces and residuals (issue 38; neuromotor.studies.residuals)
+# ----------------------------------------------------------------------------------------------
+
+EXTERNAL_LOADS = "external_loads"  # <name>.sto (the data) and <name>.xml (OpenSim's ExternalLoads)
+RESIDUALS = "residuals"  # <name>.sto
+
+
+def external_load_labels(body: str) -> tuple[str, ...]:
+    """The ``.sto`` columns of one body's ExternalForce: OpenSim's ``<id>x``, ``<id>y``, ``<id>z``
+    for the force (``<body>_force_v``), its point (``<body>_force_p``) and the torque
+    (``<body>_torque_``)."""
+    return tuple(f"{body}_{kind}{a}" for kind in ("force_v", "force_p", "torque_") for a in "xyz")
+
+
+def external_loads_xml(bodies, datafile: str) -> str:
+    """OpenSim's ExternalLoads: one ExternalForce per body, force and point in ground."""
+    doc = ET.Element("OpenSimDocument", Version=OSIM_VERSION)
+    loads = ET.SubElement(doc, "ExternalLoads", name="externalloads")
+    objects = ET.SubElement(loads, "objects")
+    for body in bodies:
+        force = ET.SubElement(objects, "ExternalForce", name=f"{body}_ground")
+        for tag, text in (
+            ("applied_to_body", body),
+            ("force_expressed_in_body", "ground"),
+            ("point_expressed_in_body", "ground"),
+            ("force_identifier", f"{body}_force_v"),
+            ("point_identifier", f"{body}_force_p"),
+            ("torque_identifier", f"{body}_torque_"),
+        ):
+            ET.SubElement(force, tag).text = text
+    ET.SubElement(loads, "datafile").text = datafile
+    ET.indent(doc)
+    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(doc, encoding="unicode") + "\n"
+
+
+def write_ground_storage(folder, character: Character, arrays: dict) -> dict[str, pathlib.Path]:
+    """``external_loads.sto`` and ``external_loads.xml`` (the ground reaction forces of the
+    capture's contact-aware inverse dynamics as OpenSim ExternalForces on their bodies: force,
+    centre of pressure, free torque) and ``residuals.sto`` (the root force and moment they leave,
+    the moment about the whole body's COM, and that point: ``residual_force_x`` ...,
+    ``residual_moment_x`` ..., ``residual_point_x`` ...). In OpenSim's ground frame (our world
+    turned by :func:`ground_rotation`); N, N m, m."""
+    folder, model = pathlib.Path(folder), character.model
+    turn = ground_rotation(model.gravity)
+    ground = lambda a: np.einsum("ij,...j->...i", turn, np.asarray(a, np.float64))
+    names = [layout(model).bodies[int(b)] for b in np.asarray(arrays["grf_body"])]
+    time = arrays["time"]
+    parts = [ground(arrays[f"grf_{k}"]) for k in ("force", "point", "torque")]  # (T, K, 3) each
+    values = np.stack(parts, 2).reshape(len(time), -1)  # per body: force, point, torque
+    labels = [c for body in names for c in external_load_labels(body)]
+    data = write_storage(folder / f"{EXTERNAL_LOADS}.sto", "ExternalLoads", labels, time, values)
+    text = external_loads_xml(names, data.name)
+    setup = atomic_write(folder / f"{EXTERNAL_LOADS}.xml", lambda fh: fh.write(text))
+    kinds = ("force", "moment", "point")
+    res = np.concatenate([ground(arrays[f"residual_{k}"]) for k in kinds], -1)
+    res_labels = [f"residual_{k}_{a}" for k in kinds for a in "xyz"]
+    residuals = write_storage(folder / f"{RESIDUALS}.sto", "Residuals", res_labels, time, res)
+    return {"external_loads": data, "external_loads_setup": setup, "residuals": residuals}

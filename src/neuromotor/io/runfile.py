@@ -21,6 +21,13 @@ The file is a plain NumPy ``.npz`` (no pickles). Its fields, by group:
   see :mod:`neuromotor.studies.metrics`; files without them are drawn with the Euler form),
   ``clip_still`` (scalar, s) the clip time of the pose a ``[sim] still`` run holds (absent: the
   clip plays, ``time`` is clip time);
+* the capture's residuals with the ground (``RESIDUAL_FIELDS``, all or none; issue 38,
+  :mod:`neuromotor.studies.residuals`): ``residual_force`` and ``residual_moment`` (T, 3) the
+  root's wrench the ground reaction forces leave (N, N m, world), the moment about
+  ``residual_point`` (T, 3) the whole body's COM; per contact body ``grf_body`` (K,) its index,
+  ``grf_force`` (T, K, 3) its ground reaction force (N), ``grf_point`` (T, K, 3) the centre of
+  pressure on the floor and ``grf_torque`` (T, K, 3) the free torque about it (N m);
+  ``contact_points`` (T,) the touching vertices; ``residuals_json`` the RMS and peak figures;
 * body shapes (``SHAPE_FIELDS``, all or none): ``shape_vertices`` (V, 3) in the body frame less
   the body's COM, ``shape_faces`` (F, 3) and ``shape_body`` (V,) integer, with the poses
   ``body_pos`` (T, B, 3), ``body_quat`` (T, B, 4, w x y z) and their ``_unperturbed`` twins.
@@ -67,7 +74,19 @@ OPTIONAL_FIELDS = (
     "deviation_metric",
     "base_offset",
     "clip_still",
+    "residual_force",
+    "residual_moment",
+    "residual_point",
+    "grf_force",
+    "grf_point",
+    "grf_torque",
+    "grf_body",
+    "contact_points",
+    "residuals_json",
 )
+RESIDUAL_FIELDS = OPTIONAL_FIELDS[OPTIONAL_FIELDS.index("residual_force") :]
+# The JSON strings read_run_info parses, by the key it returns them under.
+JSON_FIELDS = {"provenance_json": "provenance", "metrics_json": "metrics", "residuals_json": "residuals"}
 SHAPE_FIELDS = (
     "shape_vertices",
     "shape_faces",
@@ -174,12 +193,12 @@ def read_run_info(path) -> dict:
     try:
         with np.load(path, allow_pickle=False) as data:
             shapes = {k: list(data[k].shape) for k in data.files}
-            text = {k: str(data[k]) for k in ("provenance_json", "metrics_json") if k in data.files}
+            text = {k: str(data[k]) for k in JSON_FIELDS if k in data.files}
     except Exception as e:  # zip, pickle, truncation errors all mean the same to the user
         raise RunFileError(_unreadable(path, e)) from None
     _wanted_fields(path, set(shapes), INFO_FIELDS, RunFileError)
-    out = {"file": str(path), "provenance": None, "metrics": None, "arrays": shapes}
-    for key, field in (("provenance_json", "provenance"), ("metrics_json", "metrics")):
+    out = {"file": str(path), **dict.fromkeys(JSON_FIELDS.values()), "arrays": shapes}
+    for key, field in JSON_FIELDS.items():
         if key in text:
             try:
                 out[field] = json.loads(text[key])
@@ -328,10 +347,34 @@ class _Checker:
         if "base_offset" in d:
             self.shape("base_offset", (T, 3))
             self.finite("base_offset")
+        if any(f in d for f in RESIDUAL_FIELDS):
+            self.residuals(T)
         if "clip_still" in d:
             v = d["clip_still"]
             if v.shape != () or v.dtype.kind not in "fiu" or not (np.isfinite(v) and float(v) >= 0):
                 fail("clip_still", f"must be a clip time: a scalar >= 0, got {d['clip_still']!r}")
+
+    def residuals(self, T):
+        d, fail = self.d, self.fail
+        missing = [f for f in RESIDUAL_FIELDS if f not in d]
+        if missing:
+            fail(missing[0], "is missing (the residual fields come together)")
+        for name in ("residual_force", "residual_moment", "residual_point"):
+            self.vector_series(name, T)
+        body = d["grf_body"]
+        if body.ndim != 1 or (body.size and body.dtype.kind not in "iu"):
+            fail("grf_body", f"must be an integer array of shape (K,), got {body.dtype} {body.shape}")
+        n_bodies = d["body_names"].shape[0] if "body_names" in d else None
+        if body.size and (body.min() < 0 or (n_bodies is not None and body.max() >= n_bodies)):
+            fail("grf_body", f"body indices must lie in [0, {n_bodies}), got [{body.min()}, {body.max()}]")
+        for name in ("grf_force", "grf_point", "grf_torque"):
+            self.shape(name, (T, body.shape[0], 3))
+            self.finite(name)
+        count = d["contact_points"]
+        if count.shape != (T,) or (count.size and (count.dtype.kind not in "iu" or count.min() < 0)):
+            fail("contact_points", f"must be non-negative integers of shape (T={T},), got {count.dtype} {count.shape}")
+        if json_field(d, "residuals_json") is None:
+            fail("residuals_json", "must be a JSON object (a string)")
 
     def ball(self, T):
         d, fail = self.d, self.fail

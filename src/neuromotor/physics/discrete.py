@@ -107,6 +107,22 @@ def landing_velocity(model: Model, cfg, p0, q0, p1, q1, targets: PoseTargets):
     return velocity(w), err, it
 
 
+def step_rhs(model: Model, cfg, rot, u0: Float[Array, "B 6"], u1: Float[Array, "B 6"]) -> Float[Array, "B 6"]:
+    """The right side of the step's first block row per body (module docstring, item 2):
+    ``M (u+ - u) / h - D_g (u+ - u) - h K_g u+ - f_ext`` (force, torque about the COM; world).
+    Its sum over the bodies (torques moved to one point) is the wrench the driven root must
+    carry: the joints' rows and the torques cancel in it (:mod:`neuromotor.physics.grf`)."""
+    h = cfg.h
+    inertia = world_inertia(model, rot)
+    w0, w1 = u0[:, 3:], u1[:, 3:]
+    rhs = mass_times(model, inertia, u1 - u0) / h - gravity_forces(model).reshape(-1, 6)
+    gyro, blocks = gyro_blocks(model, rot, w0)
+    ang = -gyro
+    if cfg.implicit:
+        ang = ang - mv(blocks[..., 3:], w1 - w0) - h * mv(blocks[..., :3], w1)
+    return rhs.at[:, 3:].add(ang)
+
+
 def step_feedforward(
     model: Model,
     cfg,
@@ -116,21 +132,21 @@ def step_feedforward(
     quat,
     u0: Float[Array, "B 6"],
     u1: Float[Array, "B 6"],
+    external: Float[Array, "B 6"] | None = None,
 ):
     """``(tau, lam, relative residual)`` of one step: the multipliers that make Eq. 2 at the
-    pose (pos, quat) with velocity u0 give v+ = u1 (module docstring)."""
+    pose (pos, quat) with velocity u0 give v+ = u1 (module docstring). ``external``: known
+    forces on the bodies over the step (force, torque about the COM; world), such as ground
+    reaction forces; they join f_ext."""
     h, topo = cfg.h, model.topology
     rot = quat_to_matrix(quat)
-    inertia = world_inertia(model, rot)
-    w0, w1 = u0[:, 3:], u1[:, 3:]
-    rhs = mass_times(model, inertia, u1 - u0) / h - gravity_forces(model).reshape(-1, 6)
-    gyro, blocks = gyro_blocks(model, rot, w0)
-    ang = -gyro
+    rhs = step_rhs(model, cfg, rot, u0, u1)
+    if external is not None:
+        rhs = rhs - external
+    rhs = rhs.reshape(-1)
     axes = jnp.swapaxes(mm(rot[topo.parent], local_axes), -1, -2)  # (C, slot, 3): world h_i as rows
     if cfg.implicit:
-        ang = ang - mv(blocks[..., 3:], w1 - w0) - h * mv(blocks[..., :3], w1)
-        axes = axes + h * active[..., None] * cross(w1[topo.parent][:, None, :], axes)
-    rhs = rhs.at[:, 3:].add(ang).reshape(-1)
+        axes = axes + h * active[..., None] * cross(u1[topo.parent, 3:][:, None, :], axes)
     lhs = eq3_matrix(model, rot, per_joint_to_dofs(model, axes))
     x = jnp.linalg.solve(lhs, rhs)
     residual = jnp.linalg.norm(lhs @ x - rhs) / jnp.maximum(jnp.linalg.norm(rhs), 1e-300)

@@ -197,6 +197,17 @@ def anatomy_forward(setup: Setup, base_quat) -> np.ndarray | None:
     return forward
 
 
+def residual_part(setup: Setup, n_times: int) -> dict[str, np.ndarray]:
+    """The capture's residuals with the ground (issue 38, :mod:`neuromotor.studies.residuals`),
+    for a reference made by the discrete inverse (its velocities); none with Eq. 3's."""
+    if setup.ref.velocity is None:
+        return {}
+    from neuromotor.studies.residuals import capture_residuals, residual_arrays
+
+    res = capture_residuals(setup.character, setup.traj, setup.ref, setup.options)
+    return {k: v if v.ndim == 0 or k == "grf_body" else v[:n_times] for k, v in residual_arrays(res).items()}
+
+
 def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
     """The arrays of RUN.npz (the contract of :mod:`neuromotor.io.runfile`), the ball's included
     when the run has one."""
@@ -206,6 +217,7 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
         **_source_arrays(setup, result),
         **shape_arrays(setup),
     }
+    arrays.update(residual_part(setup, arrays["time"].shape[0]))
     # Horizontal facing direction: the anatomy's forward, else estimated from the skeleton.
     forward = anatomy_forward(setup, result.unperturbed.states.quat)
     arrays["facing"] = facing_direction(
