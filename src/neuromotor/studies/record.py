@@ -213,6 +213,11 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
         from neuromotor.studies.ball_hit import ball_arrays
 
         arrays.update(ball_arrays(setup, result))
+    contact = result.ball if getattr(result, "ball", None) is not None else getattr(result, "ground", None)
+    if getattr(setup, "ground", None) is not None and contact is not None:
+        from neuromotor.studies.ground import ground_arrays
+
+        arrays.update(ground_arrays(setup, contact))
     return arrays
 
 
@@ -269,6 +274,20 @@ def _perturbation_records(setup: Setup) -> list[dict]:
             }
         )
     return perts
+
+
+def _ground_record(setup: Setup) -> dict | None:
+    """The ground the bodies touch (its resolved height), or None."""
+    g = getattr(setup, "ground", None)
+    if g is None:
+        return None
+    return {
+        "height": float(g.height),
+        "friction": float(g.friction),
+        "restitution": float(g.restitution),
+        "contacts_per_body": int(g.per_body),
+        "max_contacts": int(g.max_contacts),
+    }
 
 
 def _ball_record(setup: Setup) -> dict | None:
@@ -341,6 +360,8 @@ def provenance(setup: Setup) -> dict:
         "stabilization_steps": int(cfg.stabilization_steps),
         "dtype": str(cfg.dtype),  # float64, or float32 (docs/float32.md)
         "driven_joints": [setup.model.body_names[b] for b in options.driven],
+        "root": "free" if options.free_root else "driven",
+        "ground": _ground_record(setup),
         "perturbations": _perturbation_records(setup),
         "ball": _ball_record(setup),
         # The delayed reflex (docs/reflex.md), or None: the paper's controller.
