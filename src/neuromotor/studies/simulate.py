@@ -228,8 +228,9 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
     pulses = build_pulses(config.perturbations, model, config.h, index, direction_lookup(character, config.source))
     ground = ground_setup(config.ground, character, traj) if config.ground_on else None
-    if ball is not None and ground is not None:  # one scene: the ball and the bodies on the ground
-        ball = dataclasses.replace(ball, ground=ground)
+    if ball is not None and ground is not None:  # one scene: the ball and the bodies on one ground
+        settings = dataclasses.replace(ball.settings, ground_height=float(ground.height))
+        ball = dataclasses.replace(ball, ground=ground, settings=settings)
     return Setup(character, traj, ref, gains, options, pulses, config, ball, warnings, window, ground)
 
 
