@@ -265,7 +265,7 @@ def cmd_simulate(args) -> int:
     )
     result = run(setup)
     stage(f"writing {args.output}")
-    arrays = run_arrays(setup, result)
+    arrays = run_arrays(setup, result, residuals=True if args.residuals else None)
     save_npz_atomic(args.output, arrays)
     if args.json:
         print(json.dumps(metrics_json(result.metrics), indent=2))
@@ -662,6 +662,12 @@ def _add_clip_commands(sub) -> None:
         default=None,
         help=OPENSIM_HELP + "perturbed.mot, unperturbed.mot and, with the capture's residuals "
         "(docs/residuals.md), external_loads.sto/.xml and residuals.sto",
+    )
+    sp.add_argument(
+        "--residuals",
+        action="store_true",
+        help="also solve the capture's ground reaction forces and the root residuals they leave "
+        "(docs/residuals.md; always with a ground)",
     )
 
 

@@ -236,3 +236,20 @@ def test_contact_thresholds_decide_touching(walk, stepping):
     assert np.all(np.asarray(strict.active) <= active) and np.asarray(strict.active).sum() < active.sum()
     height, speed = np.asarray(res.contacts.height), np.asarray(res.contacts.speed)
     np.testing.assert_array_equal(active, (height < grf.CONTACT_HEIGHT) & (speed < grf.CONTACT_SPEED))
+
+
+def test_simulate_writes_residuals_when_asked(tmp_path):
+    """A driven run's RUN.npz has the residuals with ``--residuals`` (and the .sto with
+    ``--opensim-dir``), not without: they cost a second inverse problem per step."""
+    from neuromotor import cli
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[sim]\nstart = 0.5\nduration = 0.3\n[[perturbation]]\nbody = "chest"\nmagnitude = 100.0\nstart = 0.6\n')
+    plain, asked = tmp_path / "plain.npz", tmp_path / "asked.npz"
+    assert cli.main(["simulate", str(cfg), "-o", str(plain), "--quiet"]) == 0
+    assert cli.main(["simulate", str(cfg), "-o", str(asked), "--quiet", "--residuals", "--opensim-dir",
+                     str(tmp_path / "osim")]) == 0
+    a, b = np.load(plain), np.load(asked)
+    assert "residual_force" not in a.files and b["residual_force"].shape == (37, 3)
+    np.testing.assert_array_equal(a["theta"], b["theta"])  # the run itself is the same
+    assert (tmp_path / "osim" / "residuals.sto").is_file() and (tmp_path / "osim" / "external_loads.xml").is_file()

@@ -208,16 +208,19 @@ def residual_part(setup: Setup, n_times: int) -> dict[str, np.ndarray]:
     return {k: v if v.ndim == 0 or k == "grf_body" else v[:n_times] for k, v in residual_arrays(res).items()}
 
 
-def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
+def run_arrays(setup: Setup, result: RunResult, residuals: bool | None = None) -> dict[str, np.ndarray]:
     """The arrays of RUN.npz (the contract of :mod:`neuromotor.io.runfile`), the ball's included
-    when the run has one."""
+    when the run has one; the capture's residuals with the ground (:func:`residual_part`) when
+    ``residuals``, by default when the run has a ground (a second inverse problem per step, so
+    not for every driven run: ``neuromotor simulate --residuals`` asks for it)."""
     arrays = {
         **_motion_arrays(setup, result),
         **_skeleton_arrays(setup, result),
         **_source_arrays(setup, result),
         **shape_arrays(setup),
     }
-    arrays.update(residual_part(setup, arrays["time"].shape[0]))
+    if residuals if residuals is not None else getattr(setup, "ground", None) is not None:
+        arrays.update(residual_part(setup, arrays["time"].shape[0]))
     # Horizontal facing direction: the anatomy's forward, else estimated from the skeleton.
     forward = anatomy_forward(setup, result.unperturbed.states.quat)
     arrays["facing"] = facing_direction(
