@@ -22,6 +22,7 @@ from neuromotor.physics import grf
 from neuromotor.physics.dynamics import StepOptions, make_reference
 from neuromotor.rotations import matrix_to_quat
 from neuromotor.studies import residuals as rs
+from neuromotor.studies.ground import foot_bodies
 
 STEPS = 24  # one window length for every case: the programs compile once
 STAND, WALK = 1.0, 4.6  # s: both feet flat; the left foot lifts off at about 4.75 s
@@ -56,7 +57,7 @@ def test_standing_pose_grfs_carry_the_body_weight(walk):
     COM); both feet touch, and their forces sum to it with zero residual (1e-6 of the weight)."""
     res, _, _ = residuals_of(walk, STAND, still=True)
     character = walk[0]
-    feet = rs.foot_bodies(character)
+    feet = foot_bodies(character)
     assert len(feet) == 2
     weight = np.zeros(6)
     weight[:3] = res.weight * res.up
@@ -114,7 +115,7 @@ def test_grfs_lie_in_the_friction_pyramid(walk, stepping):
     assert np.all(normal >= -tol)
     assert np.all(tangent @ faces.T <= grf.FRICTION * np.cos(np.pi / 8) * normal[..., None] + tol)
     assert np.linalg.norm(tangent, axis=-1).max() > 1e-3 * res.weight  # friction is used
-    left = np.asarray(res.contacts.body) == rs.foot_bodies(walk[0])[0]
+    left = np.asarray(res.contacts.body) == foot_bodies(walk[0])[0]
     touching = (active & left).any(1)
     assert touching[0] and not touching[-1]
 

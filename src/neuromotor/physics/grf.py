@@ -104,15 +104,6 @@ def vertex_world(model: Model, verts, pos, rot):
     return pos[..., :, None, :] + jnp.einsum("...bij,bvj->...bvi", rot, local)
 
 
-def lowest_height(model: Model, verts, valid, pos, rot, bodies: Sequence[int] | None = None):
-    """The height along up (``-gravity``) of the lowest vertex of ``bodies`` (default: all) over
-    every configuration of ``pos`` ``(T, B, 3)``, ``rot`` ``(T, B, 3, 3)``."""
-    height = jnp.where(valid, vertex_world(model, verts, pos, rot) @ up_direction(model), jnp.inf)
-    if bodies is not None:
-        height = height[:, jnp.asarray(list(bodies), jnp.int32)]
-    return jnp.min(height)
-
-
 @functools.partial(compiler.jit, static_argnames=("per_body", "max_contacts"))
 def capture_contacts(
     model: Model,

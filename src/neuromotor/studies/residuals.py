@@ -4,7 +4,7 @@ residual root force and moment they leave, per step and as RMS and peak, in N, N
 the body weight (moments: % of body weight x stature). The physics is
 :mod:`neuromotor.physics.grf`; docs/residuals.md has the figures and the commands.
 
-The floor is the ground branch's rule (``studies/ground.capture_floor`` there): the height
+The floor is the ground's rule (:func:`neuromotor.studies.ground.capture_floor`): the height
 along up of the feet's lowest polyhedron vertex over every frame of the clip (every body's
 when the rig has no labelled feet).
 
@@ -31,28 +31,15 @@ from neuromotor.physics import grf
 from neuromotor.physics.contact.detection import up_direction
 from neuromotor.physics.dynamics import Reference, StepOptions
 from neuromotor.rotations import matrix_to_quat
+from neuromotor.studies.ground import capture_floor  # one floor rule, one set of feet
 
 FOOT = "foot"  # the mass model's segment of the feet (Character.body_segment)
 GRAVITY_FALLBACK = 9.81  # m/s^2: the body weight's g on a rig without gravity
 
 
-def foot_bodies(character: Character) -> tuple[int, ...]:
-    """The feet (the mass model's ``foot`` segments); every body on a rig without labelled feet."""
-    feet = tuple(b for b, seg in enumerate(character.body_segment) if seg == FOOT)
-    return feet or tuple(range(character.model.n_bodies))
-
-
 @compiler.jit
 def _grid_poses(model: Model, traj: Trajectory, times):
     return jax.vmap(lambda t: body_poses(model, traj.q(t)))(times)
-
-
-def capture_floor(character: Character, traj: Trajectory) -> float:
-    """The floor of the capture (module docstring): the ground branch's rule."""
-    clip = character.clip
-    verts, valid = grf.body_vertices(character.shapes)
-    pos, rot = _grid_poses(character.model, traj, jnp.arange(clip.n_frames, dtype=jnp.float64) * clip.frame_time)
-    return float(grf.lowest_height(character.model, verts, valid, pos, rot, foot_bodies(character)))
 
 
 def body_height(character: Character, pos, rot, verts, valid) -> float:
