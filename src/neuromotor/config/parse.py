@@ -27,6 +27,7 @@ from neuromotor.config.specs import (
     REFLEX_AXES,
     REFLEX_DELAY_LIMIT,
     REQUIRED,
+    ROOT_MODES,
     SEXES,
     TARGET_KINDS,
     TIME_UNITS,
@@ -36,6 +37,7 @@ from neuromotor.config.specs import (
     FitSpec,
     FitTargetSpec,
     GainSetting,
+    GroundSpec,
     PerturbationSpec,
     ReflexSpec,
     SimulationConfig,
@@ -51,7 +53,8 @@ from neuromotor.model.facing import DIRECTION_KEYWORDS
 from neuromotor.physics.options import Feedforward, JointLaw
 from neuromotor.physics.precision import Precision
 
-TABLES = ("fit", "sweep", "experiment", "ball", "reflex")  # top-level tables beside [sim], [gains], [[perturbation]]
+# top-level tables beside [sim], [gains], [[perturbation]]
+TABLES = ("fit", "sweep", "experiment", "ball", "reflex", "ground")
 
 
 # ----------------------------------------------------------------------------- simulation
@@ -268,12 +271,33 @@ def _sim_fields(top: Fields) -> dict:
     out["feedforward"] = Feedforward(sim.choice("feedforward", d("feedforward").value, [f.value for f in Feedforward]))
     out["joint_law"] = JointLaw(sim.choice("joint_law", d("joint_law").value, [f.value for f in JointLaw]))
     out["metric"] = sim.choice("metric", d("metric"), DEVIATION_METRICS)
+    out["root"] = sim.choice("root", d("root"), ROOT_MODES)
     sim.done()
     gains = top.sub("gains")
     for key in ("ks", "kd", "tau_floor"):
         out[key] = gains.number(key, d(key), nonneg=True)
     gains.done()
     return out
+
+
+def parse_ground(top: Fields) -> GroundSpec:
+    """The ``[ground]`` table (defaults: :class:`GroundSpec`); errors name the field."""
+    f = top.sub("ground")
+    d = lambda name: default(GroundSpec, name)
+    enabled = None if f.get("enabled") is None else f.boolean("enabled", None)
+    friction = f.number("friction", d("friction"), nonneg=True)
+    restitution = f.number("restitution", d("restitution"), nonneg=True)
+    if restitution > 1.0:
+        f.fail("restitution", f"must be in [0, 1], got {restitution!r}")
+    spec = GroundSpec(
+        enabled=enabled,
+        height=f.number("height", None),
+        friction=friction,
+        restitution=restitution,
+        contacts_per_body=f.integer("contacts_per_body", d("contacts_per_body"), 1),
+        max_contacts=f.integer("max_contacts", d("max_contacts"), 1),
+    )
+    return spec
 
 
 def parse_reflex(top: Fields) -> ReflexSpec:
@@ -313,6 +337,8 @@ def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> Simu
         fields["ball"] = parse_ball(top.get("ball"), source)
     if "reflex" in data:
         fields["reflex"] = parse_reflex(top)
+    if "ground" in data:
+        fields["ground"] = parse_ground(top)
     top.done(allowed_tables=TABLES)
     return SimulationConfig(source=source, **fields)
 
@@ -493,8 +519,19 @@ def _sweep_fitted(f: Fields, base_dir) -> tuple[float, float] | None:
     f.fail("fitted", f"must be a JSON path or [ks, kd], got {fitted!r}")
 
 
+def refuse_ground(cfg: SimulationConfig, what: str) -> None:
+    """ConfigError for a command whose forward model has no ground contact yet (sweeps, fits,
+    experiments) on a config whose bodies touch the ground."""
+    if cfg.ground_on:
+        raise ConfigError(
+            f"{cfg.source}: field 'ground.enabled': {what} does not simulate the ground contact yet "
+            '(only `neuromotor simulate` does); set [ground] enabled = false, or [sim] root = "driven"'
+        )
+
+
 def sweep_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> SweepSpec:
     """The ``[sweep]`` table of a config (layout in :mod:`neuromotor.studies.sweep`)."""
+    refuse_ground(cfg, "a sweep")
     f = Fields(data.get("sweep", {}), "sweep", cfg.source)
     kind, mags = _sweep_magnitudes(f, cfg)
     axes = _sweep_axes(f)
@@ -525,6 +562,7 @@ def experiment_spec(
     data: dict, cfg: SimulationConfig, base_dir=None, default_kind: str | None = None
 ) -> ExperimentSpec:
     """The ``[experiment]`` table (layout in :mod:`neuromotor.studies.experiments`)."""
+    refuse_ground(cfg, "an experiment")
     f = Fields(data.get("experiment", {}), "experiment", cfg.source)
     d = lambda name: default(ExperimentSpec, name)
     kind = f.choice("kind", default_kind, EXPERIMENT_KINDS)
@@ -731,6 +769,7 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
     source = cfg.source
     if "fit" not in data:
         raise ConfigError(f"{source}: a fit config needs a [fit] table")
+    refuse_ground(cfg, "a fit")
     if cfg.ball is not None:  # the fit's forward model has no contact: it would leave the ball out
         raise ConfigError(
             f"{source}: field 'ball': a fit simulates its [[perturbation]] cases without contact, "

@@ -17,6 +17,7 @@ from typing import ClassVar
 
 from neuromotor.errors import ConfigError
 from neuromotor.physics import perturbation as _perturbation, reflex as _reflex
+from neuromotor.physics.contact import ground as _ground
 from neuromotor.physics.contact.ball import make_ball
 from neuromotor.physics.contact.detection import ContactSettings
 from neuromotor.physics.control import DEFAULT_KD, DEFAULT_KS, DEFAULT_TAU_FLOOR
@@ -51,6 +52,9 @@ PARAMETER_UNITS = MappingProxyType(
 # The recovery metrics (neuromotor.studies.metrics): the deviation's definition ([sim] metric, the first
 # the default) and the recovery threshold max(RECOVERY_FRACTION * peak, RECOVERY_FLOOR_DEG).
 DEVIATION_METRICS = ("geodesic", "euler")
+# [sim] root: "driven" along the mocap (the paper), or "free" (no actuator, no constraint: only
+# gravity, the ground, the perturbations and the joint torques move it).
+ROOT_MODES = ("driven", "free")
 RECOVERY_FRACTION = 0.2
 RECOVERY_FLOOR_DEG = 0.5
 
@@ -295,6 +299,24 @@ class BallSpec(_KeyView):
         return f"{self.mass:g} kg ball at {self.launch_speed if speed is None else speed:g} m/s"
 
 
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class GroundSpec:
+    """The ``[ground]`` table: the plane under the character's bodies
+    (:mod:`neuromotor.physics.contact.ground`). Without the table: the defaults, on with
+    ``[sim] root = "free"``, off with the driven root (the paper)."""
+
+    enabled: bool | None = None  # None: on with root = "free", off with the driven root
+    height: float | None = None  # m along the up axis; None: the capture's floor (lowest foot point)
+    friction: float = _ground.DEFAULT_FRICTION  # Coulomb coefficient
+    restitution: float = 0.0  # Newton's coefficient, 0..1
+    contacts_per_body: int = _ground.DEFAULT_PER_BODY  # each body's lowest vertices that may touch
+    max_contacts: int = _ground.DEFAULT_MAX_CONTACTS  # lowest of them solved per step
+
+    def on(self, root: str) -> bool:
+        """Whether the bodies touch the ground with this root mode."""
+        return root == "free" if self.enabled is None else self.enabled
+
+
 @dataclasses.dataclass(frozen=True)
 class GainSetting:
     """One controller: the paper's model ("neuromotor") or the high-gain PD tracker ("pd") at
@@ -367,6 +389,8 @@ class SimulationConfig:
     perturbations: list[PerturbationSpec] = dataclasses.field(default_factory=list)
     ball: BallSpec | None = None
     reflex: ReflexSpec | None = None  # None: no delayed reflex (the paper's controller)
+    root: str = "driven"  # [sim] root: "driven" (the paper) or "free" (StepOptions.free_root)
+    ground: GroundSpec = dataclasses.field(default_factory=GroundSpec)  # [ground]
     source: str = "<defaults>"
 
     def __post_init__(self):
@@ -379,6 +403,13 @@ class SimulationConfig:
             )
         object.__setattr__(self, "perturbations", [PerturbationSpec.of(p) for p in self.perturbations])
         object.__setattr__(self, "ball", BallSpec.of(self.ball))
+        if self.root not in ROOT_MODES:
+            raise ConfigError(f"{self.source}: field 'sim.root' must be one of {list(ROOT_MODES)}, got {self.root!r}")
+
+    @property
+    def ground_on(self) -> bool:
+        """Whether the bodies touch the ground (``[ground] enabled``, by default with a free root)."""
+        return self.ground.on(self.root)
 
     @property
     def gains(self) -> GainSetting:

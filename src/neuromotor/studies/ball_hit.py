@@ -27,6 +27,7 @@ from neuromotor.physics.contact import (
     ContactRollout,
     ContactScene,
     ContactSettings,
+    Ground,
     batched_simulate_contact,
     candidate_bodies,
     candidate_names,
@@ -49,11 +50,17 @@ class BallSetup(eqx.Module):
     capsules: Capsules
     settings: ContactSettings = eqx.field(static=True)
     target: int | None = eqx.field(static=True, default=None)  # body the ball is aimed at
+    ground: Ground | None = None  # the bodies' ground, when they touch it ([ground])
 
     def scene(self, ball: Ball | None = None) -> ContactScene:
         """What the contact step adds to the character: ``ball`` (default: this one), the capsules,
-        the settings."""
-        return ContactScene(self.ball if ball is None else ball, self.capsules, self.settings)
+        the settings, and the bodies' ground if any."""
+        return ContactScene(self.ball if ball is None else ball, self.capsules, self.settings, self.ground)
+
+    @property
+    def n_candidates(self) -> int:
+        """The ball's candidates (capsules, then its ground); the bodies' ground slots follow."""
+        return self.capsules.radius.shape[0] + int(self.settings.ground)
 
 
 # ----------------------------------------------------------------------------- aiming
@@ -196,11 +203,13 @@ def ball_rollouts(setup, base_pulses, check: bool = True) -> tuple[ContactRollou
     return pert, base
 
 
-def ball_metrics(out: ContactRollout) -> dict:
-    """The metrics a ball adds to a run's: peak contact impulse and the first contact's time."""
-    hit = np.nonzero(np.asarray(out.contact.normal_impulse).max(-1) > 0)[0]
+def ball_metrics(out: ContactRollout, n_ball: int | None = None) -> dict:
+    """The metrics a ball adds to a run's: peak contact impulse and the first contact's time
+    (over the ball's first ``n_ball`` candidates; None: every candidate)."""
+    lam, imp = out.contact.normal_impulse[:, :n_ball], out.contact.impulse[:, :n_ball]
+    hit = np.nonzero(np.asarray(lam).max(-1) > 0)[0]
     return {
-        "ball_peak_impulse_Ns": float(jnp.max(jnp.linalg.norm(out.contact.impulse, axis=-1))),
+        "ball_peak_impulse_Ns": float(jnp.max(jnp.linalg.norm(imp, axis=-1))),
         "ball_first_contact_s": float(out.run.time[hit[0]]) if hit.size else None,
     }
 
@@ -213,7 +222,8 @@ def ball_arrays(setup, result) -> dict[str, np.ndarray]:
     ``contact_names`` (C)."""
     out: ContactRollout = result.ball
     bs: BallSetup = setup.ball
-    c = out.contact
+    assert out.ball is not None  # a ball run
+    c = jax.tree_util.tree_map(lambda x: x[:, : bs.n_candidates], out.contact)  # the ball's candidates
     impulse = np.asarray(c.impulse)
     model = setup.model
     # Closest points on the bodies (and the ground) to the ball, for drawing the force arrows.

@@ -217,6 +217,11 @@ def run_arrays(setup: Setup, result: RunResult) -> dict[str, np.ndarray]:
         from neuromotor.studies.ball_hit import ball_arrays
 
         arrays.update(ball_arrays(setup, result))
+    contact = result.ball if getattr(result, "ball", None) is not None else getattr(result, "ground", None)
+    if getattr(setup, "ground", None) is not None and contact is not None:
+        from neuromotor.studies.ground import ground_arrays
+
+        arrays.update(ground_arrays(setup, contact))
     return arrays
 
 
@@ -287,6 +292,20 @@ def _perturbation_records(setup: Setup) -> list[dict]:
         )
         row += 1
     return perts
+
+
+def _ground_record(setup: Setup) -> dict | None:
+    """The ground the bodies touch (its resolved height), or None."""
+    g = getattr(setup, "ground", None)
+    if g is None:
+        return None
+    return {
+        "height": float(g.height),
+        "friction": float(g.friction),
+        "restitution": float(g.restitution),
+        "contacts_per_body": int(g.per_body),
+        "max_contacts": int(g.max_contacts),
+    }
 
 
 def _ball_record(setup: Setup) -> dict | None:
@@ -362,6 +381,8 @@ def provenance(setup: Setup) -> dict:
         # The driven bodies by name (keywords such as "trunk" resolved), and the entries as given.
         "driven_joints": [setup.model.body_names[b] for b in options.driven],
         "driven_joints_requested": list(cfg.driven_joints),
+        "root": "free" if options.free_root else "driven",
+        "ground": _ground_record(setup),
         "perturbations": _perturbation_records(setup),
         "ball": _ball_record(setup),
         # The delayed reflex (docs/reflex.md), or None: the paper's controller.

@@ -31,7 +31,7 @@ from neuromotor.model.skeleton import (
     keyword_bodies,
     keyword_body,
 )
-from neuromotor.physics.contact import ContactRollout
+from neuromotor.physics.contact import ContactRollout, Ground
 from neuromotor.physics.control import Gains, make_gains
 from neuromotor.physics.dynamics import (
     Feedforward,
@@ -49,6 +49,7 @@ from neuromotor.physics.precision import Precision
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.ball_hit import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies.gains import gains_for
+from neuromotor.studies.ground import ground_metrics, ground_rollouts, ground_setup
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +69,7 @@ class Setup:
     warnings: tuple[str, ...] = ()  # the clip's (see Character.warnings) and the run's, one line each
     window: ActingWindow | None = None  # where a perturbation can act (sweep axes are checked against it)
     capture: Trajectory | None = None  # the clip's trajectory when ``traj`` holds a still pose (None: traj)
+    ground: Ground | None = None  # the bodies touch the ground ([ground]; on by default with [sim] root = "free")
 
     @property
     def model(self) -> Model:
@@ -238,7 +240,11 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
         feedforward=config.feedforward,
         joint_law=config.joint_law,
     )
+    # The feedforward is the capture's inverse dynamics with the driven root (the paper's); a free
+    # root then runs without the root's rows: nothing holds the pelvis but the ground.
     ref = make_reference(model, traj, config.start, options)
+    if config.root == "free":
+        options = dataclasses.replace(options, free_root=True)
     template = _initial_gains(
         model, traj, jnp.asarray(config.start), ref.local_axes[0], ref.activation, config.tau_floor
     )
@@ -247,8 +253,22 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
     directions = direction_lookup(character, config.source, still)
     pulses = build_pulses(config.perturbations, model, config.h, index, directions, ref.time)
+    ground = ground_setup(config.ground, character, capture) if config.ground_on else None
+    if ball is not None and ground is not None:  # one scene: the ball and the bodies on the ground
+        ball = dataclasses.replace(ball, ground=ground)
     return Setup(
-        character, traj, ref, gains, options, pulses, config, ball, warnings, window, None if still is None else capture
+        character,
+        traj,
+        ref,
+        gains,
+        options,
+        pulses,
+        config,
+        ball,
+        warnings,
+        window,
+        capture=None if still is None else capture,
+        ground=ground,
     )
 
 
@@ -338,13 +358,22 @@ class RunResult:
     unperturbed: Rollout
     metrics: dict
     ball: ContactRollout | None = None  # the ball run: its state and contact record
+    ground: ContactRollout | None = None  # a run on the ground without a ball: its contact record
 
 
 def run(setup: Setup, check: bool = True) -> RunResult:
     """Perturbed and unperturbed rollouts plus the recovery metrics."""
     if setup.ball is not None:
         pert, base = ball_rollouts(setup, _zero(setup.pulses), check)
-        return RunResult(pert.run, base.run, run_metrics(setup, pert.run, base.run) | ball_metrics(pert), pert)
+        n_ball = setup.ball.n_candidates
+        metrics = run_metrics(setup, pert.run, base.run) | ball_metrics(pert, n_ball)
+        if setup.ground is not None:
+            metrics |= ground_metrics(pert, n_ball)
+        return RunResult(pert.run, base.run, metrics, pert)
+    if setup.ground is not None:
+        pert, base = ground_rollouts(setup, _zero(setup.pulses), check)
+        extra = ground_metrics(pert, 0)
+        return RunResult(pert.run, base.run, run_metrics(setup, pert.run, base.run) | extra, ground=pert)
     model, sim = setup.model, setup.sim_model
     pert = simulate_jit(sim, setup.params)
     base = simulate_jit(sim, Params(setup.gains, _zero(setup.pulses)))

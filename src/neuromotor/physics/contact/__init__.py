@@ -1,16 +1,18 @@
-"""A flying ball hitting the character: contact as a linear complementarity problem (LCP).
+"""Contact as a linear complementarity problem (LCP): a flying ball, and the ground under the bodies.
 
 Section 4 of the paper handles contact as an LCP at the velocity level, together with the joint
-constraints (Cline 2002). This package adds one free rigid ball to the linearly implicit step
-of Eq. 2 and solves its contacts with the character's bodies and with the ground plane in the
-same step. One job per module:
+constraints (Cline 2002). This package adds to the linearly implicit step of Eq. 2 one free
+rigid ball (its contacts with the character's bodies and with the ground plane) and the
+bodies' own contacts with the ground plane, all solved as one LCP in the same step. One job
+per module:
 
 * :mod:`.ball` -- the ball (a solid sphere, every parameter an array leaf) and its state;
 * :mod:`.shapes` -- collision capsules fitted to the bodies' polyhedra;
-* :mod:`.detection` -- gaps, normals and tangent frames of the candidates (capsules, ground);
+* :mod:`.detection` -- gaps, normals and tangent frames of the ball's candidates (capsules, ground);
+* :mod:`.ground` -- the ground plane and the bodies' contact points on it (their polyhedra's lowest vertices);
 * :mod:`.lcp` -- projected Gauss-Seidel for the LCP and for the gap projection;
 * :mod:`.step` -- the contact step: the ordinary step plus contact rows, in named stages;
-* :mod:`.rollout` -- the scan over steps with the ball's state beside the character's.
+* :mod:`.rollout` -- the scan over steps with the ball's state (if any) beside the character's.
 
 The ball's place in a run (building it from a config, aiming, RUN.npz arrays, speed sweeps)
 is :mod:`neuromotor.studies.ball_hit`; docs/contact.md describes the physics.
@@ -24,6 +26,7 @@ from neuromotor.physics.contact.detection import (
     detect,
     tangent_basis,
 )
+from neuromotor.physics.contact.ground import Ground, GroundSlots, ground_slots, lowest_points, make_ground, vertex_gap
 from neuromotor.physics.contact.lcp import project_polygon, solve_gap_projection, solve_lcp_pgs
 from neuromotor.physics.contact.rollout import (
     ContactRollout,
@@ -33,7 +36,15 @@ from neuromotor.physics.contact.rollout import (
     simulate_contact_jit,
 )
 from neuromotor.physics.contact.shapes import Capsules, fit_capsules, segment_distances
-from neuromotor.physics.contact.step import ContactData, ContactInfo, ContactScene, contact_step
+from neuromotor.physics.contact.step import (
+    ContactData,
+    ContactInfo,
+    ContactScene,
+    contact_step,
+    scene_candidate_bodies,
+    scene_candidate_names,
+    scene_gaps,
+)
 
 __all__ = [
     "Ball",
@@ -44,6 +55,8 @@ __all__ = [
     "ContactRollout",
     "ContactScene",
     "ContactSettings",
+    "Ground",
+    "GroundSlots",
     "batched_simulate_contact",
     "candidate_bodies",
     "candidate_names",
@@ -51,14 +64,21 @@ __all__ = [
     "contact_step",
     "detect",
     "fit_capsules",
+    "ground_slots",
     "initial_ball_state",
+    "lowest_points",
+    "make_ground",
     "make_ball",
     "never_launched",
     "project_polygon",
+    "scene_candidate_bodies",
+    "scene_candidate_names",
+    "scene_gaps",
     "segment_distances",
     "simulate_contact",
     "simulate_contact_jit",
     "solve_gap_projection",
     "solve_lcp_pgs",
     "tangent_basis",
+    "vertex_gap",
 ]

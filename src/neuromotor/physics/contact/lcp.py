@@ -52,7 +52,7 @@ def _tangent_steps(w_mat: Float[Array, "3K 3K"], k: int) -> Float[Array, " K"]:
 def solve_lcp_pgs(
     w_mat: Float[Array, "3K 3K"],
     q: Float[Array, " 3K"],
-    mu,
+    mu: Float[Array, " K"] | float,
     active: Bool[Array, " K"],
     p0: Float[Array, "K 3"],
     sides: int,
@@ -60,9 +60,11 @@ def solve_lcp_pgs(
 ) -> Float[Array, "K 3"]:
     """Projected Gauss-Seidel for the contact LCP (see the module docstring).
 
-    w = W P + q, contacts ordered (n, t1, t2). Inactive contacts keep P = 0.
+    w = W P + q, contacts ordered (n, t1, t2); ``mu`` one friction coefficient, or one per
+    contact (K,). Inactive contacts keep P = 0.
     """
     k = active.shape[0]
+    mu = jnp.broadcast_to(mu, (k,))
     mask = active.astype(w_mat.dtype)
     diag_n = jnp.array([w_mat[3 * i, 3 * i] for i in range(k)])
     inv_n = mask / jnp.maximum(diag_n, _TINY)
@@ -75,7 +77,7 @@ def solve_lcp_pgs(
             w = rows @ p + q[3 * i : 3 * i + 3]
             lam = jnp.maximum(0.0, p[3 * i] - w[0] * inv_n[i]) * mask[i]
             w_t = w[1:] + rows[1:, 3 * i] * (lam - p[3 * i])
-            f_t = project_polygon(p[3 * i + 1 : 3 * i + 3] - step_t[i] * w_t, mu * lam, sides) * mask[i]
+            f_t = project_polygon(p[3 * i + 1 : 3 * i + 3] - step_t[i] * w_t, mu[i] * lam, sides) * mask[i]
             p = p.at[3 * i].set(lam).at[3 * i + 1 : 3 * i + 3].set(f_t)
         return p.reshape(k, 3)
 

@@ -18,17 +18,18 @@ from neuromotor.physics.precision import cast
 
 
 class ContactRollout(eqx.Module):
-    """The character's :class:`Rollout` plus the ball and the contact record (leading S+1)."""
+    """The character's :class:`Rollout` plus the ball (None: no ball) and the contact record
+    (leading S+1)."""
 
     run: Rollout
-    ball: BallState
+    ball: BallState | None
     contact: ContactInfo  # row 0: no impulse, the initial gaps
 
 
 def simulate_contact(sim: SimModel, params: Params, scene: ContactScene) -> ContactRollout:
     """``sim.options.n_steps`` steps of :func:`~neuromotor.physics.contact.step.contact_step` in one
     ``lax.scan``: :func:`~neuromotor.physics.dynamics.simulate` with the ``scene`` (ball,
-    capsules, settings) beside the character."""
+    capsules, settings, ground) beside the character."""
     # The precision of options.dtype for the character, the ball and the capsules alike.
     sim, params, scene = cast((sim, params, scene), sim.options.dtype)
     data0 = initial_contact_data(sim.model, scene, init_data(sim, params))

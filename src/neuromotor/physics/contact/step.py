@@ -1,37 +1,51 @@
-"""The contact step: the ordinary step of Eq. 2 plus the ball and its contact rows (Section 4).
+"""The contact step: the ordinary step of Eq. 2 plus its contact rows (Section 4): the ball's
+contacts and the bodies' contacts with the ground, one LCP.
+
+Contact sources
+    Two sources of candidates, each choosing its nearest candidates per step: the ball (against
+    every capsule and, ``ContactSettings.ground``, the ground; ``ContactSettings.max_contacts``
+    kept) and the ground (the bodies' lowest polyhedron vertices against the plane,
+    :mod:`neuromotor.physics.contact.ground`; ``Ground.max_contacts`` kept). Either may be
+    absent. Candidates are numbered the ball's first, then the ground's slots; the contacts of a
+    step are the ball's kept candidates, then the ground's.
 
 Contact frame and Jacobian
-    For a candidate i (a capsule of body b, or the ground) with unit normal n pointing from the
-    body to the ball, tangents t1, t2, body surface point p_b and ball surface point
-    p_s = c - r n, the relative velocity of the ball with respect to the body along d is
+    A contact has a + side and a - side: the ball and a body (or the ground) for the ball's
+    candidates, a body (at its vertex) and the ground for the ground's. With unit normal n
+    pointing from the - side to the + side, tangents t1, t2 and contact points p_+ and p_-, the
+    relative velocity of the + side with respect to the - side along d is
 
-        d . (v_s + w_s x (p_s - c)) - d . (v_b + w_b x (p_b - x_b)) = Jc_i,d  v,
+        d . (v_+ + w_+ x (p_+ - x_+)) - d . (v_- + w_- x (p_- - x_-)) = Jc_i,d  v,
 
-    so Jc has rows ``[d, (p_s - c) x d]`` on the ball and ``-[d, (p_b - x_b) x d]`` on body b.
-    The contact impulse P_i = (lam_n, f_t1, f_t2) acts on the ball as +Jc^T P, on the body as
-    its negative part of Jc^T P (equal and opposite: linear momentum is conserved exactly).
+    so Jc has rows ``[d, (p_+ - x_+) x d]`` on the + side's body (the ball: p_+ - x_+ = -r n) and
+    ``-[d, (p_- - x_-) x d]`` on the - side's (none for the ground). The contact impulse
+    P_i = (lam_n, f_t1, f_t2) acts as +Jc^T P: equal and opposite on the two sides (linear
+    momentum is conserved exactly).
 
 Free velocity and responses
     The ordinary step's stages (:func:`neuromotor.physics.dynamics.equations_of_motion`) build
     Eq. 2 for the chosen solver (``StepOptions.solver``: dense, tree or null-space). The solver
     gives the free velocity v_f (no contact) and, vmapped over the contact rows with one
     factorization, the responses X = A^-1 [Jc^T; 0] to unit contact impulses; the ball's block
-    diag(m I, 2/5 m r^2 I) is inverted in closed form. So the Delassus matrix is W = Jc X and
-    v+ = v_f + X P. The LCP ``w = W P + Jc v_f - target e_n`` is solved by
-    :mod:`neuromotor.physics.contact.lcp`.
+    diag(m I, 2/5 m r^2 I) (when there is a ball) is inverted in closed form. So the Delassus
+    matrix is W = Jc X and v+ = v_f + X P. The LCP ``w = W P + Jc v_f - target e_n`` is solved
+    by :mod:`neuromotor.physics.contact.lcp`.
 
 Time of impact and restitution
-    A candidate is active when it would close within the step, ``g <= h max(-u_f, 0)`` (or is
-    already touching, g <= 0), with g the gap at the step start and u_f = (Jc v_f)_n. The impact
-    happens at the fraction s = g / (h (-u_f)) of the step (0 when touching). Newton's law with
-    restitution e acts on the normal velocity at the impact, u_s = u + s (u_f - u) (u the
-    pre-step normal velocity), when it approaches faster than ``restitution_threshold``:
+    A candidate is active when it would close within the step, ``g <= h max(-u_f, 0)``, or is
+    already touching, g <= margin (0; ``Ground.margin`` when the bodies have a ground), with g
+    the gap at the step start and u_f = (Jc v_f)_n. The impact happens at the fraction
+    s = g / (h (-u_f)) of the step (0 when touching). A contact touching within the margin at
+    g > 0 may close its gap within the step and no more: its target below is lowered by g / h.
+    Newton's law with restitution e (the ball's for its contacts, the ground's for the bodies')
+    acts on the normal velocity at the impact, u_s = u + s (u_f - u) (u the pre-step normal
+    velocity), when it approaches faster than ``restitution_threshold``:
 
         target = max(0, -e u_s + (1 - s)(u_f - u))     (bounce; 0 otherwise: resting contact)
 
     (the second term is the free acceleration over the rest of the step). Positions move with
     v_f up to the impact and with v+ after it: the generalized displacement of the step is
-    ``h v_f + h X ((1 - s) * P)``; so a ball bounces off the surface itself, not from where the
+    ``h v_f + h X ((1 - s) * P)``; so a ball (or a dropped body) bounces off the surface itself, not from where the
     step began, and the map from launch speed to trajectory stays continuous when the impact
     moves from one step to the next. Remaining penetration of the linearized end gap
     ``g_end = g + h u_f + h (W ((1 - s) * P))_n`` is removed by a position-level projection in
@@ -42,6 +56,8 @@ Time of impact and restitution
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -50,7 +66,16 @@ from jaxtyping import Array, Bool, Float, Int
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
 from neuromotor.physics.contact.ball import Ball, BallState, initial_ball_state
-from neuromotor.physics.contact.detection import ContactSettings, candidate_bodies, detect, single_gap, tangent_basis
+from neuromotor.physics.contact.detection import (
+    ContactSettings,
+    candidate_bodies,
+    candidate_names,
+    detect,
+    single_gap,
+    tangent_basis,
+    up_direction,
+)
+from neuromotor.physics.contact.ground import Ground, ground_slots, vertex_gap
 from neuromotor.physics.contact.lcp import solve_gap_projection, solve_lcp_pgs
 from neuromotor.physics.contact.shapes import Capsules
 from neuromotor.physics.dynamics import Eq2, Params, SimModel, StepInfo, badness, equations_of_motion, hold, integrate
@@ -62,17 +87,67 @@ _TINY = 1e-12
 
 
 class ContactScene(eqx.Module):
-    """What the contact step adds to the character: the ball, the bodies' capsules, the settings."""
+    """What the contact step adds to the character: the ball and the bodies' capsules (or None,
+    None: no ball), the settings, and the ground under the bodies (None: the bodies touch
+    nothing)."""
 
-    ball: Ball
-    capsules: Capsules
+    ball: Ball | None
+    capsules: Capsules | None
     settings: ContactSettings = eqx.field(static=True)
+    ground: Ground | None = None
+
+    @property
+    def n_ball_candidates(self) -> int:
+        if self.ball is None:
+            return 0
+        assert self.capsules is not None, "a ball needs the bodies' capsules"
+        return self.capsules.radius.shape[0] + int(self.settings.ground)
+
+    @property
+    def n_candidates(self) -> int:
+        return self.n_ball_candidates + (0 if self.ground is None else self.ground.n_slots)
+
+
+def scene_candidate_bodies(scene: ContactScene) -> Int[Array, " C"]:
+    """The character's body of every candidate (-1 for the ball against the ground): the ball's
+    candidates, then the ground's slots."""
+    parts = []
+    if scene.ball is not None:
+        assert scene.capsules is not None
+        parts.append(candidate_bodies(scene.capsules, scene.settings))
+    if scene.ground is not None:
+        parts.append(scene.ground.slot_body)
+    return jnp.concatenate(parts) if parts else jnp.zeros((0,), jnp.int32)
+
+
+def scene_candidate_names(model: Model, scene: ContactScene) -> tuple[str, ...]:
+    """Names of the candidates: the ball's (capsule names, ``ground``), then ``BODY@ground[r]``."""
+    names: tuple[str, ...] = ()
+    if scene.ball is not None:
+        assert scene.capsules is not None
+        names = candidate_names(scene.capsules, scene.settings)
+    if scene.ground is not None:
+        per = scene.ground.per_body
+        names += tuple(f"{b}@ground[{r}]" for b in model.body_names for r in range(per))
+    return names
+
+
+def scene_gaps(model: Model, scene: ContactScene, ball_pos, pos, rot) -> Float[Array, " C"]:
+    """Every candidate's gap (the ball's, then the ground's slots) at one configuration."""
+    parts = []
+    if scene.ball is not None:
+        assert scene.capsules is not None
+        parts.append(detect(model, scene.capsules, scene.settings, scene.ball.radius, ball_pos, pos, rot)[0])
+    if scene.ground is not None:
+        parts.append(ground_slots(model, scene.ground, pos, rot).gap)
+    return jnp.concatenate(parts) if len(parts) > 1 else parts[0]
 
 
 class ContactInfo(eqx.Module):
-    """Per-candidate contact record of one step (capsules, then the ground)."""
+    """Per-candidate contact record of one step (the ball's candidates: capsules, then the
+    ground; then the ground's slots)."""
 
-    impulse: Float[Array, "C 3"]  # on the ball, world (N s); the body receives the opposite
+    impulse: Float[Array, "C 3"]  # on the + side (the ball; the body on the ground), world (N s)
     normal_impulse: Float[Array, " C"]  # lam_n (N s)
     slack: Float[Array, " C"]  # w_n = post normal velocity minus target (m/s)
     target: Float[Array, " C"]  # normal velocity target (restitution)
@@ -96,7 +171,7 @@ class ContactData(eqx.Module):
     k: Int[Array, ""]
     state: State
     info: StepInfo
-    ball: BallState
+    ball: BallState | None  # None: no ball
     warm: Float[Array, "C 3"]
     contact: ContactInfo
     history: History | None = None  # the reflex's error history (neuromotor.physics.reflex)
@@ -104,6 +179,8 @@ class ContactData(eqx.Module):
     def badness(self, max_speed: float) -> Float[Array, " B1"]:
         """The ordinary score per body, the ball last; the ball may legitimately fly faster than
         any limb, so it is judged against 5x the limit."""
+        if self.ball is None:
+            return badness(self.state, max_speed)
         ball = jax.tree_util.tree_map(
             lambda x: x[None], State(self.ball.pos, self.ball.quat, self.ball.vel, self.ball.omega)
         )
@@ -111,18 +188,18 @@ class ContactData(eqx.Module):
 
     def held(self, last: ContactData, bad) -> ContactData:
         """Itself, or after a blow-up (``bad``) with ``last``'s character and ball."""
-        kept = hold((last.state, last.ball), (self.state, self.ball), bad)
-        return eqx.tree_at(lambda d: (d.state, d.ball), self, kept)
+        state, ball = hold((last.state, last.ball), (self.state, self.ball), bad)
+        return dataclasses.replace(self, state=state, ball=ball)
 
 
 def initial_contact_data(model: Model, scene: ContactScene, data) -> ContactData:
     """The ordinary initial data plus the ball at rest at its launch position."""
     ball = scene.ball
-    gap = detect(model, scene.capsules, scene.settings, ball.radius, ball.position, data.state.pos, data.state.rot)[0]
+    ball_pos = None if ball is None else ball.position
+    gap = scene_gaps(model, scene, ball_pos, data.state.pos, data.state.rot)
     warm = jnp.zeros(gap.shape + (3,), gap.dtype)
-    return ContactData(
-        data.k, data.state, data.info, initial_ball_state(ball), warm, ContactInfo.before_any_step(gap), data.history
-    )
+    bstate = None if ball is None else initial_ball_state(ball)
+    return ContactData(data.k, data.state, data.info, bstate, warm, ContactInfo.before_any_step(gap), data.history)
 
 
 # ----------------------------------------------------------------------------- stages
@@ -155,23 +232,28 @@ def ball_free_motion(model: Model, ball: Ball, h: float, t, k, bstate: BallState
 
 
 class ContactFrame(eqx.Module):
-    """The K nearest candidates of a step and their rows of Jc (n, t1, t2 per contact)."""
+    """The contacts of a step (the ball's nearest candidates, then the ground's) and their rows
+    of Jc (n, t1, t2 per contact)."""
 
     sel: Int[Array, " K"]  # candidate index of each contact
     gap_all: Float[Array, " C"]  # every candidate's gap at the step start
     dirs: Float[Array, "K 3 3"]  # (n, t1, t2) of each contact, world
-    body: Int[Array, " K"]  # the contact's body (0 for the ground, whose rows are zero)
+    body: Int[Array, " K"]  # the contact's body (0 for the ball on the ground, whose rows are zero)
     jc_char: Float[Array, "3K 6B"]
-    jc_ball: Float[Array, "3K 6"]
+    jc_ball: Float[Array, "3K 6"]  # (3K, 0) without a ball
+    vertex: Int[Array, " Kg"]  # the ground contacts' vertices (within their bodies)
+    n_ball: int = eqx.field(static=True)  # the first n_ball contacts are the ball's
 
     @property
     def gap(self) -> Float[Array, " K"]:
         return self.gap_all[self.sel]
 
 
-def contact_frame(model: Model, scene: ContactScene, state: State, bstate: BallState) -> ContactFrame:
-    """Detect, keep the ``max_contacts`` nearest candidates and build their Jacobian rows."""
+def _ball_frame(model: Model, scene: ContactScene, state: State, bstate: BallState):
+    """The ball's part of the frame: its ``max_contacts`` nearest candidates (capsules and the
+    ground) and their rows; the ball is the + side."""
     n, dtype, settings = model.n_bodies, state.pos.dtype, scene.settings
+    assert scene.ball is not None and scene.capsules is not None
     cand_body = candidate_bodies(scene.capsules, settings)
     n_keep = min(settings.max_contacts, cand_body.shape[0])
     gap_all, nrm_all, pt_all = detect(
@@ -189,7 +271,49 @@ def contact_frame(model: Model, scene: ContactScene, state: State, bstate: BallS
     ccol = -jnp.concatenate([dirs, jnp.cross(lever[:, None, :], dirs)], -1) * on_body[:, None, None]
     onehot = jax.nn.one_hot(bidx, n, dtype=dtype) * on_body[:, None]
     jc_char = jnp.einsum("kb,kdj->kdbj", onehot, ccol).reshape(3 * n_keep, 6 * n)
-    return ContactFrame(sel, gap_all, dirs, bidx, jc_char, bcol.reshape(3 * n_keep, 6))
+    return sel, gap_all, dirs, bidx, jc_char, bcol.reshape(3 * n_keep, 6)
+
+
+def _ground_frame(model: Model, ground: Ground, state: State, v_free, h: float, ball_columns: int):
+    """The ground's part of the frame: its ``max_contacts`` nearest slots (by the gap the step
+    would leave without contact, ``g + h min(u_f, 0)``; :mod:`~neuromotor.physics.contact.ground`)
+    and their rows; the body (at its vertex) is the + side, the ground the - side, the normal is up."""
+    n, dtype = model.n_bodies, state.pos.dtype
+    slots = ground_slots(model, ground, state.pos, state.rot, v_free.reshape(n, 6), h)
+    n_keep = min(ground.max_contacts, ground.n_slots)
+    _, sel = jax.lax.top_k(-slots.reach, n_keep)
+    body = ground.slot_body[sel]
+    nrm = jnp.broadcast_to(up_direction(model), (n_keep, 3))
+    t1, t2 = tangent_basis(nrm)
+    dirs = jnp.stack([nrm, t1, t2], 1)
+    lever = slots.point[sel] - state.pos[body]
+    col = jnp.concatenate([dirs, jnp.cross(lever[:, None, :], dirs)], -1)  # (K, 3, 6)
+    onehot = jax.nn.one_hot(body, n, dtype=dtype)
+    jc_char = jnp.einsum("kb,kdj->kdbj", onehot, col).reshape(3 * n_keep, 6 * n)
+    jc_ball = jnp.zeros((3 * n_keep, ball_columns), dtype)
+    return sel, slots.gap, dirs, body, jc_char, jc_ball, slots.vertex[sel]
+
+
+def contact_frame(
+    model: Model, scene: ContactScene, state: State, bstate: BallState | None, v_free, h: float
+) -> ContactFrame:
+    """Detect, keep each source's nearest candidates and build their Jacobian rows (``v_free``:
+    the character's contact-free velocity of the step, which ranks the ground's candidates)."""
+    parts, vertex = [], jnp.zeros((0,), jnp.int32)
+    if scene.ball is not None:
+        assert bstate is not None
+        parts.append(_ball_frame(model, scene, state, bstate))
+    n_ball = parts[0][0].shape[0] if parts else 0
+    if scene.ground is not None:
+        *part, vertex = _ground_frame(model, scene.ground, state, v_free, h, 0 if scene.ball is None else 6)
+        part[0] = part[0] + scene.n_ball_candidates  # the ground's slots follow the ball's candidates
+        parts.append(tuple(part))
+    if not parts:
+        raise ValueError("a contact scene needs a ball or a ground")
+    sel, gap_all, dirs, body, jc_char, jc_ball = (
+        parts[0] if len(parts) == 1 else tuple(jnp.concatenate(xs) for xs in zip(*parts))
+    )
+    return ContactFrame(sel, gap_all, dirs, body, jc_char, jc_ball, vertex, n_ball)
 
 
 class Responses(eqx.Module):
@@ -197,7 +321,7 @@ class Responses(eqx.Module):
 
     v_free: Float[Array, " 6B"]  # the character without contact
     x_char: Float[Array, "6B 3K"]  # A^-1 [Jc^T; 0], the character's part
-    x_ball: Float[Array, "6 3K"]  # the ball's inverse mass times its Jc^T
+    x_ball: Float[Array, "6 3K"]  # the ball's inverse mass times its Jc^T ((0, 3K) without a ball)
     w_mat: Float[Array, "3K 3K"]  # Delassus matrix Jc X
     u_free: Float[Array, "K 3"]  # contact velocities (n, t1, t2) without contact impulses
     u_pre: Float[Array, " K"]  # normal velocities at the step start
@@ -205,18 +329,45 @@ class Responses(eqx.Module):
     residual: Float[Array, ""]  # relative residual of the free solve of Eq. 2
 
 
-def responses(
-    solver: solvers.KKTSolver, eq: Eq2, frame: ContactFrame, ball: Ball, free: BallFree, v: Float[Array, " 6B"]
-) -> Responses:
-    """The chosen solver's free velocity, and its responses to unit contact impulses (the
-    contact rows as extra right-hand sides ``(Jc^T, 0)``, vmapped: one factorization)."""
+class FreeSolve(eqx.Module):
+    """The character's step without contact: Eq. 2 solved by the chosen solver."""
+
+    v_free: Float[Array, "B 6"]
+    lam: Float[Array, " nc"]  # constraint impulses
+    residual: Float[Array, ""]  # relative residual of Eq. 2
+
+
+def free_solve(solver: solvers.KKTSolver, eq: Eq2) -> FreeSolve:
+    """The chosen solver's contact-free velocity and multipliers of Eq. 2."""
     v_free, aux = solver.solve(eq.system, eq.r, eq.b)
     lam, residual = solver.multipliers(eq.system, eq.r, eq.b, v_free, aux)
+    return FreeSolve(v_free, lam, residual)
+
+
+def responses(
+    solver: solvers.KKTSolver,
+    eq: Eq2,
+    fs: FreeSolve,
+    frame: ContactFrame,
+    ball: Ball | None,
+    free: BallFree | None,
+    v: Float[Array, " 6B"],
+) -> Responses:
+    """The free velocity (``fs``), and the chosen solver's responses to unit contact impulses
+    (the contact rows as extra right-hand sides ``(Jc^T, 0)``, vmapped: one factorization)."""
+    v_free, lam, residual = fs.v_free, fs.lam, fs.residual
     n6 = frame.jc_char.shape[1]
     x, _ = jax.vmap(lambda col: solver.solve(eq.system, col, jnp.zeros_like(eq.b)))(
         frame.jc_char.reshape(-1, n6 // 6, 6)
     )
     v_free, x_char = v_free.reshape(n6), x.reshape(-1, n6).T
+    if ball is None:
+        x_ball = jnp.zeros((0, x_char.shape[1]), x_char.dtype)
+        w_mat = frame.jc_char @ x_char
+        u_free = (frame.jc_char @ v_free).reshape(-1, 3)
+        u_pre = (frame.jc_char @ v).reshape(-1, 3)[:, 0]
+        return Responses(v_free, x_char, x_ball, w_mat, u_free, u_pre, lam, residual)
+    assert free is not None
     x_ball = ball.inverse_mass[:, None] * frame.jc_ball.T
     w_mat = frame.jc_char @ x_char + frame.jc_ball @ x_ball
     u_free = (frame.jc_char @ v_free + frame.jc_ball @ free.v_free).reshape(-1, 3)
@@ -233,15 +384,43 @@ class Impact(eqx.Module):
     q: Float[Array, " 3K"]  # LCP offset: w = W P + q
 
 
-def impact(frame: ContactFrame, resp: Responses, ball: Ball, settings: ContactSettings, h: float, flying) -> Impact:
-    """Activity, time of impact and Newton's restitution target (see the module docstring)."""
+def per_contact(frame: ContactFrame, scene: ContactScene, ball_value, ground_value):
+    """A (K,) array: ``ball_value`` for the ball's contacts, ``ground_value`` for the ground's."""
+    k = frame.sel.shape[0]
+    if scene.ground is None:
+        return jnp.broadcast_to(ball_value, (k,))
+    if scene.ball is None:
+        return jnp.broadcast_to(ground_value, (k,))
+    ball_value, ground_value = jnp.asarray(ball_value), jnp.asarray(ground_value)
+    return jnp.concatenate(
+        [jnp.broadcast_to(ball_value, (frame.n_ball,)), jnp.broadcast_to(ground_value, (k - frame.n_ball,))]
+    )
+
+
+def _ground_attr(scene: ContactScene, name: str):
+    return None if scene.ground is None else getattr(scene.ground, name)
+
+
+def _ball_attr(scene: ContactScene, name: str):
+    return None if scene.ball is None else getattr(scene.ball, name)
+
+
+def impact(frame: ContactFrame, resp: Responses, scene: ContactScene, h: float, flying) -> Impact:
+    """Activity, time of impact and Newton's restitution target (see the module docstring).
+    ``flying``: whether the ball has been launched (its contacts act only then)."""
+    settings = scene.settings
     gap, uf_n, u_pre = frame.gap, resp.u_free[:, 0], resp.u_pre
+    live = per_contact(frame, scene, flying, True)
+    restitution = per_contact(frame, scene, _ball_attr(scene, "restitution"), _ground_attr(scene, "restitution"))
     reach = h * jnp.maximum(-uf_n, 0.0)
-    active = flying & ((gap <= 0.0) | (gap <= reach))
-    toi = jnp.where(active & (gap > 0.0), jnp.clip(gap / jnp.maximum(reach, _TINY), 0.0, 1.0), 0.0)
+    margin = 0.0 if scene.ground is None else scene.ground.margin  # touching within it (with a ground)
+    active = live & ((gap <= margin) | (gap <= reach))
+    toi = jnp.where(active & (gap > margin), jnp.clip(gap / jnp.maximum(reach, _TINY), 0.0, 1.0), 0.0)
     u_s = u_pre + toi * (uf_n - u_pre)
     bounce = -u_s > settings.restitution_threshold
-    target = jnp.where(bounce, jnp.maximum(0.0, -ball.restitution * u_s + (1.0 - toi) * (uf_n - u_pre)), 0.0)
+    target = jnp.where(bounce, jnp.maximum(0.0, -restitution * u_s + (1.0 - toi) * (uf_n - u_pre)), 0.0)
+    # Touching within the margin: it may still close its gap in this step, and no more.
+    target = target - jnp.where((gap > 0.0) & (gap <= margin), gap / h, 0.0)
     target = jnp.where(active, target, 0.0)
     q = (resp.u_free - jnp.stack([target, jnp.zeros_like(target), jnp.zeros_like(target)], -1)).reshape(-1)
     return Impact(active, toi, target, q)
@@ -252,12 +431,15 @@ def _when_touching(active, solve, zeros):
     return jax.lax.cond(jnp.any(active), solve, lambda: zeros)
 
 
-def contact_impulses(resp: Responses, imp: Impact, ball: Ball, settings: ContactSettings, warm):
-    """The LCP by PGS, warm started: impulses (K, 3) and the normal slack w_n (K,)."""
+def contact_impulses(frame: ContactFrame, resp: Responses, imp: Impact, scene: ContactScene, warm):
+    """The LCP by PGS, warm started: impulses (K, 3) and the normal slack w_n (K,). Each contact
+    has its source's friction (the ball's, or the ground's)."""
+    settings = scene.settings
+    mu = per_contact(frame, scene, _ball_attr(scene, "friction"), _ground_attr(scene, "friction"))
     p = _when_touching(
         imp.active,
         lambda: solve_lcp_pgs(
-            resp.w_mat, imp.q, ball.friction, imp.active, warm, settings.friction_directions, settings.pgs_iterations
+            resp.w_mat, imp.q, mu, imp.active, warm, settings.friction_directions, settings.pgs_iterations
         ),
         jnp.zeros_like(warm),
     )
@@ -269,20 +451,25 @@ class Motion(eqx.Module):
     """Velocities after the impulses and displacements of the step (generalized, 6 per body)."""
 
     v_char: Float[Array, " 6B"]
-    v_ball: Float[Array, " 6"]
+    v_ball: Float[Array, " 6"] | None
     d_char: Float[Array, " 6B"]
-    d_ball: Float[Array, " 6"]
+    d_ball: Float[Array, " 6"] | None
 
 
 def motion(
-    frame: ContactFrame, resp: Responses, imp: Impact, p, free: BallFree, settings: ContactSettings, h: float
+    frame: ContactFrame,
+    resp: Responses,
+    imp: Impact,
+    p,
+    free: BallFree | None,
+    settings: ContactSettings,
+    h: float,
 ) -> Motion:
     """v+ = v_f + X P; displacement with the impact inside the step, then the projection of the
     remaining linearized penetration."""
     flat = p.reshape(-1)
     late = (p * (1.0 - imp.toi)[:, None]).reshape(-1)
     disp = h * (resp.v_free + resp.x_char @ late)
-    disp_b = h * (free.v_free + resp.x_ball @ late)
     sel_n = jnp.arange(frame.sel.shape[0]) * 3
     g_end = frame.gap + h * resp.u_free[:, 0] + h * (resp.w_mat @ late)[sel_n]
     w_nn = resp.w_mat[sel_n][:, sel_n]
@@ -293,12 +480,17 @@ def motion(
     )
     push = jnp.zeros(flat.shape[0], flat.dtype).at[sel_n].set(mu_pos)
     disp = disp + resp.x_char @ push
+    v_char = resp.v_free + resp.x_char @ flat
+    if free is None:
+        return Motion(v_char, None, disp, None)
+    disp_b = h * (free.v_free + resp.x_ball @ late)
     disp_b = jnp.where(free.flying, disp_b + resp.x_ball @ push, 0.0)
-    return Motion(resp.v_free + resp.x_char @ flat, free.v_free + resp.x_ball @ flat, disp, disp_b)
+    return Motion(v_char, free.v_free + resp.x_ball @ flat, disp, disp_b)
 
 
 def ball_after(bstate: BallState, free: BallFree, mo: Motion) -> BallState:
     """The ball at the step end; one that is not flying keeps its velocity and spin."""
+    assert mo.d_ball is not None and mo.v_ball is not None
     return BallState(
         bstate.pos + mo.d_ball[:3],
         quat_turn(bstate.quat, mo.d_ball[3:]),
@@ -307,12 +499,39 @@ def ball_after(bstate: BallState, free: BallFree, mo: Motion) -> BallState:
     )
 
 
+def _gaps_at_impact(model: Model, scene: ContactScene, h: float, data: ContactData, free, frame, resp, imp):
+    """Each contact's gap at its impact instant, from the configuration moved by s h v_free."""
+    state, vf6 = data.state, resp.v_free.reshape(model.n_bodies, 6)
+    sh, bidx = imp.toi * h, frame.body
+    pb = state.pos[bidx] + sh[:, None] * vf6[bidx, :3]
+    qb = quat_turn(state.quat[bidx], sh[:, None] * vf6[bidx, 3:])
+    parts = []
+    nb = frame.n_ball
+    if scene.ball is not None:
+        assert free is not None and scene.capsules is not None and data.ball is not None
+        caps, settings, radius = scene.capsules, scene.settings, scene.ball.radius
+        cb = data.ball.pos + sh[:nb, None] * jnp.where(free.flying, free.vel_free, 0.0)
+        parts.append(
+            jax.vmap(lambda i, p_, q_, c_: single_gap(model, caps, settings, radius, i, p_, q_, c_))(
+                frame.sel[:nb], pb[:nb], qb[:nb], cb
+            )
+        )
+    if scene.ground is not None:
+        ground = scene.ground
+        parts.append(
+            jax.vmap(lambda b, v, p_, q_: vertex_gap(model, ground, b, v, p_, q_))(
+                bidx[nb:], frame.vertex, pb[nb:], qb[nb:]
+            )
+        )
+    return jnp.concatenate(parts) if len(parts) > 1 else parts[0]
+
+
 def contact_info(
     model: Model,
     scene: ContactScene,
     h: float,
     data: ContactData,
-    free: BallFree,
+    free: BallFree | None,
     frame: ContactFrame,
     resp: Responses,
     imp: Impact,
@@ -321,14 +540,7 @@ def contact_info(
 ) -> ContactInfo:
     """The step's record over all candidates, with the gap at the impact instant from the
     configuration moved by s h v_free."""
-    state, vf6 = data.state, resp.v_free.reshape(model.n_bodies, 6)
-    sh, bidx = imp.toi * h, frame.body
-    pb = state.pos[bidx] + sh[:, None] * vf6[bidx, :3]
-    qb = quat_turn(state.quat[bidx], sh[:, None] * vf6[bidx, 3:])
-    cb = data.ball.pos + sh[:, None] * jnp.where(free.flying, free.vel_free, 0.0)
-    gap_imp = jax.vmap(
-        lambda i, p_, q_, c_: single_gap(model, scene.capsules, scene.settings, scene.ball.radius, i, p_, q_, c_)
-    )(frame.sel, pb, qb, cb)
+    gap_imp = _gaps_at_impact(model, scene, h, data, free, frame, resp, imp)
     scatter = lambda x, fill: jnp.full(frame.gap_all.shape + x.shape[1:], fill, x.dtype).at[frame.sel].set(x)
     return ContactInfo(
         impulse=scatter(jnp.einsum("kd,kdj->kj", p, frame.dirs), 0.0),
@@ -346,26 +558,34 @@ def contact_info(
 
 
 def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: ContactData) -> ContactData:
-    """One step of Eq. 2 with the ball and its contacts: the ordinary step's stages, the contact
-    rows added to the chosen solver's system (see the module docstring). ``info.lam`` holds the
-    constraint forces of the contact-free solve."""
+    """One step of Eq. 2 with its contacts (the ball's and the ground's): the ordinary step's
+    stages, the contact rows added to the chosen solver's system (see the module docstring).
+    ``info.lam`` holds the constraint forces of the contact-free solve."""
     model, h, k, state = sim.model, sim.options.h, data.k, data.state
     solver = solvers.get(sim.options.solver)
     eq = equations_of_motion(sim, params, data, solver)  # type: ignore[arg-type]  # ContactData has Data's fields
-    free = ball_free_motion(model, scene.ball, h, sim.ref.time[k], k, data.ball)
-    frame = contact_frame(model, scene, state, data.ball)
-    resp = responses(solver, eq, frame, scene.ball, free, state.v)
-    imp = impact(frame, resp, scene.ball, scene.settings, h, free.flying)
-    p, slack = contact_impulses(resp, imp, scene.ball, scene.settings, data.warm[frame.sel])
+    free = None
+    if scene.ball is not None:
+        assert data.ball is not None
+        free = ball_free_motion(model, scene.ball, h, sim.ref.time[k], k, data.ball)
+    fs = free_solve(solver, eq)
+    frame = contact_frame(model, scene, state, data.ball, fs.v_free, h)
+    resp = responses(solver, eq, fs, frame, scene.ball, free, state.v)
+    imp = impact(frame, resp, scene, h, True if free is None else free.flying)
+    p, slack = contact_impulses(frame, resp, imp, scene, data.warm[frame.sel])
     mo = motion(frame, resp, imp, p, free, scene.settings, h)
     n = model.n_bodies
     new, violation = integrate(sim, solver, k, state, mo.d_char.reshape(n, 6), mo.v_char.reshape(n, 6), params.pulses)
     record = contact_info(model, scene, h, data, free, frame, resp, imp, p, slack)
+    ball = None
+    if free is not None:
+        assert data.ball is not None
+        ball = ball_after(data.ball, free, mo)
     return ContactData(
         k + 1,
         new,
         StepInfo(resp.residual, violation, eq.force, eq.points, resp.lam / h, eq.reflex),
-        ball_after(data.ball, free, mo),
+        ball,
         jnp.zeros_like(data.warm).at[frame.sel].set(p),
         record,
         eq.history,

@@ -1,0 +1,109 @@
+"""The ground under the character in a run (issue 38): the ``[ground]`` table made into a
+:class:`~neuromotor.physics.contact.Ground` (its default height the capture's floor), the
+contact rollouts of a run whose bodies touch it, and its part of RUN.npz.
+
+The physics (the plane, the contact points, the LCP rows) is
+:mod:`neuromotor.physics.contact.ground` and :mod:`neuromotor.physics.contact.step`;
+:mod:`neuromotor.studies.simulate` calls this module for a config whose bodies touch the ground
+(``[sim] root = "free"``, or ``[ground] enabled = true``).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from neuromotor import compiler
+from neuromotor.model.kinematics import Trajectory, body_poses
+from neuromotor.model.skeleton import Character, Model
+from neuromotor.physics.contact import (
+    ContactRollout,
+    ContactScene,
+    ContactSettings,
+    Ground,
+    check_contact_rollout,
+    lowest_points,
+    make_ground,
+    simulate_contact_jit,
+)
+from neuromotor.physics.dynamics import Params
+
+FOOT = "foot"  # the mass model's segment of the feet (Character.body_segment)
+
+
+def foot_bodies(character: Character) -> tuple[int, ...]:
+    """The feet (the mass model's ``foot`` segments); every body on a rig without labelled feet."""
+    feet = tuple(b for b, seg in enumerate(character.body_segment) if seg == FOOT)
+    return feet or tuple(range(character.model.n_bodies))
+
+
+@functools.partial(compiler.jit, static_argnames=("bodies",))
+def _lowest_over(model: Model, traj: Trajectory, ground: Ground, times, bodies):
+    poses = jax.vmap(lambda t: body_poses(model, traj.q(t)))(times)
+    return jnp.min(lowest_points(model, ground, poses[0], poses[1], bodies))
+
+
+def capture_floor(character: Character, traj: Trajectory) -> float:
+    """The floor of the capture: the height along the up axis (``-gravity``) of the lowest
+    vertex of the feet's polyhedra over every frame of the clip."""
+    clip = character.clip
+    probe = make_ground(character.shapes, 0.0)
+    times = jnp.arange(clip.n_frames, dtype=jnp.float64) * clip.frame_time
+    return float(_lowest_over(character.model, traj, probe, times, foot_bodies(character)))
+
+
+def ground_setup(spec, character: Character, traj: Trajectory) -> Ground:
+    """The :class:`Ground` of a parsed ``[ground]`` table (:class:`~neuromotor.config.specs.GroundSpec`):
+    at ``height``, or at the capture's floor (:func:`capture_floor`) when the table gives none."""
+    height = capture_floor(character, traj) if spec.height is None else spec.height
+    return make_ground(
+        character.shapes, height, spec.friction, spec.restitution, spec.contacts_per_body, spec.max_contacts
+    )
+
+
+def ground_scene(ground: Ground, settings: ContactSettings | None = None) -> ContactScene:
+    """A contact scene of the ground alone (no ball)."""
+    return ContactScene(None, None, ContactSettings() if settings is None else settings, ground)
+
+
+def ground_rollouts(setup, base_pulses, check: bool = True) -> tuple[ContactRollout, ContactRollout]:
+    """Perturbed (the config's pulses) and unperturbed (``base_pulses``) contact rollouts of a
+    run whose bodies touch the ground (and no ball), with the same compiled function."""
+    scene = ground_scene(setup.ground)
+    pert = simulate_contact_jit(setup.sim_model, setup.params, scene)
+    base = simulate_contact_jit(setup.sim_model, Params(setup.gains, base_pulses), scene)
+    if check:
+        check_contact_rollout(setup.model, base)
+        check_contact_rollout(setup.model, pert)
+    return pert, base
+
+
+def ground_metrics(out: ContactRollout, first: int) -> dict:
+    """What the ground adds to a run's metrics: the peak total normal force (N) and the fraction
+    of steps with a contact. ``first``: the index of the ground's first candidate."""
+    lam = np.asarray(out.contact.normal_impulse)[:, first:]
+    h = float(out.run.time[1] - out.run.time[0])
+    touching = lam.sum(-1) > 0
+    return {
+        "ground_peak_force_N": float(lam.sum(-1).max() / h),
+        "ground_contact_fraction": float(touching[1:].mean()),
+    }
+
+
+def ground_arrays(setup, out: ContactRollout) -> dict[str, np.ndarray]:
+    """The ground's part of RUN.npz: per slot (each body's lowest vertices) ``ground_impulse``
+    (T, G, 3, on the body, world), ``ground_normal_impulse`` and ``ground_gap`` (T, G),
+    ``ground_body`` (G), and ``ground_height`` (m)."""
+    ground: Ground = setup.ground
+    first = out.contact.gap.shape[1] - ground.n_slots
+    c = out.contact
+    return {
+        "ground_impulse": np.asarray(c.impulse[:, first:]),
+        "ground_normal_impulse": np.asarray(c.normal_impulse[:, first:]),
+        "ground_gap": np.asarray(c.gap[:, first:]),
+        "ground_body": np.asarray(ground.slot_body),
+        "ground_height": np.asarray(float(ground.height)),
+    }

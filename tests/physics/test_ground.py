@@ -1,0 +1,320 @@
+"""Issue 38 (first part): the ground under the bodies, and a free root.
+
+The ground is the plane ``up . x = height``; its contacts are the lowest vertices of the bodies'
+polyhedra, as LCP rows with friction in the same contact step as the ball's
+(:mod:`neuromotor.physics.contact.ground`). Physics asserted:
+
+* a box at rest on the ground for 10 s: the normal impulses / h sum to m g (to 1e-9, measured
+  1e-15) at every step, and it neither drifts (< 1e-6 m; measured 1e-18 m) nor jitters;
+* a box sliding at v0 = 4 m/s with mu = 0.3: it decelerates at mu g (to 1 %, measured 1e-12)
+  and stops after v0^2 / (2 mu g) (to 1 %; measured -0.61 %, which is the first-order step's
+  v0 h / 2: the discrete stop distance v0^2 / (2 mu g) - v0 h / 2 holds to 1e-4 m);
+* a box dropped flat from 0.2 m: it lands at t = sqrt(2 * 0.2 / g) inside a step, no vertex of
+  any stored state is below the plane by more than 1e-9 m (measured 0), and it does not bounce
+  (zero restitution: the vertical velocity is 0 from the landing step on); dropped tilted, it
+  lands on a corner, turns onto a face and comes to rest there, never below the plane by more
+  than 1e-9 m, its centre never rising faster than 1e-4 m/s (measured 3e-6 m/s);
+* a ball dropped on the box resting on the ground: two sources of contact in one LCP, and the
+  ground under the box carries the box and the ball (to 1e-9);
+* a free skeleton in flight (the embedded clip's character, root free, gravity on, the ground
+  50 m below): linear momentum changes by the gravity impulse M g t only (to 1e-9 relative;
+  measured 4e-15), and the angular momentum about the centre of mass stays within 1e-3 kg m^2/s
+  over 0.5 s of the clip's motion (measured 2.4e-4; it halves with h, the step's first-order error).
+
+The box is a two-body model (the code needs a joint): a 6 kg box at the root with a 0.5 kg cube
+welded inside it (``driven_joints``), both centred on the same point, so the pair is one rigid
+box of 6.5 kg.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from neuromotor.config import ConfigError, SimulationConfig, simulation_config
+from neuromotor.config.parse import sweep_spec
+from neuromotor.model import polyhedron as poly
+from neuromotor.physics import contact as ct
+from neuromotor.physics.dynamics import SimModel
+from neuromotor.physics.system import world_inertia
+from neuromotor.rotations import quat_exp, quat_mul, quat_to_matrix
+from neuromotor.studies.ground import capture_floor, foot_bodies, ground_scene
+from neuromotor.studies.simulate import load_character, prepare
+
+H = 1.0 / 120.0
+G = 9.81
+HALF = np.array([0.2, 0.1, 0.15])  # the box's half extents (m)
+M_BOX, M_CORE, CORE = 6.0, 0.5, 0.02
+MASS = M_BOX + M_CORE
+SECONDS = 10.0
+
+
+def _box_inertia(m, half):
+    a, b, c = half
+    return m / 3.0 * np.diag([b * b + c * c, a * a + c * c, a * a + b * b])
+
+
+def _box_bvh(path: pathlib.Path, seconds: float) -> pathlib.Path:
+    frames = int(round(seconds * 30)) + 2
+    lines = ["HIERARCHY", "ROOT Box", "{", "  OFFSET 0 0 0",
+             "  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation",
+             "  JOINT Core", "  {", "    OFFSET 0 0 0", "    CHANNELS 3 Zrotation Xrotation Yrotation",
+             "    End Site", "    {", "      OFFSET 0 0.05 0", "    }", "  }", "}", "MOTION",
+             f"Frames: {frames}", "Frame Time: 0.0333333333"]
+    lines += [f"0 {HALF[1]} 0 0 0 0 0 0 0"] * frames
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def box(tmp_path_factory):
+    """The box at rest on the plane y = 0 (free root, the core welded), its shapes and gains."""
+    path = _box_bvh(tmp_path_factory.mktemp("box") / "box.bvh", SECONDS)
+    character, traj = load_character(path, units="m")
+    model = eqx.tree_at(lambda m: (m.mass, m.inertia, m.com, m.gravity), character.model, (
+        jnp.array([M_BOX, M_CORE]),
+        jnp.asarray(np.stack([_box_inertia(M_BOX, HALF), _box_inertia(M_CORE, [CORE] * 3)])),
+        jnp.zeros((2, 3)), jnp.array([0.0, -G, 0.0])))
+    shapes = (poly.box(HALF), poly.box(CORE))
+    character = dataclasses.replace(character, model=model, shapes=shapes)
+    setup = prepare(SimulationConfig(clip=str(path), units="m", duration=SECONDS, driven_joints=["Core"]),
+                    character, traj)
+    sim = SimModel(model, setup.ref, dataclasses.replace(setup.options, free_root=True))
+    # The welded core has no muscle (its reference torque is 0: the gain scale would be inf).
+    gains = dataclasses.replace(setup.gains, scale=jnp.ones(3), ks=jnp.zeros(()), kd=jnp.zeros(()))
+    return sim, dataclasses.replace(setup.params, gains=gains), shapes, character
+
+
+def _start(sim, lift=0.0, vel=(0.0, 0.0, 0.0), turn=(0.0, 0.0, 0.0)):
+    """The box's initial state: lifted, moving, turned (rotation vector) about its centre."""
+    init = sim.ref.init
+    q = quat_exp(jnp.asarray(turn, jnp.float64))
+    return dataclasses.replace(
+        init,
+        pos=init.pos + jnp.array([0.0, lift, 0.0]),
+        quat=jax.vmap(lambda a: quat_mul(q, a))(init.quat),
+        vel=jnp.broadcast_to(jnp.asarray(vel, jnp.float64), init.vel.shape),
+    )
+
+
+CASES = {  # name -> (start, friction); one compiled, vmapped 10 s rollout
+    "rest": (dict(), 0.8),
+    "slide": (dict(vel=(4.0, 0.0, 0.0)), 0.3),
+    "drop": (dict(lift=0.2), 0.8),
+    "tilted": (dict(lift=0.2, turn=(0.25, 0.1, 0.15)), 0.8),
+}
+
+
+@pytest.fixture(scope="module")
+def runs(box):
+    sim, params, shapes, _ = box
+    ground = ct.make_ground(shapes, 0.0, 0.8, 0.0)
+    starts = [_start(sim, **kw) for kw, _ in CASES.values()]
+    stack = lambda xs: jax.tree_util.tree_map(lambda *a: jnp.stack(a), *xs)
+    frictions = jnp.array([mu for _, mu in CASES.values()])
+
+    def one(init, mu):
+        s = eqx.tree_at(lambda s: s.ref.init, sim, init)
+        g = eqx.tree_at(lambda g: g.friction, ground, mu)
+        return ct.simulate_contact(s, params, ct.ContactScene(None, None, ct.ContactSettings(), g))
+
+    out = jax.jit(jax.vmap(one))(stack(starts), frictions)
+    return ground, {name: jax.tree_util.tree_map(lambda x, i=i: x[i], out) for i, name in enumerate(CASES)}
+
+
+def _lowest(sim, ground, out):
+    states = out.run.states
+    return np.asarray(ct.lowest_points(sim.model, ground, states.pos, quat_to_matrix(states.quat), (0,)))
+
+
+def _weight_ratio(out):
+    """Per step, the normal impulses / h over the box's weight."""
+    return np.asarray(out.contact.normal_impulse).sum(-1)[1:] / H / (MASS * G)
+
+
+def test_box_at_rest_carries_its_weight_without_drift(box, runs):
+    out = runs[1]["rest"]
+    assert int(out.run.diverged_step) < 0
+    np.testing.assert_allclose(_weight_ratio(out), 1.0, rtol=1e-9)  # every step
+    pos = np.asarray(out.run.states.pos)
+    assert out.run.time[-1] - out.run.time[0] >= SECONDS - 1e-9
+    assert np.abs(pos - pos[0]).max() < 1e-6  # no drift over 10 s (measured 1e-18 m)
+    assert np.abs(np.asarray(out.run.states.vel)).max() < 1e-12  # no jitter
+    assert np.abs(np.asarray(out.run.states.omega)).max() < 1e-12
+    # The four bottom corners carry it; the slack of each active contact is zero.
+    active = np.asarray(out.contact.active)[1:]
+    assert np.all(active.sum(-1) == 4)
+    assert np.abs(np.asarray(out.contact.slack)[1:][active]).max() < 1e-9
+
+
+def test_sliding_box_decelerates_at_mu_g_and_stops(runs):
+    out, mu, v0 = runs[1]["slide"], 0.3, 4.0
+    vx = np.asarray(out.run.states.vel[:, 0, 0])
+    x = np.asarray(out.run.states.pos[:, 0, 0])
+    sliding = vx[1:] > 1e-9
+    acc = np.diff(vx) / H
+    stop = int(np.argmin(sliding))  # the step that brings it to rest
+    assert 0.9 * v0 / (mu * G) / H < stop < 1.1 * v0 / (mu * G) / H
+    np.testing.assert_allclose(acc[:stop - 1], -mu * G, rtol=0.01)
+    assert np.abs(acc[:stop - 1] + mu * G).max() < 1e-9  # exact, as Coulomb's law in the LCP says
+    assert np.abs(vx[stop + 1:]).max() < 1e-12  # it stays at rest (static friction)
+    travel = x[-1] - x[0]
+    np.testing.assert_allclose(travel, v0**2 / (2 * mu * G), rtol=0.01)
+    np.testing.assert_allclose(travel, v0**2 / (2 * mu * G) - v0 * H / 2, atol=1e-4)  # the first-order step's
+    np.testing.assert_allclose(_weight_ratio(out), 1.0, rtol=1e-9)  # friction does not lift it
+    assert np.abs(np.asarray(out.run.states.omega)).max() < 1e-9  # nor tip it
+
+
+def test_dropped_box_lands_without_penetration_or_bounce(box, runs):
+    sim = box[0]
+    ground, out = runs[0], runs[1]["drop"]
+    y, vy = np.asarray(out.run.states.pos[:, 0, 1]), np.asarray(out.run.states.vel[:, 0, 1])
+    lam = np.asarray(out.contact.normal_impulse).sum(-1)
+    first = int(np.nonzero(lam > 0)[0][0])  # info row j: the step from t_{j-1} to t_j
+    # The step's free fall (velocity first, then position) has fallen g h^2 k (k + 1) / 2 after k
+    # steps; the impact comes at the fraction s of step k where the straight path of that step
+    # meets the plane: t = (k - 1 + s) h, within a step of the continuous sqrt(2 d / g).
+    k = first
+    gap = 0.2 - G * H**2 * (k - 1) * k / 2
+    assert 0.0 < gap <= G * H**2 * k  # the plane is reached within step k, not before
+    toi = np.asarray(out.contact.toi)[first][np.asarray(out.contact.active)[first]]
+    np.testing.assert_allclose(toi, gap / (G * H**2 * k), rtol=1e-9)
+    assert abs((k - 1 + toi[0]) * H - np.sqrt(2 * 0.2 / G)) < H
+    low = _lowest(sim, ground, out)
+    assert low.min() >= -1e-9  # no penetration at any stored state (measured 0)
+    assert np.abs(vy[first:]).max() < 1e-12  # no bounce: at rest from the landing step on
+    np.testing.assert_allclose(y[first:], HALF[1], atol=1e-12)
+    np.testing.assert_allclose(_weight_ratio(out)[first:], 1.0, rtol=1e-9)  # then it rests
+
+
+def test_tilted_drop_turns_onto_a_face_and_rests(box, runs):
+    sim = box[0]
+    ground, out = runs[0], runs[1]["tilted"]
+    vy = np.asarray(out.run.states.vel[:, 0, 1])
+    lam = np.asarray(out.contact.normal_impulse).sum(-1)
+    first = int(np.nonzero(lam > 0)[0][0])
+    assert np.asarray(out.contact.active)[first].sum() == 1  # it lands on a corner
+    low = _lowest(sim, ground, out)
+    assert low.min() >= -1e-9
+    assert vy[first:].max() < 1e-4  # it never bounces up (measured 3e-6 m/s)
+    # At rest on a face: its centre at the half height, level, and carrying its weight.
+    np.testing.assert_allclose(np.asarray(out.run.states.pos[-1, 0, 1]), HALF[1], atol=1e-9)
+    up = np.asarray(quat_to_matrix(out.run.states.quat[-1, 0]))[:, 1]
+    assert abs(up[1]) > 1 - 1e-9
+    assert np.abs(np.asarray(out.run.states.vel[-100:])).max() < 1e-9
+    np.testing.assert_allclose(_weight_ratio(out)[-100:], 1.0, rtol=1e-9)
+
+
+def test_ball_on_the_box_on_the_ground_one_lcp(box):
+    """The ball's contacts and the ground's in one LCP: a 1 kg ball dropped onto the box comes to
+    rest on it, and the ground under the box then carries both."""
+    sim, params, shapes, character = box
+    sim = dataclasses.replace(sim, options=dataclasses.replace(sim.options, n_steps=180))
+    caps = ct.fit_capsules(character)
+    top = HALF[1] + float(jnp.max(caps.radius))  # the box's capsule, over the box's centre
+    ball = ct.make_ball(0.1, 1.0, (0.0, top + 0.1 + 0.3, 0.0), velocity=(0, 0, 0), restitution=0.0,
+                        friction=0.5, launch=0.0)
+    scene = ct.ContactScene(ball, caps, ct.ContactSettings(), ct.make_ground(shapes, 0.0))
+    out = ct.simulate_contact_jit(sim, params, scene)
+    assert int(out.run.diverged_step) < 0
+    nb = scene.n_ball_candidates
+    names = ct.scene_candidate_names(sim.model, scene)
+    assert names[:nb] == ("Box", "Core", "ground") and names[nb] == "Box@ground[0]"
+    lam = np.asarray(out.contact.normal_impulse)
+    on_box = lam[:, names.index("Box")]
+    assert on_box[1:].max() > 0.1  # the ball hit the box
+    np.testing.assert_allclose(on_box[-30:] / H, 1.0 * G, rtol=1e-9)  # it rests on it
+    np.testing.assert_allclose(lam[-30:, nb:].sum(-1) / H, (MASS + 1.0) * G, rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(out.ball.pos[-1, 1]), top + 0.1, atol=1e-9)
+
+
+# ------------------------------------------------------------------ a free skeleton in flight
+
+
+@pytest.fixture(scope="module")
+def flight():
+    data = {"sim": {"root": "free", "start": 0.95, "duration": 0.5}, "ground": {"height": -50.0}}
+    setup = prepare(simulation_config(data, "<test>"))
+    return setup, ct.simulate_contact_jit(setup.sim_model, setup.params, ground_scene(setup.ground))
+
+
+def test_free_skeleton_in_flight_conserves_momentum(flight):
+    setup, out = flight
+    assert setup.options.free_root and setup.ground is not None
+    model = setup.model
+    assert int(out.run.diverged_step) < 0 and np.asarray(out.contact.normal_impulse).max() == 0.0
+    mass = np.asarray(model.mass)
+    total = mass.sum()
+    vel, pos, omega = (np.asarray(a) for a in (out.run.states.vel, out.run.states.pos, out.run.states.omega))
+    t = np.asarray(out.run.time) - float(out.run.time[0])
+    p = np.einsum("b,tbi->ti", mass, vel)
+    drift = p - p[0] - total * np.asarray(model.gravity) * t[:, None]
+    assert np.abs(drift).max() <= 1e-9 * np.abs(p).max()  # only gravity changes it
+    com = np.einsum("b,tbi->ti", mass, pos) / total
+    inertia = np.asarray(jax.vmap(lambda q: world_inertia(model, quat_to_matrix(q)))(out.run.states.quat))
+    ang = np.einsum("tbij,tbj->ti", inertia, omega) + np.einsum(
+        "b,tbi->ti", mass, np.cross(pos - com[:, None], vel - p[:, None] / total))
+    assert np.abs(ang - ang[0]).max() <= 1e-3  # kg m^2/s (measured 2.4e-4)
+    # The limbs did move: the joints' angular momenta are far larger than what is left over.
+    spins = np.abs(np.einsum("tbij,tbj->tbi", inertia, omega)).max()
+    assert spins > 0.01
+    # Nothing holds the pelvis: the centre of mass falls freely, by the step's g h^2 k (k + 1) / 2
+    # after k steps (g t^2 / 2 = 1.2 m in 0.5 s, plus the first-order step's g h t / 2).
+    k = np.arange(len(t))
+    fall = np.asarray(model.gravity) * (H**2 * k * (k + 1) / 2)[:, None]
+    np.testing.assert_allclose(com - com[0] - p[0] / total * t[:, None], fall, atol=1e-9)
+
+
+# ------------------------------------------------------------------ config
+
+
+def test_root_and_ground_config():
+    default = prepare(SimulationConfig(duration=0.1))
+    assert default.ground is None and not default.options.free_root  # the paper: driven, no ground
+    free = simulation_config({"sim": {"root": "free"}}, "x.toml")
+    assert free.root == "free" and free.ground_on  # the ground comes with a free root
+    assert not simulation_config({"sim": {"root": "free"}, "ground": {"enabled": False}}, "x.toml").ground_on
+    assert simulation_config({"ground": {"enabled": True}}, "x.toml").ground_on
+    spec = simulation_config({"ground": {"height": 0.1, "friction": 0.5, "contacts_per_body": 4}}, "x").ground
+    assert (spec.height, spec.friction, spec.restitution, spec.contacts_per_body) == (0.1, 0.5, 0.0, 4)
+    bad = [
+        ({"sim": {"root": "floating"}}, "sim.root"),
+        ({"ground": {"friction": -0.1}}, "ground.friction"),
+        ({"ground": {"restitution": 1.5}}, "ground.restitution"),
+        ({"ground": {"enabled": "yes"}}, "ground.enabled"),
+        ({"ground": {"contacts_per_body": 0}}, "ground.contacts_per_body"),
+        ({"ground": {"height": "floor"}}, "ground.height"),
+        ({"ground": {"mu": 0.5}}, "ground.mu"),
+    ]
+    for data, field in bad:
+        with pytest.raises(ConfigError, match=f"field '{field}'"):
+            simulation_config(data, "x.toml")
+    cfg = simulation_config({"sim": {"root": "free"}}, "x.toml")
+    with pytest.raises(ConfigError, match="field 'ground.enabled'"):
+        sweep_spec({"sweep": {"magnitudes": [1.0]}}, cfg)
+
+
+def test_floor_is_the_lowest_foot_point_of_the_capture(flight):
+    setup, _ = flight
+    character, traj = setup.character, setup.traj
+    floor = capture_floor(character, traj)
+    assert [character.model.body_names[b] for b in foot_bodies(character)] == ["LeftAnkle", "RightAnkle"]
+    probe = ct.make_ground(character.shapes, floor)
+    from neuromotor.model.kinematics import body_poses
+
+    times = jnp.arange(character.clip.n_frames) * character.clip.frame_time
+    pos, rot = jax.jit(jax.vmap(lambda t: body_poses(character.model, traj.q(t))))(times)
+    low = np.asarray(ct.lowest_points(character.model, probe, pos, rot, foot_bodies(character)))
+    assert low.min() == pytest.approx(0.0, abs=1e-12)  # the feet touch it at some frame ...
+    assert np.median(low) > 0.0  # ... and are above it at most
+    # The default ground of a free root is there; a [ground] height overrides it.
+    data = {"sim": {"root": "free", "start": 0.95, "duration": 0.1}}
+    on_floor = prepare(simulation_config(data, "<test>"), character, traj)
+    assert float(on_floor.ground.height) == pytest.approx(floor, abs=1e-12)
+    assert float(setup.ground.height) == -50.0
