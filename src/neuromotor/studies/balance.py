@@ -1,0 +1,127 @@
+"""Balance in a run (issue 38): the ``[balance]`` table made into a
+:class:`~neuromotor.physics.balance.Balance` (the feet and hips found by the anatomy's labels,
+the standing feedforward of the initial pose), falls, COM sway and the assist's impulse.
+
+The physics is :mod:`neuromotor.physics.balance`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from neuromotor.model.skeleton import Character
+from neuromotor.physics.balance import Balance, make_balance
+from neuromotor.physics.contact import ContactRollout
+from neuromotor.studies.ground import foot_bodies
+
+THIGH = "thigh"
+FALL_FRACTION = 0.6  # fell when the COM is below this fraction of its initial height above the ground
+
+
+def hip_joints(character: Character) -> tuple[int, ...]:
+    """The pelvis->thigh joints (joint c attaches body c + 1)."""
+    model = character.model
+    return tuple(
+        b - 1 for b, seg in enumerate(character.body_segment) if seg == THIGH and b > 0 and model.body_parent[b] == 0
+    )
+
+
+def balance_for(character: Character, state, h: float, **values) -> Balance:
+    """The :class:`Balance` of ``character`` standing in ``state`` (``values``: kp, kd, hip_kp,
+    hip_kd, delay, assist, max_delay)."""
+    return make_balance(character.model, state, foot_bodies(character), hip_joints(character), h, **values)
+
+
+def with_balance(setup, **values):
+    """``setup`` with the postural loop on its gains (the standing pose: the reference's first state)."""
+    bal = balance_for(setup.character, setup.ref.init, setup.options.h, **values)
+    return dataclasses.replace(setup, gains=dataclasses.replace(setup.gains, balance=bal))
+
+
+def standing_setup(seconds: float, h: float = 1.0 / 120.0, balance: dict | None = None, clip=None):
+    """A free-root run on the ground holding the clip's most upright frame
+    (``character.anatomy.reference_frame``) for ``seconds``; ``balance``: the ``[balance]`` table."""
+    from neuromotor.config import simulation_config
+    from neuromotor.model.load import default_clip_path, load_character
+    from neuromotor.studies.simulate import prepare
+
+    path = str(default_clip_path() if clip is None else clip)
+    probe = simulation_config({"clip": path}, "<standing>")
+    character, _ = load_character(probe.clip, probe.units, probe.up_axis, probe.stature, probe.mass_options())
+    still = character.anatomy.reference_frame * character.clip.frame_time
+    data = {"clip": path, "sim": {"root": "free", "duration": seconds, "h": h, "still": still}}
+    if balance is not None:
+        data["balance"] = balance
+    return prepare(simulation_config(data, "<standing>"))
+
+
+def falls(setup, out: ContactRollout) -> dict:
+    """``fell``, ``fall_time_s`` (NaN: never) and ``fall_body`` (""): the first step where a body
+    other than a foot carries a ground impulse, or the COM drops below ``FALL_FRACTION`` of its
+    initial height above the ground."""
+    model, ground = setup.model, setup.ground
+    feet = foot_bodies(setup.character)
+    lam = np.asarray(out.contact.normal_impulse)[:, -ground.n_slots :]
+    bodies = np.asarray(ground.slot_body)
+    other = (lam > 0) & ~np.isin(bodies, feet)[None]
+    time = np.asarray(out.run.time) - float(out.run.time[0])
+    up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
+    mass = np.asarray(model.mass)
+    com = np.einsum("b,tbi->ti", mass / mass.sum(), np.asarray(out.run.states.pos)) @ up - float(ground.height)
+    low = com < FALL_FRACTION * com[0]
+    hit = np.nonzero(other.any(-1))[0]
+    k_touch = int(hit[0]) if hit.size else None
+    k_low = int(np.nonzero(low)[0][0]) if low.any() else None
+    if k_touch is None and k_low is None:
+        return {"fell": False, "fall_time_s": float("nan"), "fall_body": ""}
+    if k_touch is not None and (k_low is None or k_touch <= k_low):
+        names = sorted({model.body_names[b] for b in bodies[other[k_touch]]})
+        return {"fell": True, "fall_time_s": float(time[k_touch]), "fall_body": ",".join(names)}
+    return {"fell": True, "fall_time_s": float(time[k_low]), "fall_body": "(COM low)"}
+
+
+def sway(setup, out: ContactRollout) -> dict:
+    """The COM's horizontal sway about its mean: radial RMS and the ranges along the facing
+    direction (AP) and across it (ML), mm."""
+    model = setup.model
+    up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
+    fwd = np.asarray(setup.character.anatomy.forward, float)
+    fwd = fwd - fwd @ up * up
+    fwd /= np.linalg.norm(fwd)
+    side = np.cross(up, fwd)
+    mass = np.asarray(model.mass)
+    com = np.einsum("b,tbi->ti", mass / mass.sum(), np.asarray(out.run.states.pos))
+    d = com - com.mean(0)
+    ap, ml = d @ fwd, d @ side
+    return {
+        "sway_rms_mm": float(1000 * np.sqrt(np.mean(ap**2 + ml**2))),
+        "sway_range_ap_mm": float(1000 * np.ptp(ap)),
+        "sway_range_ml_mm": float(1000 * np.ptp(ml)),
+    }
+
+
+def assist_impulse(setup, out: ContactRollout) -> dict:
+    """The assist's impulse (N s, and % of body weight x duration); empty when it is off."""
+    bal = setup.gains.balance
+    if bal is None or float(bal.assist) == 0.0:
+        return {}
+    model, ref = setup.model, setup.ref
+    k = float(bal.assist)
+    mass = float(np.sum(model.mass))
+    states = out.run.states
+    n = states.pos.shape[0]
+    target = np.asarray(ref.root_origin[:n]) + np.einsum(
+        "tij,j->ti", np.asarray(ref.root_rot[:n]), np.asarray(model.com[0])
+    )
+    force = mass * (k * (target - np.asarray(states.pos[:, 0])) - 2 * np.sqrt(k) * np.asarray(states.vel[:, 0]))
+    h = setup.options.h
+    impulse = float(np.sum(np.linalg.norm(force[:-1], axis=-1)) * h)
+    weight = mass * float(np.linalg.norm(np.asarray(model.gravity)))
+    return {"assist_impulse_Ns": impulse, "assist_impulse_pct": 100 * impulse / (weight * h * (n - 1))}
+
+
+def balance_metrics(setup, out: ContactRollout) -> dict:
+    """Falls, sway and (when on) the assist's impulse."""
+    return falls(setup, out) | sway(setup, out) | assist_impulse(setup, out)
