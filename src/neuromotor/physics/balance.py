@@ -6,7 +6,7 @@ Standing feedforward. The capture's inverse dynamics is computed with the pelvis
 paper's driven root): it knows nothing of the feet carrying the body. For a free root we add
 the static inverse dynamics of the held pose with the weight on the feet: the ground carries
 ``m g`` under the feet, split between them so that the whole-body moment about the COM is zero
-(each foot's centre of pressure under its ankle, moved by one common horizontal offset that puts
+(each foot's centre of pressure at the centre of its lowest polyhedron vertices, moved by one common horizontal offset that puts
 the COM's projection on the line between them). Every joint above a foot then gets the extra
 torque on its child ``-sum_f (p_f - o_j) x F_f`` (o_j the joint, p_f and F_f the foot's centre
 of pressure and force). It is computed once on the initial pose and held in each joint's parent
@@ -109,12 +109,15 @@ def _subtree_mask(model: Model) -> np.ndarray:
     return np.minimum(sub, 1.0)
 
 
-def foot_forces(model: Model, state: State, feet: Sequence[int]):
+def foot_forces(model: Model, state: State, feet: Sequence[int], soles=None):
     """Each foot's centre of pressure and vertical force carrying the body statically (see the
-    module docstring): ``(points (F, 3), forces (F, 3))``."""
+    module docstring): ``(points (F, 3), forces (F, 3))``. ``soles`` (F, 3): each foot's point
+    of support (world; None: under its ankle)."""
     up, rot = up_of(model), quat_to_matrix(state.quat)
     c = horizontal(whole_com(model, state.pos), up)
-    ankle = horizontal(joint_origins(model, state.pos, rot)[jnp.asarray(feet)], up)
+    if soles is None:
+        soles = joint_origins(model, state.pos, rot)[jnp.asarray(feet)]
+    ankle = horizontal(jnp.asarray(soles), up)
     weight = jnp.sum(model.mass) * jnp.linalg.norm(model.gravity)
     if len(feet) == 1:
         share = jnp.ones(1)
@@ -128,10 +131,10 @@ def foot_forces(model: Model, state: State, feet: Sequence[int]):
     return ankle + shift, share[:, None] * weight * up
 
 
-def support_torques(model: Model, state: State, feet: Sequence[int]) -> Float[Array, "C 3"]:
+def support_torques(model: Model, state: State, feet: Sequence[int], soles=None) -> Float[Array, "C 3"]:
     """The standing feedforward of every joint in its parent's frame (module docstring)."""
     rot = quat_to_matrix(state.quat)
-    points, forces = foot_forces(model, state, feet)
+    points, forces = foot_forces(model, state, feet, soles)
     origin = joint_origins(model, state.pos, rot)
     child, parent = np.asarray(model.topology.child), np.asarray(model.topology.parent)
     holds = jnp.asarray(_subtree_mask(model)[child][:, np.asarray(feet)])  # (C, F): foot below joint
@@ -153,9 +156,11 @@ def make_balance(
     delay=DELAY,
     assist=0.0,
     max_delay: float = MAX_DELAY,
+    soles=None,
 ) -> Balance:
     """A :class:`Balance` for the pose ``state`` (the standing reference), ``feet`` (body
-    indices: their joints are the ankles) and ``hips`` (joint indices, pelvis->thigh)."""
+    indices: their joints are the ankles) and ``hips`` (joint indices, pelvis->thigh); ``soles``
+    (F, 3): each foot's point of support in ``state`` (world; None: under the ankle)."""
     feet = tuple(int(b) for b in feet)
     if not feet:
         raise ValueError("balance needs at least one foot")
@@ -171,7 +176,7 @@ def make_balance(
         f(hip_kd),
         f(delay),
         f(assist),
-        support_torques(model, state, feet),
+        support_torques(model, state, feet, soles),
         horizontal(rel, up) / height,
         mtv(rot[0], up),
         jnp.sum(model.mass) * jnp.linalg.norm(model.gravity) * height,

@@ -14,6 +14,7 @@ import numpy as np
 from neuromotor.model.skeleton import Character
 from neuromotor.physics.balance import Balance, make_balance
 from neuromotor.physics.contact import ContactRollout
+from neuromotor.rotations import quat_to_matrix
 from neuromotor.studies.ground import foot_bodies
 
 THIGH = "thigh"
@@ -28,10 +29,30 @@ def hip_joints(character: Character) -> tuple[int, ...]:
     )
 
 
+SOLE_BAND = 0.01  # m: a foot's support is the centre of its vertices within this of its lowest
+
+
+def sole_points(character: Character, state, feet) -> np.ndarray:
+    """Each foot's point of support in ``state``: the centre of its polyhedron's vertices within
+    ``SOLE_BAND`` of its lowest (world)."""
+    model = character.model
+    up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
+    out = []
+    for b in feet:
+        verts = np.asarray(getattr(character.shapes[b], "vertices", character.shapes[b])).reshape(-1, 3)
+        rot = np.asarray(quat_to_matrix(state.quat[b]))
+        world = np.asarray(state.pos[b]) + (verts - np.asarray(model.com[b])) @ rot.T
+        height = world @ up
+        out.append(world[height <= height.min() + SOLE_BAND].mean(0))
+    return np.stack(out)
+
+
 def balance_for(character: Character, state, h: float, **values) -> Balance:
     """The :class:`Balance` of ``character`` standing in ``state`` (``values``: kp, kd, hip_kp,
-    hip_kd, delay, assist, max_delay)."""
-    return make_balance(character.model, state, foot_bodies(character), hip_joints(character), h, **values)
+    hip_kd, delay, assist, max_delay); the feet carry the body at :func:`sole_points`."""
+    feet = foot_bodies(character)
+    soles = sole_points(character, state, feet)
+    return make_balance(character.model, state, feet, hip_joints(character), h, soles=soles, **values)
 
 
 def with_balance(setup, **values):
@@ -40,7 +61,7 @@ def with_balance(setup, **values):
     return dataclasses.replace(setup, gains=dataclasses.replace(setup.gains, balance=bal))
 
 
-def standing_setup(seconds: float, h: float = 1.0 / 120.0, balance: dict | None = None, clip=None):
+def standing_setup(seconds: float, h: float = 1.0 / 120.0, balance: dict | None = None, clip=None, root: str = "free"):
     """A free-root run on the ground holding the clip's most upright frame
     (``character.anatomy.reference_frame``) for ``seconds``; ``balance``: the ``[balance]`` table."""
     from neuromotor.config import simulation_config
@@ -51,14 +72,14 @@ def standing_setup(seconds: float, h: float = 1.0 / 120.0, balance: dict | None 
     probe = simulation_config({"clip": path}, "<standing>")
     character, _ = load_character(probe.clip, probe.units, probe.up_axis, probe.stature, probe.mass_options())
     still = character.anatomy.reference_frame * character.clip.frame_time
-    data = {"clip": path, "sim": {"root": "free", "duration": seconds, "h": h, "still": still}}
+    data = {"clip": path, "sim": {"root": root, "duration": seconds, "h": h, "still": still}}
     if balance is not None:
         data["balance"] = balance
     return prepare(simulation_config(data, "<standing>"))
 
 
 def falls(setup, out: ContactRollout) -> dict:
-    """``fell``, ``fall_time_s`` (NaN: never) and ``fall_body`` (""): the first step where a body
+    """``fell``, ``fall_time_s`` (None: never) and ``fall_body`` (""): the first step where a body
     other than a foot carries a ground impulse, or the COM drops below ``FALL_FRACTION`` of its
     initial height above the ground."""
     model, ground = setup.model, setup.ground
@@ -75,7 +96,7 @@ def falls(setup, out: ContactRollout) -> dict:
     k_touch = int(hit[0]) if hit.size else None
     k_low = int(np.nonzero(low)[0][0]) if low.any() else None
     if k_touch is None and k_low is None:
-        return {"fell": False, "fall_time_s": float("nan"), "fall_body": ""}
+        return {"fell": False, "fall_time_s": None, "fall_body": ""}
     if k_touch is not None and (k_low is None or k_touch <= k_low):
         names = sorted({model.body_names[b] for b in bodies[other[k_touch]]})
         return {"fell": True, "fall_time_s": float(time[k_touch]), "fall_body": ",".join(names)}
@@ -84,7 +105,8 @@ def falls(setup, out: ContactRollout) -> dict:
 
 def sway(setup, out: ContactRollout) -> dict:
     """The COM's horizontal sway about its mean: radial RMS and the ranges along the facing
-    direction (AP) and across it (ML), mm."""
+    direction (AP) and across it (ML), mm; and the radial RMS over the run's second half
+    (``sway_rms_late_mm``: after the first settling)."""
     model = setup.model
     up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
     fwd = np.asarray(setup.character.anatomy.forward, float)
@@ -95,10 +117,13 @@ def sway(setup, out: ContactRollout) -> dict:
     com = np.einsum("b,tbi->ti", mass / mass.sum(), np.asarray(out.run.states.pos))
     d = com - com.mean(0)
     ap, ml = d @ fwd, d @ side
+    late = com[com.shape[0] // 2 :]
+    late_ap, late_ml = (late - late.mean(0)) @ fwd, (late - late.mean(0)) @ side
     return {
         "sway_rms_mm": float(1000 * np.sqrt(np.mean(ap**2 + ml**2))),
         "sway_range_ap_mm": float(1000 * np.ptp(ap)),
         "sway_range_ml_mm": float(1000 * np.ptp(ml)),
+        "sway_rms_late_mm": float(1000 * np.sqrt(np.mean(late_ap**2 + late_ml**2))),
     }
 
 
@@ -123,5 +148,8 @@ def assist_impulse(setup, out: ContactRollout) -> dict:
 
 
 def balance_metrics(setup, out: ContactRollout) -> dict:
-    """Falls, sway and (when on) the assist's impulse."""
-    return falls(setup, out) | sway(setup, out) | assist_impulse(setup, out)
+    """Falls, sway and (when on) the assist's impulse; ``diverged_s``: when the rollout blew up
+    (None: it did not; the states after it are held, so the other figures cover the time before)."""
+    bad = int(out.run.diverged_step)
+    when = None if bad < 0 else float(out.run.time[bad + 1] - out.run.time[0])
+    return falls(setup, out) | sway(setup, out) | assist_impulse(setup, out) | {"diverged_s": when}
