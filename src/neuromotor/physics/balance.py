@@ -6,11 +6,12 @@ Standing feedforward. The capture's inverse dynamics is computed with the pelvis
 paper's driven root): it knows nothing of the feet carrying the body. For a free root we add
 the static inverse dynamics of the held pose with the weight on the feet: the ground carries
 ``m g`` under the feet, split between them so that the whole-body moment about the COM is zero
-(each foot's centre of pressure at the centre of its lowest polyhedron vertices, moved by one common horizontal offset that puts
-the COM's projection on the line between them). Every joint above a foot then gets the extra
-torque on its child ``-sum_f (p_f - o_j) x F_f`` (o_j the joint, p_f and F_f the foot's centre
-of pressure and force). It is computed once on the initial pose and held in each joint's parent
-frame (``Balance.support``), so it turns with the limbs.
+(each foot's centre of pressure at the centre of its lowest polyhedron vertices, moved by one
+common horizontal offset that puts the COM's projection on the line between them). Every joint
+above a foot then gets the extra torque on its child ``-sum_f (p_f - o_j) x F_f`` (o_j the
+joint, p_f and F_f the foot's centre of pressure and force). It is computed once on the
+initial pose and held in each joint's parent frame (``Balance.support``), so it turns with
+the limbs.
 
 Postural loop. With ``c`` the whole-body COM, ``a`` the midpoint of the ankles, ``H`` the COM's
 height over them, ``up`` the vertical and ``m g H`` the body's gravitational stiffness, the

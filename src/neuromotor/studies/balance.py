@@ -9,11 +9,15 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 
 from neuromotor.model.skeleton import Character
 from neuromotor.physics.balance import Balance, make_balance
 from neuromotor.physics.contact import ContactRollout
+from neuromotor.physics.control import joint_torque_magnitude
+from neuromotor.physics.dynamics import Reference
+from neuromotor.physics.system import per_joint_to_dofs
 from neuromotor.rotations import quat_to_matrix
 from neuromotor.studies.ground import foot_bodies
 
@@ -55,10 +59,18 @@ def balance_for(character: Character, state, h: float, **values) -> Balance:
     return make_balance(character.model, state, feet, hip_joints(character), h, soles=soles, **values)
 
 
-def with_balance(setup, **values):
-    """``setup`` with the postural loop on its gains (the standing pose: the reference's first state)."""
-    bal = balance_for(setup.character, setup.ref.init, setup.options.h, **values)
-    return dataclasses.replace(setup, gains=dataclasses.replace(setup.gains, balance=bal))
+def fold_support(model, ref: Reference, balance: Balance) -> tuple[Reference, Balance]:
+    """The standing feedforward moved into the reference's feedforward: ``ref`` with
+    ``tau + P_L support`` on every grid step and its activation |T_j| recomputed, ``balance``
+    with a zero ``support``. The gains' per-DOF scaling stays the capture's (made from the
+    driven root's activation), so by the signal dependence of Section 5.2 the legs' feedback
+    stiffens with the load they now carry; without it the knees buckle slowly."""
+    delta = jnp.einsum("tcij,cj->tci", ref.local_pinv, balance.support)
+    tau = ref.tau + per_joint_to_dofs(model, jnp.moveaxis(delta, 0, -1)).T
+    axes_rows = per_joint_to_dofs(model, jnp.moveaxis(jnp.swapaxes(ref.local_axes, -1, -2), 0, 2))
+    activation = joint_torque_magnitude(model, jnp.moveaxis(axes_rows, 0, 1), tau)
+    ref = dataclasses.replace(ref, tau=tau, activation=activation)
+    return ref, dataclasses.replace(balance, support=jnp.zeros_like(balance.support))
 
 
 def standing_setup(seconds: float, h: float = 1.0 / 120.0, balance: dict | None = None, clip=None, root: str = "free"):
@@ -71,7 +83,9 @@ def standing_setup(seconds: float, h: float = 1.0 / 120.0, balance: dict | None 
     path = str(default_clip_path() if clip is None else clip)
     probe = simulation_config({"clip": path}, "<standing>")
     character, _ = load_character(probe.clip, probe.units, probe.up_axis, probe.stature, probe.mass_options())
-    still = character.anatomy.reference_frame * character.clip.frame_time
+    anatomy = character.anatomy
+    assert anatomy is not None, "a standing pose needs the clip's anatomy"
+    still = anatomy.reference_frame * character.clip.frame_time
     data = {"clip": path, "sim": {"root": root, "duration": seconds, "h": h, "still": still}}
     if balance is not None:
         data["balance"] = balance

@@ -47,7 +47,7 @@ from neuromotor.physics.dynamics import (
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
 from neuromotor.physics.precision import Precision
 from neuromotor.studies import metrics as mx
-from neuromotor.studies.balance import balance_for, balance_metrics
+from neuromotor.studies.balance import balance_for, balance_metrics, fold_support
 from neuromotor.studies.ball_hit import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies.gains import gains_for
 from neuromotor.studies.ground import ground_metrics, ground_rollouts, ground_setup
@@ -257,6 +257,7 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     ground = ground_setup(config.ground, character, capture) if config.ground_on else None
     if config.balance_on:  # the postural loop of the held (first) pose: neuromotor.physics.balance
         bal = balance_for(character, ref.init, config.h, **config.balance.values())
+        ref, bal = fold_support(model, ref, bal)  # the legs carry the trunk: part of the feedforward
         gains = dataclasses.replace(gains, balance=bal)
     if ball is not None and ground is not None:  # one scene: the ball and the bodies on the ground
         ball = dataclasses.replace(ball, ground=ground)
