@@ -20,8 +20,8 @@ import jax
 from neuromotor import compiler
 from neuromotor.physics.contact import simulate_contact_jit
 from neuromotor.physics.dynamics import simulate
-from neuromotor.studies.balance import standing_setup
 from neuromotor.studies.ground import ground_scene
+from neuromotor.studies.standing import standing_setup
 
 
 def best(fn, repeats: int = 3) -> float:

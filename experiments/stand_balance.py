@@ -17,8 +17,9 @@ import jax
 import numpy as np
 
 from neuromotor.physics.contact import simulate_contact_jit
-from neuromotor.studies.balance import balance_metrics, standing_setup
+from neuromotor.studies.balance import balance_metrics
 from neuromotor.studies.ground import ground_scene
+from neuromotor.studies.standing import standing_setup
 
 
 def main() -> None:

@@ -14,16 +14,17 @@ import pytest
 
 from neuromotor.config import ConfigError, simulation_config
 from neuromotor.physics.balance import (
+    balance_torques as torques_of,
     empty_posture,
     foot_forces,
     posture_signals,
     whole_com,
 )
-from neuromotor.physics.balance import balance_torques as torques_of
 from neuromotor.physics.contact import simulate_contact, simulate_contact_jit
 from neuromotor.physics.dynamics import Params
-from neuromotor.studies.balance import balance_metrics, hip_joints, standing_setup
+from neuromotor.studies.balance import balance_metrics, hip_joints
 from neuromotor.studies.ground import foot_bodies, ground_scene
+from neuromotor.studies.standing import standing_setup
 
 
 @pytest.fixture(scope="module")

@@ -44,8 +44,9 @@ from neuromotor.physics import contact as ct
 from neuromotor.physics.dynamics import SimModel
 from neuromotor.physics.system import world_inertia
 from neuromotor.rotations import quat_exp, quat_mul, quat_to_matrix
-from neuromotor.studies.ground import capture_floor, foot_bodies, ground_scene
-from neuromotor.studies.simulate import load_character, prepare
+from neuromotor.studies.ground import capture_floor, foot_bodies
+from neuromotor.studies.record import provenance, run_arrays
+from neuromotor.studies.simulate import load_character, prepare, run
 
 H = 1.0 / 120.0
 G = 9.81
@@ -239,13 +240,16 @@ def test_ball_on_the_box_on_the_ground_one_lcp(box):
 
 @pytest.fixture(scope="module")
 def flight():
+    """``neuromotor simulate``'s run of a free root with the ground (50 m below: in flight)."""
     data = {"sim": {"root": "free", "start": 0.95, "duration": 0.5}, "ground": {"height": -50.0}}
     setup = prepare(simulation_config(data, "<test>"))
-    return setup, ct.simulate_contact_jit(setup.sim_model, setup.params, ground_scene(setup.ground))
+    result = run(setup)
+    assert result.ground is not None and result.ball is None
+    return setup, result.ground, result
 
 
 def test_free_skeleton_in_flight_conserves_momentum(flight):
-    setup, out = flight
+    setup, out, _ = flight
     assert setup.options.free_root and setup.ground is not None
     model = setup.model
     assert int(out.run.diverged_step) < 0 and np.asarray(out.contact.normal_impulse).max() == 0.0
@@ -300,8 +304,20 @@ def test_root_and_ground_config():
         sweep_spec({"sweep": {"magnitudes": [1.0]}}, cfg)
 
 
+def test_run_of_a_free_root_records_the_ground(flight):
+    setup, out, result = flight
+    m = result.metrics
+    assert not m["diverged"] and m["ground_peak_force_N"] == 0.0 and m["ground_contact_fraction"] == 0.0
+    arrays = run_arrays(setup, result)
+    t, g = len(arrays["time"]), setup.ground.n_slots
+    assert arrays["ground_impulse"].shape == (t, g, 3) and arrays["ground_gap"].shape == (t, g)
+    assert arrays["ground_body"].shape == (g,) and float(arrays["ground_height"]) == -50.0
+    np.testing.assert_allclose(arrays["ground_gap"][0].min(), np.asarray(out.contact.gap)[0].min())
+    assert provenance(setup)["root"] == "free" and provenance(setup)["ground"]["height"] == -50.0
+
+
 def test_floor_is_the_lowest_foot_point_of_the_capture(flight):
-    setup, _ = flight
+    setup, *_ = flight
     character, traj = setup.character, setup.traj
     floor = capture_floor(character, traj)
     assert [character.model.body_names[b] for b in foot_bodies(character)] == ["LeftAnkle", "RightAnkle"]

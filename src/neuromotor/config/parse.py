@@ -298,6 +298,7 @@ def parse_ground(top: Fields) -> GroundSpec:
         contacts_per_body=f.integer("contacts_per_body", d("contacts_per_body"), 1),
         max_contacts=f.integer("max_contacts", d("max_contacts"), 1),
     )
+    f.done()
     return spec
 
 

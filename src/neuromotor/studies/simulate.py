@@ -259,8 +259,9 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
         bal = balance_for(character, ref.init, config.h, **config.balance.values())
         ref, bal = fold_support(model, ref, bal)  # the legs carry the trunk: part of the feedforward
         gains = dataclasses.replace(gains, balance=bal)
-    if ball is not None and ground is not None:  # one scene: the ball and the bodies on the ground
-        ball = dataclasses.replace(ball, ground=ground)
+    if ball is not None and ground is not None:  # one scene: the ball and the bodies on one ground
+        settings = dataclasses.replace(ball.settings, ground_height=float(ground.height))
+        ball = dataclasses.replace(ball, ground=ground, settings=settings)
     return Setup(
         character,
         traj,
