@@ -218,7 +218,7 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
         config.start + n_steps * config.h,
         config.h,
         clip.duration,
-        (0, *driven),
+        driven if config.root == "free" else (0, *driven),  # a free root can be pushed
         index,
         driven_by,
         still,
