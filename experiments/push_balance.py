@@ -7,7 +7,8 @@ horizontal directions, 0.5 s into a 3 s run.
 Prints, per body, direction (degrees from the facing direction, counter-clockwise seen from
 above) and magnitude: the impulse (N s), recovered or fell (time, body), the peak COM excursion
 (mm) and the recovery time (s after the push's onset until the COM's horizontal speed stays
-below 2 cm/s).
+below 2 cm/s). "not settled": no fall detected, but still moving at the end or carried more than
+30 cm (sliding or stumbling on the feet); "diverged": the rollout blew up.
 """
 
 from __future__ import annotations
@@ -78,6 +79,8 @@ def main() -> None:
                     outcome = f"fell {f['fall_time_s'] - ONSET:.2f}s {f['fall_body']}"[:18]
                 elif bad:
                     outcome = "diverged"
+                elif rec > args.seconds - ONSET - 0.2 or peak > 300.0:
+                    outcome = "not settled"  # still moving at the end, or carried off (sliding)
                 else:
                     outcome = "recovered"
                 recovery = f"{rec:.2f}" if outcome == "recovered" else "-"
