@@ -38,6 +38,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=2.0)
     ap.add_argument("--h", type=float, default=1.0 / 120.0)
+    ap.add_argument("--max-contacts", type=int, default=None, help="[ground] max_contacts (default 16)")
     args = ap.parse_args()
     n = int(round(args.seconds / args.h))
     sim_jit = compiler.jit(simulate)
@@ -45,7 +46,8 @@ def main() -> None:
     driven = standing_setup(args.seconds, args.h, {"enabled": False}, root="driven")
     rows.append(("driven root, no contact (paper)", best(lambda: sim_jit(driven.sim_model, driven.params))))
     for label, bal in (("free root + ground + balance", None), ("free root + ground, no balance", {"enabled": False})):
-        s = standing_setup(args.seconds, args.h, bal)
+        ground = None if args.max_contacts is None else {"max_contacts": args.max_contacts}
+        s = standing_setup(args.seconds, args.h, bal, ground=ground)
         scene = ground_scene(s.ground)
         rows.append((label, best(lambda s=s, scene=scene: simulate_contact_jit(s.sim_model, s.params, scene))))
     print(f"{n} steps at h = {args.h:.6g} s ({args.seconds:g} s simulated), best of 3 after compilation")

@@ -8,9 +8,17 @@ from neuromotor.model.load import default_clip_path, load_character
 from neuromotor.studies.simulate import prepare
 
 
-def standing_setup(seconds: float, h: float = 1.0 / 120.0, balance: dict | None = None, clip=None, root: str = "free"):
+def standing_setup(
+    seconds: float,
+    h: float = 1.0 / 120.0,
+    balance: dict | None = None,
+    clip=None,
+    root: str = "free",
+    ground: dict | None = None,
+):
     """A free-root run on the ground holding the clip's most upright frame
-    (``character.anatomy.reference_frame``) for ``seconds``; ``balance``: the ``[balance]`` table."""
+    (``character.anatomy.reference_frame``) for ``seconds``; ``balance`` and ``ground``: the
+    ``[balance]`` and ``[ground]`` tables."""
     path = str(default_clip_path() if clip is None else clip)
     probe = simulation_config({"clip": path}, "<standing>")
     character, _ = load_character(probe.clip, probe.units, probe.up_axis, probe.stature, probe.mass_options())
@@ -20,4 +28,6 @@ def standing_setup(seconds: float, h: float = 1.0 / 120.0, balance: dict | None 
     data = {"clip": path, "sim": {"root": root, "duration": seconds, "h": h, "still": still}}
     if balance is not None:
         data["balance"] = balance
+    if ground is not None:
+        data["ground"] = ground
     return prepare(simulation_config(data, "<standing>"))
