@@ -60,6 +60,7 @@ def main() -> None:
         data = {"clip": str(path), "up_axis": 1, "sim": {"root": "free", "duration": args.seconds, "h": args.h}}
         ground = {"contacts_per_body": args.per_body, "max_contacts": args.max_contacts}
         data["ground"] = {k: v for k, v in ground.items() if v is not None}
+        data["balance"] = {"enabled": False}  # the bare free root (the postural loop: stand_balance.py)
         setup = prepare(simulation_config(data, "<stand_free>"))
         t0 = time.perf_counter()
         out = simulate_contact_jit(setup.sim_model, setup.params, ground_scene(setup.ground))

@@ -31,6 +31,7 @@ from neuromotor.config.specs import (
     SEXES,
     TARGET_KINDS,
     TIME_UNITS,
+    BalanceSpec,
     BallSpec,
     ExperimentSpec,
     FeatureTarget,
@@ -54,7 +55,7 @@ from neuromotor.physics.options import Feedforward, JointLaw
 from neuromotor.physics.precision import Precision
 
 # top-level tables beside [sim], [gains], [[perturbation]]
-TABLES = ("fit", "sweep", "experiment", "ball", "reflex", "ground")
+TABLES = ("fit", "sweep", "experiment", "ball", "reflex", "ground", "balance")
 
 
 # ----------------------------------------------------------------------------- simulation
@@ -301,6 +302,21 @@ def parse_ground(top: Fields) -> GroundSpec:
     return spec
 
 
+def parse_balance(top: Fields) -> BalanceSpec:
+    """The ``[balance]`` table (defaults: :class:`BalanceSpec`); errors name the field."""
+    f = top.sub("balance")
+    d = lambda name: default(BalanceSpec, name)
+    enabled = None if f.get("enabled") is None else f.boolean("enabled", None)
+    out = {k: f.number(k, d(k), nonneg=True) for k in ("kp", "kd", "hip_kp", "hip_kd", "delay", "assist")}
+    out["max_delay"] = f.number("max_delay", max(d("max_delay"), out["delay"]), positive=True)
+    if out["max_delay"] > REFLEX_DELAY_LIMIT:
+        f.fail("max_delay", f"must be at most {REFLEX_DELAY_LIMIT:g} s (the history buffer), got {out['max_delay']!r}")
+    if out["delay"] > out["max_delay"]:
+        f.fail("delay", f"= {out['delay']:g} s is longer than balance.max_delay = {out['max_delay']:g} s")
+    f.done()
+    return BalanceSpec(enabled=enabled, **out)
+
+
 def parse_reflex(top: Fields) -> ReflexSpec:
     """The ``[reflex]`` table (defaults: :class:`ReflexSpec`)."""
     f = top.sub("reflex")
@@ -340,6 +356,8 @@ def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> Simu
         fields["reflex"] = parse_reflex(top)
     if "ground" in data:
         fields["ground"] = parse_ground(top)
+    if "balance" in data:
+        fields["balance"] = parse_balance(top)
     top.done(allowed_tables=TABLES)
     return SimulationConfig(source=source, **fields)
 

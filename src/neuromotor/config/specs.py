@@ -16,7 +16,7 @@ from types import MappingProxyType
 from typing import ClassVar
 
 from neuromotor.errors import ConfigError
-from neuromotor.physics import perturbation as _perturbation, reflex as _reflex
+from neuromotor.physics import balance as _balance, perturbation as _perturbation, reflex as _reflex
 from neuromotor.physics.contact import ground as _ground
 from neuromotor.physics.contact.ball import make_ball
 from neuromotor.physics.contact.detection import ContactSettings
@@ -318,6 +318,29 @@ class GroundSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class BalanceSpec:
+    """The ``[balance]`` table: the postural loop, the standing feedforward and the assist
+    (:mod:`neuromotor.physics.balance`, where the literature behind the defaults is cited).
+    Without the table: on with ``[sim] root = "free"`` on the ground, off with the driven root."""
+
+    enabled: bool | None = None  # None: on with a free root on the ground
+    kp: float = _balance.KP  # ankle stiffness, m g H per rad (Peterka 2002: 1.2-1.5)
+    kd: float = _balance.KD  # ankle damping, m g H s per rad
+    hip_kp: float = _balance.HIP_KP  # pelvis uprightness at the hips, m g H per rad
+    hip_kd: float = _balance.HIP_KD  # m g H s per rad
+    delay: float = _balance.DELAY  # s (100-200 ms)
+    assist: float = 0.0  # 1/s^2: spring-damper on the pelvis toward its captured path; 0: off
+    max_delay: float = _balance.MAX_DELAY  # s: the history buffer
+
+    def on(self, root: str, ground_on: bool) -> bool:
+        return (root == "free" and ground_on) if self.enabled is None else self.enabled
+
+    def values(self) -> dict:
+        """The keyword arguments of :func:`neuromotor.physics.balance.make_balance`."""
+        return {k: getattr(self, k) for k in ("kp", "kd", "hip_kp", "hip_kd", "delay", "assist", "max_delay")}
+
+
+@dataclasses.dataclass(frozen=True)
 class GainSetting:
     """One controller: the paper's model ("neuromotor") or the high-gain PD tracker ("pd") at
     the gains (ks, kd). The one way gains are set: :func:`neuromotor.studies.gains.gains_for`."""
@@ -391,6 +414,7 @@ class SimulationConfig:
     reflex: ReflexSpec | None = None  # None: no delayed reflex (the paper's controller)
     root: str = "driven"  # [sim] root: "driven" (the paper) or "free" (StepOptions.free_root)
     ground: GroundSpec = dataclasses.field(default_factory=GroundSpec)  # [ground]
+    balance: BalanceSpec = dataclasses.field(default_factory=BalanceSpec)  # [balance]
     source: str = "<defaults>"
 
     def __post_init__(self):
@@ -410,6 +434,11 @@ class SimulationConfig:
     def ground_on(self) -> bool:
         """Whether the bodies touch the ground (``[ground] enabled``, by default with a free root)."""
         return self.ground.on(self.root)
+
+    @property
+    def balance_on(self) -> bool:
+        """Whether the postural loop runs (``[balance] enabled``, by default with a free root on the ground)."""
+        return self.balance.on(self.root, self.ground_on)
 
     @property
     def gains(self) -> GainSetting:

@@ -50,6 +50,7 @@ from jaxtyping import Array, Float
 from neuromotor import compiler
 from neuromotor.model.kinematics import body_kinematics
 from neuromotor.model.skeleton import Model
+from neuromotor.physics.balance import Balance
 from neuromotor.physics.reflex import Reflex, reflex_multipliers
 from neuromotor.physics.system import dofs_to_per_joint, per_joint_to_dofs, world_inertia
 from neuromotor.rotations import (
@@ -83,6 +84,7 @@ class Gains(eqx.Module):
     feedforward: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1.0))
     signal_dependence: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1.0))
     reflex: Reflex | None = None  # the delayed stretch reflex (neuromotor.physics.reflex); None: the paper's
+    balance: Balance | None = None  # the postural loop (neuromotor.physics.balance); None: none
 
     def per_dof(self) -> tuple[Float[Array, " n"], Float[Array, " n"]]:
         return self.ks * self.scale, self.kd * self.scale

@@ -54,6 +54,7 @@ from neuromotor.errors import UserError
 from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angles_from_q
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
+from neuromotor.physics.balance import Balance, assist_force, balance_torques, empty_posture
 from neuromotor.physics.constraints import PoseTargets, constraint_count, constraint_velocity, post_stabilize
 from neuromotor.physics.control import (
     ControllerInputs,
@@ -318,6 +319,7 @@ class Data(eqx.Module):
     state: State
     info: StepInfo
     history: History | None = None  # the reflex's error history (neuromotor.physics.reflex)
+    posture: History | None = None  # the balance loop's lean history (neuromotor.physics.balance)
 
     def badness(self, max_speed: float) -> Float[Array, " B"]:
         """Per body: speed over ``max_speed`` (> 1: diverged), inf where not finite."""
@@ -337,13 +339,14 @@ def init_data(sim: SimModel, params: Params) -> Data:
     _, force, points = pulse_wrenches(params.pulses, sim.ref.time[0], model.n_bodies, state.pos, state.rot, model.com)
     zero = jnp.zeros((), state.pos.dtype)
     lam = jnp.zeros(constraint_count(model, cfg.driven, cfg.free_root), state.pos.dtype)
-    reflex = params.gains.reflex
+    reflex, balance = params.gains.reflex, params.gains.balance
+    posture = None if balance is None else empty_posture(balance, state.pos.dtype)
     if reflex is None:
-        return Data(jnp.asarray(0), state, StepInfo(zero, zero, force, points, lam))
+        return Data(jnp.asarray(0), state, StepInfo(zero, zero, force, points, lam), None, posture)
     n_joints = model.n_bodies - 1
     history = empty_history(reflex, n_joints, state.pos.dtype)
     info = StepInfo(zero, zero, force, points, lam, jnp.zeros((n_joints, 3), state.pos.dtype))
-    return Data(jnp.asarray(0), state, info, history)
+    return Data(jnp.asarray(0), state, info, history, posture)
 
 
 def data_at(sim: SimModel, params: Params, k, state: State) -> Data:
@@ -431,6 +434,7 @@ class Eq2(eqx.Module):
     points: Float[Array, "P 3"]  # world application points of the pulses
     reflex: Float[Array, "C 3"] | None = None  # the delayed reflex's r_i per joint and DOF (N m along h_i)
     history: History | None = None  # the reflex's error history including this step
+    posture: History | None = None  # the balance loop's history including this step
 
 
 def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solvers.KKTSolver) -> Eq2:
@@ -447,6 +451,9 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
         assert data.history is not None  # init_data gives a reflex its history
         torque, reflex, history = delayed_reflex(sim, params.gains, inputs, state, data.history)
         applied = applied.at[:, 3:].add(body_torques(model, torque))
+    posture = None
+    if params.gains.balance is not None:
+        applied, posture = balance_stage(sim, params.gains.balance, k, state, data.posture, applied)
     inertia = world_inertia(model, rot)
     r = momentum_rhs(
         model,
@@ -462,7 +469,20 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
     b = constraint_velocity(
         model, cfg.driven, rot, root_vel, ref.root_omega[k + 1], ref.drive_omega[k + 1], cfg.free_root
     )
-    return Eq2(solver.assemble(model, cfg, rot, inertia, stiff, cfg.h), r, b, per_body, points, reflex, history)
+    system = solver.assemble(model, cfg, rot, inertia, stiff, cfg.h)
+    return Eq2(system, r, b, per_body, points, reflex, history, posture)
+
+
+def balance_stage(sim: SimModel, balance: Balance, k, state: State, posture, applied):
+    """Stage 3c: the standing feedforward, the delayed postural loop and the assist
+    (:mod:`neuromotor.physics.balance`) added to the applied forces: ``(applied, posture history)``."""
+    model, ref = sim.model, sim.ref
+    assert posture is not None  # init_data gives a balance loop its history
+    torque, posture = balance_torques(model, balance, state, posture, sim.options.h)
+    applied = applied.at[:, 3:].add(body_torques(model, torque))
+    target = ref.root_origin[k] + ref.root_rot[k] @ model.com[0]
+    applied = applied.at[0, :3].add(assist_force(model, balance, state, target))
+    return applied, posture
 
 
 def pose_targets(sim: SimModel, pulses: ForcePulses, k) -> PoseTargets:
@@ -500,7 +520,8 @@ def step(sim: SimModel, params: Params, data: Data) -> Data:
     v_new, aux = solver.solve(eq.system, eq.r, eq.b)  # stage 6
     lam, residual = solver.multipliers(eq.system, eq.r, eq.b, v_new, aux)
     new, violation = integrate(sim, solver, data.k, data.state, cfg.h * v_new, v_new, params.pulses)
-    return Data(data.k + 1, new, StepInfo(residual, violation, eq.force, eq.points, lam / cfg.h, eq.reflex), eq.history)
+    info = StepInfo(residual, violation, eq.force, eq.points, lam / cfg.h, eq.reflex)
+    return Data(data.k + 1, new, info, eq.history, eq.posture)
 
 
 # ---------------------------------------------------------------- rollout

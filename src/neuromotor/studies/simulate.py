@@ -47,6 +47,7 @@ from neuromotor.physics.dynamics import (
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
 from neuromotor.physics.precision import Precision
 from neuromotor.studies import metrics as mx
+from neuromotor.studies.balance import balance_for, balance_metrics, fold_support
 from neuromotor.studies.ball_hit import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies.gains import gains_for
 from neuromotor.studies.ground import ground_metrics, ground_rollouts, ground_setup
@@ -217,7 +218,7 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
         config.start + n_steps * config.h,
         config.h,
         clip.duration,
-        (0, *driven),
+        driven if config.root == "free" else (0, *driven),  # a free root can be pushed
         index,
         driven_by,
         still,
@@ -254,6 +255,10 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     directions = direction_lookup(character, config.source, still)
     pulses = build_pulses(config.perturbations, model, config.h, index, directions, ref.time)
     ground = ground_setup(config.ground, character, capture) if config.ground_on else None
+    if config.balance_on:  # the postural loop of the held (first) pose: neuromotor.physics.balance
+        bal = balance_for(character, ref.init, config.h, **config.balance.values())
+        ref, bal = fold_support(model, ref, bal)  # the legs carry the trunk: part of the feedforward
+        gains = dataclasses.replace(gains, balance=bal)
     if ball is not None and ground is not None:  # one scene: the ball and the bodies on one ground
         settings = dataclasses.replace(ball.settings, ground_height=float(ground.height))
         ball = dataclasses.replace(ball, ground=ground, settings=settings)
@@ -373,7 +378,7 @@ def run(setup: Setup, check: bool = True) -> RunResult:
         return RunResult(pert.run, base.run, metrics, pert)
     if setup.ground is not None:
         pert, base = ground_rollouts(setup, _zero(setup.pulses), check)
-        extra = ground_metrics(pert, 0)
+        extra = ground_metrics(pert, 0) | balance_metrics(setup, pert)
         return RunResult(pert.run, base.run, run_metrics(setup, pert.run, base.run) | extra, ground=pert)
     model, sim = setup.model, setup.sim_model
     pert = simulate_jit(sim, setup.params)

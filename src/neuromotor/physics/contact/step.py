@@ -175,6 +175,7 @@ class ContactData(eqx.Module):
     warm: Float[Array, "C 3"]
     contact: ContactInfo
     history: History | None = None  # the reflex's error history (neuromotor.physics.reflex)
+    posture: History | None = None  # the balance loop's history (neuromotor.physics.balance)
 
     def badness(self, max_speed: float) -> Float[Array, " B1"]:
         """The ordinary score per body, the ball last; the ball may legitimately fly faster than
@@ -199,7 +200,9 @@ def initial_contact_data(model: Model, scene: ContactScene, data) -> ContactData
     gap = scene_gaps(model, scene, ball_pos, data.state.pos, data.state.rot)
     warm = jnp.zeros(gap.shape + (3,), gap.dtype)
     bstate = None if ball is None else initial_ball_state(ball)
-    return ContactData(data.k, data.state, data.info, bstate, warm, ContactInfo.before_any_step(gap), data.history)
+    return ContactData(
+        data.k, data.state, data.info, bstate, warm, ContactInfo.before_any_step(gap), data.history, data.posture
+    )
 
 
 # ----------------------------------------------------------------------------- stages
@@ -589,4 +592,5 @@ def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: Conta
         jnp.zeros_like(data.warm).at[frame.sel].set(p),
         record,
         eq.history,
+        eq.posture,
     )

@@ -1,0 +1,150 @@
+"""Balance in a run (issue 38): the ``[balance]`` table made into a
+:class:`~neuromotor.physics.balance.Balance` (the feet and hips found by the anatomy's labels,
+the standing feedforward of the initial pose), falls, COM sway and the assist's impulse.
+
+The physics is :mod:`neuromotor.physics.balance`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from neuromotor.model.skeleton import Character
+from neuromotor.physics.balance import Balance, make_balance
+from neuromotor.physics.contact import ContactRollout
+from neuromotor.physics.control import joint_torque_magnitude
+from neuromotor.physics.dynamics import Reference
+from neuromotor.physics.system import per_joint_to_dofs
+from neuromotor.rotations import quat_to_matrix
+from neuromotor.studies.ground import foot_bodies
+
+THIGH = "thigh"
+FALL_FRACTION = 0.6  # fell when the COM is below this fraction of its initial height above the ground
+
+
+def hip_joints(character: Character) -> tuple[int, ...]:
+    """The pelvis->thigh joints (joint c attaches body c + 1)."""
+    model = character.model
+    return tuple(
+        b - 1 for b, seg in enumerate(character.body_segment) if seg == THIGH and b > 0 and model.body_parent[b] == 0
+    )
+
+
+SOLE_BAND = 0.01  # m: a foot's support is the centre of its vertices within this of its lowest
+
+
+def sole_points(character: Character, state, feet) -> np.ndarray:
+    """Each foot's point of support in ``state``: the centre of its polyhedron's vertices within
+    ``SOLE_BAND`` of its lowest (world)."""
+    model = character.model
+    up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
+    out = []
+    for b in feet:
+        verts = np.asarray(getattr(character.shapes[b], "vertices", character.shapes[b])).reshape(-1, 3)
+        rot = np.asarray(quat_to_matrix(state.quat[b]))
+        world = np.asarray(state.pos[b]) + (verts - np.asarray(model.com[b])) @ rot.T
+        height = world @ up
+        out.append(world[height <= height.min() + SOLE_BAND].mean(0))
+    return np.stack(out)
+
+
+def balance_for(character: Character, state, h: float, **values) -> Balance:
+    """The :class:`Balance` of ``character`` standing in ``state`` (``values``: kp, kd, hip_kp,
+    hip_kd, delay, assist, max_delay); the feet carry the body at :func:`sole_points`."""
+    feet = foot_bodies(character)
+    soles = sole_points(character, state, feet)
+    return make_balance(character.model, state, feet, hip_joints(character), h, soles=soles, **values)
+
+
+def fold_support(model, ref: Reference, balance: Balance) -> tuple[Reference, Balance]:
+    """The standing feedforward moved into the reference's feedforward: ``ref`` with
+    ``tau + P_L support`` on every grid step and its activation |T_j| recomputed, ``balance``
+    with a zero ``support``. The gains' per-DOF scaling stays the capture's (made from the
+    driven root's activation), so by the signal dependence of Section 5.2 the legs' feedback
+    stiffens with the load they now carry; without it the knees buckle slowly."""
+    delta = jnp.einsum("tcij,cj->tci", ref.local_pinv, balance.support)
+    tau = ref.tau + per_joint_to_dofs(model, jnp.moveaxis(delta, 0, -1)).T
+    axes_rows = per_joint_to_dofs(model, jnp.moveaxis(jnp.swapaxes(ref.local_axes, -1, -2), 0, 2))
+    activation = joint_torque_magnitude(model, jnp.moveaxis(axes_rows, 0, 1), tau)
+    ref = dataclasses.replace(ref, tau=tau, activation=activation)
+    return ref, dataclasses.replace(balance, support=jnp.zeros_like(balance.support))
+
+
+def falls(setup, out: ContactRollout) -> dict:
+    """``fell``, ``fall_time_s`` (None: never) and ``fall_body`` (""): the first step where a body
+    other than a foot carries a ground impulse, or the COM drops below ``FALL_FRACTION`` of its
+    initial height above the ground."""
+    model, ground = setup.model, setup.ground
+    feet = foot_bodies(setup.character)
+    lam = np.asarray(out.contact.normal_impulse)[:, -ground.n_slots :]
+    bodies = np.asarray(ground.slot_body)
+    other = (lam > 0) & ~np.isin(bodies, feet)[None]
+    time = np.asarray(out.run.time) - float(out.run.time[0])
+    up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
+    mass = np.asarray(model.mass)
+    com = np.einsum("b,tbi->ti", mass / mass.sum(), np.asarray(out.run.states.pos)) @ up - float(ground.height)
+    low = com < FALL_FRACTION * com[0]
+    hit = np.nonzero(other.any(-1))[0]
+    k_touch = int(hit[0]) if hit.size else None
+    k_low = int(np.nonzero(low)[0][0]) if low.any() else None
+    if k_touch is None and k_low is None:
+        return {"fell": False, "fall_time_s": None, "fall_body": ""}
+    if k_touch is not None and (k_low is None or k_touch <= k_low):
+        names = sorted({model.body_names[b] for b in bodies[other[k_touch]]})
+        return {"fell": True, "fall_time_s": float(time[k_touch]), "fall_body": ",".join(names)}
+    return {"fell": True, "fall_time_s": float(time[k_low]), "fall_body": "(COM low)"}
+
+
+def sway(setup, out: ContactRollout) -> dict:
+    """The COM's horizontal sway about its mean: radial RMS and the ranges along the facing
+    direction (AP) and across it (ML), mm; and the radial RMS over the run's second half
+    (``sway_rms_late_mm``: after the first settling)."""
+    model = setup.model
+    up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
+    fwd = np.asarray(setup.character.anatomy.forward, float)
+    fwd = fwd - fwd @ up * up
+    fwd /= np.linalg.norm(fwd)
+    side = np.cross(up, fwd)
+    mass = np.asarray(model.mass)
+    com = np.einsum("b,tbi->ti", mass / mass.sum(), np.asarray(out.run.states.pos))
+    d = com - com.mean(0)
+    ap, ml = d @ fwd, d @ side
+    late = com[com.shape[0] // 2 :]
+    late_ap, late_ml = (late - late.mean(0)) @ fwd, (late - late.mean(0)) @ side
+    return {
+        "sway_rms_mm": float(1000 * np.sqrt(np.mean(ap**2 + ml**2))),
+        "sway_range_ap_mm": float(1000 * np.ptp(ap)),
+        "sway_range_ml_mm": float(1000 * np.ptp(ml)),
+        "sway_rms_late_mm": float(1000 * np.sqrt(np.mean(late_ap**2 + late_ml**2))),
+    }
+
+
+def assist_impulse(setup, out: ContactRollout) -> dict:
+    """The assist's impulse (N s, and % of body weight x duration); empty when it is off."""
+    bal = setup.gains.balance
+    if bal is None or float(bal.assist) == 0.0:
+        return {}
+    model, ref = setup.model, setup.ref
+    k = float(bal.assist)
+    mass = float(np.sum(model.mass))
+    states = out.run.states
+    n = states.pos.shape[0]
+    target = np.asarray(ref.root_origin[:n]) + np.einsum(
+        "tij,j->ti", np.asarray(ref.root_rot[:n]), np.asarray(model.com[0])
+    )
+    force = mass * (k * (target - np.asarray(states.pos[:, 0])) - 2 * np.sqrt(k) * np.asarray(states.vel[:, 0]))
+    h = setup.options.h
+    impulse = float(np.sum(np.linalg.norm(force[:-1], axis=-1)) * h)
+    weight = mass * float(np.linalg.norm(np.asarray(model.gravity)))
+    return {"assist_impulse_Ns": impulse, "assist_impulse_pct": 100 * impulse / (weight * h * (n - 1))}
+
+
+def balance_metrics(setup, out: ContactRollout) -> dict:
+    """Falls, sway and (when on) the assist's impulse; ``diverged_s``: when the rollout blew up
+    (None: it did not; the states after it are held, so the other figures cover the time before)."""
+    bad = int(out.run.diverged_step)
+    when = None if bad < 0 else float(out.run.time[bad + 1] - out.run.time[0])
+    return falls(setup, out) | sway(setup, out) | assist_impulse(setup, out) | {"diverged_s": when}

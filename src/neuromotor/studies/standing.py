@@ -1,0 +1,33 @@
+"""A free-standing run (issue 38, docs/balance.md): the clip's most upright frame held still on
+a free root on the ground, the postural loop of :mod:`neuromotor.studies.balance` on by default."""
+
+from __future__ import annotations
+
+from neuromotor.config import simulation_config
+from neuromotor.model.load import default_clip_path, load_character
+from neuromotor.studies.simulate import prepare
+
+
+def standing_setup(
+    seconds: float,
+    h: float = 1.0 / 120.0,
+    balance: dict | None = None,
+    clip=None,
+    root: str = "free",
+    ground: dict | None = None,
+):
+    """A free-root run on the ground holding the clip's most upright frame
+    (``character.anatomy.reference_frame``) for ``seconds``; ``balance`` and ``ground``: the
+    ``[balance]`` and ``[ground]`` tables."""
+    path = str(default_clip_path() if clip is None else clip)
+    probe = simulation_config({"clip": path}, "<standing>")
+    character, _ = load_character(probe.clip, probe.units, probe.up_axis, probe.stature, probe.mass_options())
+    anatomy = character.anatomy
+    assert anatomy is not None, "a standing pose needs the clip's anatomy"
+    still = anatomy.reference_frame * character.clip.frame_time
+    data = {"clip": path, "sim": {"root": root, "duration": seconds, "h": h, "still": still}}
+    if balance is not None:
+        data["balance"] = balance
+    if ground is not None:
+        data["ground"] = ground
+    return prepare(simulation_config(data, "<standing>"))

@@ -1,0 +1,148 @@
+"""Issue 38: balance. The standing feedforward carries the body on the feet (statics), the
+postural loop's torques oppose the lean, the [balance] table, quiet standing on a free root
+without falling, and gradients of a sway metric with respect to the balance gains against
+central differences."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from neuromotor.config import ConfigError, simulation_config
+from neuromotor.physics.balance import (
+    balance_torques as torques_of,
+    empty_posture,
+    foot_forces,
+    posture_signals,
+    whole_com,
+)
+from neuromotor.physics.contact import simulate_contact, simulate_contact_jit
+from neuromotor.physics.dynamics import Params
+from neuromotor.studies.balance import balance_metrics, hip_joints
+from neuromotor.studies.ground import foot_bodies, ground_scene
+from neuromotor.studies.standing import standing_setup
+
+
+@pytest.fixture(scope="module")
+def standing():
+    """1.5 s of quiet standing (the clip's most upright frame, free root, ground, balance on)."""
+    setup = standing_setup(1.5)
+    out = simulate_contact_jit(setup.sim_model, setup.params, ground_scene(setup.ground))
+    return setup, out
+
+
+def test_balance_config():
+    free = simulation_config({"sim": {"root": "free"}}, "x.toml")
+    assert free.balance_on  # on with a free root on the ground
+    assert not simulation_config({}, "x.toml").balance_on  # the paper: driven root, no balance
+    assert not simulation_config({"sim": {"root": "free"}, "balance": {"enabled": False}}, "x").balance_on
+    spec = simulation_config({"balance": {"kp": 1.4, "delay": 0.2, "assist": 5.0}}, "x").balance
+    assert (spec.kp, spec.delay, spec.assist, spec.kd) == (1.4, 0.2, 5.0, 0.35)
+    bad = [
+        ({"balance": {"kp": -1.0}}, "balance.kp"),
+        ({"balance": {"delay": 0.5, "max_delay": 0.3}}, "balance.delay"),
+        ({"balance": {"max_delay": 2.0}}, "balance.max_delay"),
+        ({"balance": {"gain": 1.0}}, "balance.gain"),
+        ({"balance": {"enabled": "yes"}}, "balance.enabled"),
+    ]
+    for data, field in bad:
+        with pytest.raises(ConfigError, match=f"field '{field}'"):
+            simulation_config(data, "x.toml")
+
+
+def test_labels_and_statics(standing):
+    setup, _ = standing
+    model, state, bal = setup.model, setup.ref.init, setup.gains.balance
+    names = model.body_names
+    assert [names[b] for b in bal.feet] == ["LeftAnkle", "RightAnkle"]
+    assert [names[j + 1] for j in hip_joints(setup.character)] == ["LeftHip", "RightHip"]
+    # The feet carry the weight with no moment about the COM (horizontal components).
+    up = -model.gravity / jnp.linalg.norm(model.gravity)
+    points, forces = foot_forces(model, state, foot_bodies(setup.character))
+    weight = jnp.sum(model.mass) * jnp.linalg.norm(model.gravity)
+    np.testing.assert_allclose(forces.sum(0), weight * up, rtol=1e-12)
+    moment = jnp.cross(points - whole_com(model, state.pos), forces).sum(0)
+    np.testing.assert_allclose(moment - (moment @ up) * up, 0.0, atol=1e-9)
+    assert float(bal.height) > 0.5
+
+
+def test_loop_opposes_the_lean(standing):
+    setup, _ = standing
+    model, bal = setup.model, dataclasses.replace(setup.gains.balance, delay=jnp.asarray(0.0))
+    state = setup.ref.init
+    up = -model.gravity / jnp.linalg.norm(model.gravity)
+    fwd = jnp.asarray(setup.character.anatomy.forward, jnp.float64)
+    moved = dataclasses.replace(state, vel=state.vel + 0.1 * fwd)  # the COM moves forward
+    hist = empty_posture(bal, jnp.float64)
+    base, _ = torques_of(model, bal, state, hist, setup.options.h)
+    tq, _ = torques_of(model, bal, moved, hist, setup.options.h)
+    extra = tq - base
+    assert float(jnp.linalg.norm(posture_signals(model, bal, moved)[1][0])) > 0
+    # The torque on the shanks (-T of the ankle joints) pitches the body backwards:
+    # its component along up x forward is negative of gravity's (which is + along it for a forward lean).
+    on_shanks = -extra[jnp.asarray(bal.ankles)].sum(0)
+    assert float(on_shanks @ jnp.cross(up, fwd)) < 0
+
+
+def test_quiet_standing(standing):
+    setup, out = standing
+    m = balance_metrics(setup, out)
+    assert not m["fell"], m
+    assert m["sway_rms_mm"] < 30.0
+    assert int(out.run.diverged_step) < 0
+
+
+def test_sway_gradient_matches_central_differences(standing):
+    setup, _ = standing
+    n = 48  # 0.4 s: the loop acts after its 0.15 s delay; the feet stay on the ground
+    sim = dataclasses.replace(setup.sim_model, options=dataclasses.replace(setup.options, n_steps=n))
+    scene = ground_scene(setup.ground)
+    fwd = jnp.asarray(setup.character.anatomy.forward, jnp.float64)
+    ref = dataclasses.replace(sim.ref, init=dataclasses.replace(sim.ref.init, vel=sim.ref.init.vel + 0.05 * fwd))
+    sim = dataclasses.replace(sim, ref=ref)
+
+    def sway(x):
+        bal = dataclasses.replace(setup.gains.balance, kp=x[0], kd=x[1], delay=x[2])
+        gains = dataclasses.replace(setup.gains, balance=bal)
+        out = simulate_contact(sim, Params(gains, setup.pulses), scene)
+        mass = sim.model.mass
+        com = jnp.einsum("b,tbi->ti", mass / mass.sum(), out.run.states.pos)
+        return jnp.sum((com - com[0]) ** 2), out.contact.active
+
+    # The delay off the grid: the rollout is piecewise linear in it, with kinks at multiples of h.
+    x0 = jnp.asarray([1.3, 0.35, 0.155])
+    grad = jax.jit(jax.jacfwd(lambda x: sway(x)[0]))(x0)
+    f = jax.jit(sway)
+    _, active0 = f(x0)
+    for i, eps in enumerate((1e-5, 1e-5, 1e-6)):
+        e = jnp.zeros(3).at[i].set(eps)
+        (fp, ap), (fm, am) = f(x0 + e), f(x0 - e)
+        assert bool(jnp.all(ap == active0)) and bool(jnp.all(am == active0))  # the contact set is unchanged
+        fd = (fp - fm) / (2 * eps)
+        # rtol: PGS's friction polygon has edges where a tangential impulse switches between
+        # stick and slide without changing the active set; such kinks lie within ~1e-4 of x0.
+        np.testing.assert_allclose(grad[i], fd, rtol=2e-3)
+    assert float(jnp.abs(grad[0])) > 0
+
+
+def test_assist_pulls_the_pelvis_back_and_reports_its_impulse():
+    """The assist (off by default) is a spring-damper on the pelvis toward its captured
+    position: with the initial state moving sideways, the pelvis ends nearer its target with it
+    than without, and the metrics report its impulse."""
+    runs = {}
+    for k in (0.0, 50.0):
+        setup = standing_setup(0.3, balance={"assist": k})
+        side = jnp.asarray(np.cross(setup.character.anatomy.up, setup.character.anatomy.forward), jnp.float64)
+        init = dataclasses.replace(setup.ref.init, vel=setup.ref.init.vel + 0.1 * side)
+        sim = dataclasses.replace(setup.sim_model, ref=dataclasses.replace(setup.ref, init=init))
+        out = simulate_contact_jit(sim, setup.params, ground_scene(setup.ground))
+        runs[k] = (setup, out)
+    off, on = (balance_metrics(*runs[k]) for k in (0.0, 50.0))
+    assert "assist_impulse_Ns" not in off
+    assert on["assist_impulse_Ns"] > 0 and 0 < on["assist_impulse_pct"] < 100
+    drift = {k: float(jnp.linalg.norm(o.run.states.pos[-1, 0] - o.run.states.pos[0, 0])) for k, (_, o) in runs.items()}
+    assert drift[50.0] < drift[0.0]
