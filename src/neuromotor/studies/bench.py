@@ -12,6 +12,8 @@ Prints, after compilation, for the 19-joint default clip at h = 1/120 s:
 * inverse dynamics of whole clips (Eq. 3) after compile and its compile time;
 * MuJoCo (optional) on the exported MJCF (:func:`neuromotor.io.mjcf.model_to_mjcf`): one thread,
   implicitfast, PD servos on every hinge, same skeleton, masses and time step; and the ratio;
+* the free root on the ground (issue 38, docs/balance.md): the clip's most upright frame standing
+  with the postural loop, beside the same pose on the driven root (the paper), interleaved;
 * MuJoCo MJX (optional, float64 and float32) on that same model beside MuJoCo C and ours, timed in
   interleaved rounds (:mod:`neuromotor.studies.bench_mjx`).
 
@@ -474,6 +476,39 @@ def mjx_beside(setup, batch_setup, programs: dict, res: dict, repeats: int, log=
     return out
 
 
+def free_root(clip, repeats: int, top: dict | None = None, seconds: float = 1.0) -> dict:
+    """One free-standing trajectory on the ground (postural loop on) and the same held pose on the
+    driven root without contact, timed in alternation (``top``: the clip's top-level config keys)."""
+    from neuromotor.physics.contact import simulate_contact
+    from neuromotor.studies.ground import ground_scene
+    from neuromotor.studies.standing import standing_setup
+
+    driven = standing_setup(seconds, H, {"enabled": False}, clip=clip, root="driven", top=top)
+    free = standing_setup(seconds, H, None, clip=clip, top=top)
+    scene = ground_scene(free.ground)
+    c_driven, _ = _compile(dy.simulate, driven.sim_model, driven.params)
+    c_free, compile_s = _compile(simulate_contact, free.sim_model, free.params, scene)
+    runs = {
+        "driven": lambda: c_driven(driven.sim_model, driven.params),
+        "free": lambda: c_free(free.sim_model, free.params, scene),
+    }
+    out = runs["free"]()
+    best = _interleaved(runs, repeats)
+    n = free.options.n_steps
+    lam = np.asarray(out.contact.normal_impulse)
+    return {
+        "steps": n,
+        "h": H,
+        "driven_us": best["driven"] / n * 1e6,
+        "free_us": best["free"] / n * 1e6,
+        "ratio": best["free"] / best["driven"],
+        "free_real_time_factor": H * n / best["free"],
+        "driven_real_time_factor": H * n / best["driven"],
+        "contacts_mean": float((lam[1:] > 0).sum(-1).mean()),
+        "compile_s": compile_s,
+    }
+
+
 def plot_throughput(rows: list[dict], mujoco_sps: float | None, path) -> None:
     import matplotlib
 
@@ -510,9 +545,12 @@ def run_all(
     dense_too: bool = True,
     load=None,
     mjx: bool = True,
+    free: bool = True,
+    top: dict | None = None,
 ) -> dict:
     """Run every benchmark and print the figures as they come (``mjx``: MuJoCo MJX beside
-    MuJoCo C, when mujoco-mjx is installed)."""
+    MuJoCo C, when mujoco-mjx is installed; ``free``: the free root on the ground, ``top`` the
+    clip's top-level config keys for it)."""
     log(f"machine: {machine()}")
     res: dict = {"machine": machine()}
     setup = _setup(clip, 1.0, solver, load)
@@ -581,6 +619,14 @@ def run_all(
         f"batch {bs['batch']} split (us per trajectory-step): Jacobians {bs['jacobians']:.1f}, KKT solve "
         f"{bs['kkt_solve']:.1f}, post-stabilization {bs['post_stabilization']:.1f}, whole step {bs['step']:.1f}{mj_us}"
     )
+    if free:
+        res["free_root"] = fr = free_root(clip, 2 * repeats, top)
+        log(
+            f"free root on the ground, standing (balance on, {fr['contacts_mean']:.1f} contacts a step), interleaved "
+            f"with the same pose on the driven root: {fr['free_us']:.0f} vs {fr['driven_us']:.0f} us/step "
+            f"({fr['ratio']:.1f}x); real-time factor {fr['free_real_time_factor']:.1f} vs "
+            f"{fr['driven_real_time_factor']:.1f} at h = 1/120 s"
+        )
     if mjx:
         res["mjx"] = mjx_beside(setup, bsetup, programs, res, repeats, log)
     if idyn_clips:
@@ -626,10 +672,12 @@ def add_arguments(ap) -> None:
     ap.add_argument("--json", default=None, help="write all figures as JSON")
     ap.add_argument("--no-dense", action="store_true", help="skip the other solvers (tree, dense reference)")
     ap.add_argument("--no-mjx", action="store_true", help="skip MuJoCo MJX (compiles six programs)")
+    ap.add_argument("--no-free", action="store_true", help="skip the free root on the ground (issue 38)")
+    ap.add_argument("--free-only", action="store_true", help="only the free root on the ground beside the driven one")
 
 
 def run_from_args(args) -> int:
-    load = None
+    load, top = None, None
     if hasattr(args, "units"):  # the command line's clip options
         from neuromotor.model.skeleton import MassModelOptions
 
@@ -641,6 +689,31 @@ def run_from_args(args) -> int:
                 body_mass=args.body_mass, sex=args.sex, simulate_extremities=args.simulate_extremities
             ),
         )
+        top = {
+            k: v
+            for k, v in dict(
+                units=args.units,
+                up_axis=args.up_axis,
+                stature=args.stature,
+                body_mass=args.body_mass,
+                sex=args.sex,
+                simulate_extremities=args.simulate_extremities,
+            ).items()
+            if v is not None
+        }
+    if getattr(args, "free_only", False):
+        print(f"machine: {machine()}")
+        fr = free_root(args.clip, 2 * args.repeats, top)
+        print(
+            f"free root on the ground, standing: {fr['free_us']:.0f} us/step, driven root (same pose): "
+            f"{fr['driven_us']:.0f} us/step ({fr['ratio']:.1f}x); real-time factor {fr['free_real_time_factor']:.1f} "
+            f"vs {fr['driven_real_time_factor']:.1f} at h = 1/120 s; {fr['contacts_mean']:.1f} contacts a step"
+        )
+        if args.json:
+            pathlib.Path(args.json).write_text(
+                json.dumps({"machine": machine(), "free_root": fr}, indent=2, default=float)
+            )
+        return 0
     res = run_all(
         args.clip,
         args.solver,
@@ -651,6 +724,8 @@ def run_from_args(args) -> int:
         dense_too=not args.no_dense,
         load=load,
         mjx=not getattr(args, "no_mjx", False),
+        free=not getattr(args, "no_free", False),
+        top=top,
     )
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps(res, indent=2, default=float))

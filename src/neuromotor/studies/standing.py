@@ -15,17 +15,19 @@ def standing_setup(
     clip=None,
     root: str = "free",
     ground: dict | None = None,
+    top: dict | None = None,
 ):
     """A free-root run on the ground holding the clip's most upright frame
     (``character.anatomy.reference_frame``) for ``seconds``; ``balance`` and ``ground``: the
-    ``[balance]`` and ``[ground]`` tables."""
+    ``[balance]`` and ``[ground]`` tables; ``top``: top-level keys of the clip and body (units,
+    up_axis, stature, body_mass, ...)."""
     path = str(default_clip_path() if clip is None else clip)
-    probe = simulation_config({"clip": path}, "<standing>")
+    probe = simulation_config({**(top or {}), "clip": path}, "<standing>")
     character, _ = load_character(probe.clip, probe.units, probe.up_axis, probe.stature, probe.mass_options())
     anatomy = character.anatomy
     assert anatomy is not None, "a standing pose needs the clip's anatomy"
     still = anatomy.reference_frame * character.clip.frame_time
-    data = {"clip": path, "sim": {"root": root, "duration": seconds, "h": h, "still": still}}
+    data = {**(top or {}), "clip": path, "sim": {"root": root, "duration": seconds, "h": h, "still": still}}
     if balance is not None:
         data["balance"] = balance
     if ground is not None:

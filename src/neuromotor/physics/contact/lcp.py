@@ -28,16 +28,22 @@ _TINY = 1e-12
 
 
 def project_polygon(p: Float[Array, " 2"], scale, sides: int) -> Float[Array, " 2"]:
-    """Euclidean projection of p onto scale * Poly_N (regular N-gon, vertices (cos, sin)(2 pi j/N))."""
-    ang = 2.0 * jnp.pi * jnp.arange(sides, dtype=p.dtype) / sides
-    verts = scale * jnp.stack([jnp.cos(ang), jnp.sin(ang)], -1)
-    normals = jnp.stack([jnp.cos(ang + jnp.pi / sides), jnp.sin(ang + jnp.pi / sides)], -1)
-    inside = jnp.max(normals @ p) <= scale * math.cos(math.pi / sides)
-    edge = jnp.roll(verts, -1, 0) - verts
-    t = jnp.clip(jnp.sum((p - verts) * edge, -1) / jnp.maximum(jnp.sum(edge * edge, -1), _TINY), 0.0, 1.0)
-    cand = verts + t[:, None] * edge
-    best = cand[jnp.argmin(jnp.sum((cand - p) ** 2, -1))]
-    return jnp.where(inside, p, best)
+    """Euclidean projection of p onto scale * Poly_N (regular N-gon, vertices (cos, sin)(2 pi j/N)).
+
+    The edge whose outward normal is nearest to p's direction is the most violated one; outside,
+    the projection onto that edge's segment (clamped at its vertices) is the nearest point. In
+    closed form, elementwise: a PGS sweep runs it once per contact, and a search over the edges
+    would cost a gather per call."""
+    sector = 2.0 * math.pi / sides
+    # Which edge is piecewise constant in p: no derivative flows through the angle.
+    ang = jax.lax.stop_gradient(jnp.arctan2(p[1], p[0]))
+    mid = (jnp.floor(ang / sector) + 0.5) * sector
+    c, s = jnp.cos(mid), jnp.sin(mid)
+    apothem, half = scale * math.cos(math.pi / sides), scale * math.sin(math.pi / sides)
+    outside = c * p[0] + s * p[1] > apothem
+    along = jnp.clip(c * p[1] - s * p[0], -half, half)
+    edge = jnp.stack([apothem * c - along * s, apothem * s + along * c])
+    return jnp.where(outside, edge, p)
 
 
 def _tangent_steps(w_mat: Float[Array, "3K 3K"], k: int) -> Float[Array, " K"]:
@@ -69,19 +75,26 @@ def solve_lcp_pgs(
     diag_n = jnp.array([w_mat[3 * i, 3 * i] for i in range(k)])
     inv_n = mask / jnp.maximum(diag_n, _TINY)
     step_t = _tangent_steps(w_mat, k)
+    # Each contact's rows and constants as separate loop-invariant arrays: slicing them inside
+    # the sweep would cost a kernel per contact per sweep (the sweep is launch-bound).
+    rows = [w_mat[3 * i : 3 * i + 3] for i in range(k)]
+    consts = [
+        (q[3 * i : 3 * i + 3], inv_n[i], mask[i], step_t[i], mu[i], w_mat[3 * i + 1 : 3 * i + 3, 3 * i])
+        for i in range(k)
+    ]
 
     def sweep(_, p):
-        p = p.reshape(-1)
         for i in range(k):
-            rows = w_mat[3 * i : 3 * i + 3]
-            w = rows @ p + q[3 * i : 3 * i + 3]
-            lam = jnp.maximum(0.0, p[3 * i] - w[0] * inv_n[i]) * mask[i]
-            w_t = w[1:] + rows[1:, 3 * i] * (lam - p[3 * i])
-            f_t = project_polygon(p[3 * i + 1 : 3 * i + 3] - step_t[i] * w_t, mu[i] * lam, sides) * mask[i]
-            p = p.at[3 * i].set(lam).at[3 * i + 1 : 3 * i + 3].set(f_t)
-        return p.reshape(k, 3)
+            q_i, inv_i, mask_i, step_i, mu_i, w_tn = consts[i]
+            w = rows[i] @ p + q_i
+            p_i = jax.lax.dynamic_slice(p, (3 * i,), (3,))
+            lam = jnp.maximum(0.0, p_i[0] - w[0] * inv_i) * mask_i
+            w_t = w[1:] + w_tn * (lam - p_i[0])
+            f_t = project_polygon(p_i[1:] - step_i * w_t, mu_i * lam, sides) * mask_i
+            p = jax.lax.dynamic_update_slice(p, jnp.concatenate([lam[None], f_t]), (3 * i,))
+        return p
 
-    return jax.lax.fori_loop(0, iterations, sweep, p0 * mask[:, None])
+    return jax.lax.fori_loop(0, iterations, sweep, (p0 * mask[:, None]).reshape(-1)).reshape(k, 3)
 
 
 def solve_gap_projection(w_nn: Float[Array, "K K"], g: Float[Array, " K"], active, iterations: int):
@@ -89,10 +102,12 @@ def solve_gap_projection(w_nn: Float[Array, "K K"], g: Float[Array, " K"], activ
     k = g.shape[0]
     mask = active.astype(g.dtype)
     inv = mask / jnp.maximum(jnp.diag(w_nn), _TINY)
+    rows = [(w_nn[i], g[i], inv[i]) for i in range(k)]  # loop-invariant, one array each (see above)
 
     def sweep(_, m):
         for i in range(k):
-            m = m.at[i].set(jnp.maximum(0.0, m[i] - (w_nn[i] @ m + g[i]) * inv[i]))
+            row, g_i, inv_i = rows[i]
+            m = jax.lax.dynamic_update_slice(m, jnp.maximum(0.0, m[i] - (row @ m + g_i) * inv_i)[None], (i,))
         return m
 
     return jax.lax.fori_loop(0, iterations, sweep, jnp.zeros_like(g))

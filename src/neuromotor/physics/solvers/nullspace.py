@@ -49,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.linalg  # noqa: F401  (cho_factor, cho_solve)
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from neuromotor.model.topology import Topology
 from neuromotor.physics import static
@@ -323,6 +323,65 @@ def solve_kkt(
     return apply_basis(st, geo, jnp.concatenate([u_known, u_free]))
 
 
+class DenseFactor(eqx.Module):
+    """A square matrix and the pivoted LU of its stop-gradient (for :func:`lu_solve`)."""
+
+    a: Float[Array, "n n"]
+    lu: Float[Array, "n n"]
+    perm: Int[Array, " n"]  # rows: P a = L U with (P x)_i = x[perm_i]
+
+
+def lu_factor(a: Float[Array, "n n"]) -> DenseFactor:
+    lu, _, perm = jax.lax.linalg.lu(jax.lax.stop_gradient(a))
+    return DenseFactor(a, lu, perm)
+
+
+def _lu_apply(f: DenseFactor, y, transpose: bool):
+    tri = jax.lax.linalg.triangular_solve
+    if not transpose:  # a x = y:  L U x = P y
+        z = tri(f.lu, y[f.perm][:, None], left_side=True, lower=True, unit_diagonal=True)
+        return tri(f.lu, z, left_side=True, lower=False)[:, 0]
+    # a^T x = y:  U^T L^T P x = y
+    z = tri(f.lu, y[:, None], left_side=True, lower=False, transpose_a=True)
+    z = tri(f.lu, z, left_side=True, lower=True, unit_diagonal=True, transpose_a=True)[:, 0]
+    return jnp.zeros_like(z).at[f.perm].set(z)
+
+
+def lu_solve(f: DenseFactor, b: Float[Array, " n"]) -> Float[Array, " n"]:
+    """a^-1 b from the factor, with derivatives by implicit differentiation (as
+    ``jnp.linalg.solve``): one factorization serves every right-hand side of a step, where each
+    ``jnp.linalg.solve`` call would factor (and convert its pivots) again."""
+    return jax.lax.custom_linear_solve(
+        lambda x: f.a @ x,
+        b,
+        lambda _, y: _lu_apply(f, y, False),
+        transpose_solve=lambda _, y: _lu_apply(f, y, True),
+    )
+
+
+class Dense(eqx.Module):
+    """Eq. 2 projected on the free columns (a floating root or driven joints): the whole H (its
+    known columns move the right-hand side) and the LU of its free block."""
+
+    h: Float[Array, "N N"]
+    factor: DenseFactor
+
+
+def reduce_dense(st: Structure, geo: Geometry, mass, inertia_world, g_diag, g_up, g_down) -> Dense:
+    h = reduced_inertia(st, geo, mass, inertia_world) - reduced_stiffness(st, g_diag, g_up, g_down)
+    return Dense(h, lu_factor(_free_block(st, h)))
+
+
+def solve_dense(st: Structure, geo: Geometry, den: Dense, r: Float[Array, "B 6"], b: Float[Array, " nc"]):
+    """v+ of Eq. 2 from the factored :class:`Dense` (any number of right-hand sides reuse it)."""
+    rhs, u_known = project_forces(st, geo, r), known_velocities(st, geo.r0, b)
+    f, k = st.free, st.known
+    rhs_f = _take(rhs, f)
+    if k.size:
+        rhs_f = rhs_f - _take(_take(den.h, f), k, axis=1) @ u_known
+    return apply_basis(st, geo, _assemble(st, lu_solve(den.factor, rhs_f), u_known))
+
+
 class Reduced(eqx.Module):
     """Eq. 2 projected on the joints (driven root, every joint free): H = S^T A S factored
     along the tree (:mod:`.branch`), and the root's two block columns of H, through which the
@@ -504,6 +563,7 @@ class NullSpaceKKT(eqx.Module):
     r_parent: Float[Array, "C 3"]  # joint levers (the rows of J)
     r_child: Float[Array, "C 3"]
     reduced: Reduced | None  # H factored along the tree (BranchSolver, where Structure.by_tree)
+    dense: Dense | None = None  # else its free block by one LU per step
 
     def a_times(self, v: Float[Array, "B 6"]) -> Float[Array, "B 6"]:
         """A v = M v - G v."""
@@ -526,13 +586,18 @@ class NullSpaceSolver(KKTSolver):
         r_par, r_chi = joint_levers(model, rot)
         geo = geometry(st, r_par, r_chi, root_lever(model, rot))
         g = stiff.g_blocks(h)
-        red = reduce_tree(st, geo, model.mass, inertia, *g) if st.by_tree else None  # else the dense LU
-        return NullSpaceKKT(st, model.topology, geo, model.mass, inertia, *g, r_par, r_chi, red)
+        if st.by_tree:
+            red, den = reduce_tree(st, geo, model.mass, inertia, *g), None
+        else:
+            red, den = None, reduce_dense(st, geo, model.mass, inertia, *g)
+        return NullSpaceKKT(st, model.topology, geo, model.mass, inertia, *g, r_par, r_chi, red, den)
 
     def solve(self, system, r, b):
         s = system
         if s.reduced is not None:
             return solve_reduced(s.st, s.geo, s.reduced, r, b), None
+        if s.dense is not None:
+            return solve_dense(s.st, s.geo, s.dense, r, b), None
         return solve_kkt(s.st, s.geo, s.mass, s.inertia, s.g_diag, s.g_up, s.g_down, r, b), None
 
     def multipliers(self, system, r, b, v, aux):
