@@ -807,6 +807,10 @@ def _add_other_commands(sub) -> None:
     sp.add_argument("--json", default=None, help="write all figures as JSON")
     sp.add_argument("--no-dense", action="store_true", help="skip the dense reference path")
     sp.add_argument("--no-mjx", action="store_true", help="skip MuJoCo MJX (optional extra; compiles six programs)")
+    sp.add_argument("--no-free", action="store_true", help="skip the free root standing on the ground")
+    sp.add_argument(
+        "--free-only", action="store_true", help="only the free root standing on the ground, beside the driven root"
+    )
     sp = _clip_command(
         sub,
         "export-mjcf",
