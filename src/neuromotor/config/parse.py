@@ -29,6 +29,7 @@ from neuromotor.config.specs import (
     REQUIRED,
     ROOT_MODES,
     SEXES,
+    STEPPING_KEYS,
     TARGET_KINDS,
     TIME_UNITS,
     BalanceSpec,
@@ -313,6 +314,10 @@ def parse_balance(top: Fields) -> BalanceSpec:
         f.fail("max_delay", f"must be at most {REFLEX_DELAY_LIMIT:g} s (the history buffer), got {out['max_delay']!r}")
     if out["delay"] > out["max_delay"]:
         f.fail("delay", f"= {out['delay']:g} s is longer than balance.max_delay = {out['max_delay']:g} s")
+    out["stepping"] = f.boolean("stepping", d("stepping"))
+    zero_ok = ("step_margin", "step_offset", "step_lift")
+    for k in STEPPING_KEYS:
+        out[k] = f.number(k, d(k), nonneg=k in zero_ok, positive=k not in zero_ok)
     f.done()
     return BalanceSpec(enabled=enabled, **out)
 

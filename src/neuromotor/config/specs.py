@@ -331,13 +331,41 @@ class BalanceSpec:
     delay: float = _balance.DELAY  # s (100-200 ms)
     assist: float = 0.0  # 1/s^2: spring-damper on the pelvis toward its captured path; 0: off
     max_delay: float = _balance.MAX_DELAY  # s: the history buffer
+    # Stepping when the capture point leaves the support (neuromotor.physics.balance, "Stepping").
+    stepping: bool = False  # off: it does not lift the foot yet (docs/balance.md, "Stepping")
+    step_margin: float = _balance.STEP_MARGIN  # m beyond the soles' segment
+    step_offset: float = _balance.STEP_OFFSET  # m beyond the capture point
+    max_step: float = _balance.MAX_STEP  # m
+    swing_time: float = _balance.SWING_TIME  # s
+    step_lift: float = _balance.STEP_LIFT  # m
+    foot_kp: float = _balance.FOOT_KP  # N/m
+    foot_kd: float = _balance.FOOT_KD  # N s/m
+    step_blend: float = _balance.STEP_BLEND  # s
 
     def on(self, root: str, ground_on: bool) -> bool:
         return (root == "free" and ground_on) if self.enabled is None else self.enabled
 
     def values(self) -> dict:
         """The keyword arguments of :func:`neuromotor.physics.balance.make_balance`."""
-        return {k: getattr(self, k) for k in ("kp", "kd", "hip_kp", "hip_kd", "delay", "assist", "max_delay")}
+        out = {k: getattr(self, k) for k in ("kp", "kd", "hip_kp", "hip_kd", "delay", "assist", "max_delay")}
+        out["stepping"] = self.stepping_values() if self.stepping else None
+        return out
+
+    def stepping_values(self) -> dict:
+        """The keyword arguments of :func:`neuromotor.physics.balance.make_stepping`."""
+        return {k.removeprefix("step_"): getattr(self, k) for k in STEPPING_KEYS}
+
+
+STEPPING_KEYS = (
+    "step_margin",
+    "step_offset",
+    "max_step",
+    "swing_time",
+    "step_lift",
+    "foot_kp",
+    "foot_kd",
+    "step_blend",
+)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -54,7 +54,7 @@ from neuromotor.errors import UserError
 from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angles_from_q
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
-from neuromotor.physics.balance import Balance, assist_force, balance_torques, empty_posture
+from neuromotor.physics.balance import Balance, Posture, assist_force, balance_torques, empty_posture
 from neuromotor.physics.constraints import PoseTargets, constraint_count, constraint_velocity, post_stabilize
 from neuromotor.physics.control import (
     ControllerInputs,
@@ -319,7 +319,7 @@ class Data(eqx.Module):
     state: State
     info: StepInfo
     history: History | None = None  # the reflex's error history (neuromotor.physics.reflex)
-    posture: History | None = None  # the balance loop's lean history (neuromotor.physics.balance)
+    posture: Posture | None = None  # the balance loop's carry (neuromotor.physics.balance)
 
     def badness(self, max_speed: float) -> Float[Array, " B"]:
         """Per body: speed over ``max_speed`` (> 1: diverged), inf where not finite."""
@@ -434,7 +434,7 @@ class Eq2(eqx.Module):
     points: Float[Array, "P 3"]  # world application points of the pulses
     reflex: Float[Array, "C 3"] | None = None  # the delayed reflex's r_i per joint and DOF (N m along h_i)
     history: History | None = None  # the reflex's error history including this step
-    posture: History | None = None  # the balance loop's history including this step
+    posture: Posture | None = None  # the balance loop's carry including this step
 
 
 def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solvers.KKTSolver) -> Eq2:

@@ -53,9 +53,11 @@ def sole_points(character: Character, state, feet) -> np.ndarray:
 
 def balance_for(character: Character, state, h: float, **values) -> Balance:
     """The :class:`Balance` of ``character`` standing in ``state`` (``values``: kp, kd, hip_kp,
-    hip_kd, delay, assist, max_delay); the feet carry the body at :func:`sole_points`."""
+    hip_kd, delay, assist, max_delay, stepping); the feet carry the body at :func:`sole_points`."""
     feet = foot_bodies(character)
     soles = sole_points(character, state, feet)
+    if len(feet) != 2:  # stepping needs a left and a right foot
+        values = values | {"stepping": None}
     return make_balance(character.model, state, feet, hip_joints(character), h, soles=soles, **values)
 
 

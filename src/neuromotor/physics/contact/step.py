@@ -65,6 +65,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
+from neuromotor.physics.balance import Posture
 from neuromotor.physics.contact.ball import Ball, BallState, initial_ball_state
 from neuromotor.physics.contact.detection import (
     ContactSettings,
@@ -175,7 +176,7 @@ class ContactData(eqx.Module):
     warm: Float[Array, "C 3"]
     contact: ContactInfo
     history: History | None = None  # the reflex's error history (neuromotor.physics.reflex)
-    posture: History | None = None  # the balance loop's history (neuromotor.physics.balance)
+    posture: Posture | None = None  # the balance loop's carry (neuromotor.physics.balance)
 
     def badness(self, max_speed: float) -> Float[Array, " B1"]:
         """The ordinary score per body, the ball last; the ball may legitimately fly faster than
