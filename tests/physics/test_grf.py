@@ -16,7 +16,7 @@ import pytest
 from conftest import CLIPS
 from neuromotor.io import opensim as nos
 from neuromotor.io.runfile import RESIDUAL_FIELDS, RunFileError, read_run, write_run
-from neuromotor.model.kinematics import still_trajectory
+from neuromotor.model.kinematics import grid_poses_jit, still_trajectory
 from neuromotor.model.load import load_character
 from neuromotor.physics import grf
 from neuromotor.physics.dynamics import StepOptions, make_reference
@@ -91,13 +91,13 @@ def test_required_wrench_is_the_momentum_rate_less_gravity(walk, stepping):
     tau, lam, kkt = grf.contact_feedforward(model, options, ref, quat_grid(walk, ref), zero)
     assert float(np.max(kkt)) < 1e-10
     np.testing.assert_allclose(tau, np.asarray(ref.tau[:-1]), atol=1e-9 * np.abs(ref.tau).max())  # the driven case
-    pos, rot = (np.asarray(a) for a in rs._grid_poses(model, walk[1], ref.time))
+    pos, rot = (np.asarray(a) for a in grid_poses_jit(model, walk[1], ref.time))
     root = np.asarray(grf.root_wrench_about(model, np.asarray(lam)[:, :6], pos[:-1], rot[:-1], res.com))
     np.testing.assert_allclose(root, res.required, atol=1e-8 * res.weight * res.stature)
 
 
 def quat_grid(walk, ref):
-    return matrix_to_quat(rs._grid_poses(walk[0].model, walk[1], ref.time)[1])
+    return matrix_to_quat(grid_poses_jit(walk[0].model, walk[1], ref.time)[1])
 
 
 def test_grfs_lie_in_the_friction_pyramid(walk, stepping):
@@ -155,7 +155,7 @@ def test_contact_feedforward_leaves_the_residual_on_the_root(walk, stepping):
     res, ref, traj = stepping
     character, _, options, _ = walk
     model = character.model
-    pos, rot = (np.asarray(a) for a in rs._grid_poses(model, traj, ref.time))
+    pos, rot = (np.asarray(a) for a in grid_poses_jit(model, traj, ref.time))
     external = grf.body_wrenches(model, res.contacts, res.ground.force, pos)
     tau, lam, kkt = grf.contact_feedforward(model, options, ref, quat_grid(walk, ref), external)
     assert float(np.max(kkt)) < 1e-10
@@ -230,7 +230,7 @@ def test_contact_thresholds_decide_touching(walk, stepping):
     res, ref, traj = stepping
     character, _, options, floor = walk
     model = character.model
-    pos, rot = rs._grid_poses(model, traj, ref.time)
+    pos, rot = grid_poses_jit(model, traj, ref.time)
     verts, valid = grf.body_vertices(character.shapes)
     strict = grf.capture_contacts(model, verts, valid, pos, rot, floor, options.h, 0.04, 0.1)
     active = np.asarray(res.contacts.active)

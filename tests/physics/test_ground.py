@@ -38,7 +38,7 @@ import numpy as np
 import pytest
 
 from neuromotor.config import ConfigError, SimulationConfig, simulation_config
-from neuromotor.config.parse import sweep_spec
+from neuromotor.config.parse import fit_spec, sweep_spec
 from neuromotor.model import polyhedron as poly
 from neuromotor.physics import contact as ct
 from neuromotor.physics.dynamics import SimModel
@@ -299,9 +299,11 @@ def test_root_and_ground_config():
     for data, field in bad:
         with pytest.raises(ConfigError, match=f"field '{field}'"):
             simulation_config(data, "x.toml")
-    cfg = simulation_config({"sim": {"root": "free"}}, "x.toml")
-    with pytest.raises(ConfigError, match="field 'ground.enabled'"):
-        sweep_spec({"sweep": {"magnitudes": [1.0]}}, cfg)
+    cfg = simulation_config({"sim": {"root": "free"}, "perturbation": [{"body": "chest", "magnitude": 1.0}]}, "x")
+    sweep_spec({"sweep": {"magnitudes": [1.0]}}, cfg)  # a sweep runs on the ground; a fit does not
+    fit = {"fit": {"target": {"kind": "features", "case": [{"peak_deviation_deg": 1.0}]}}}
+    with pytest.raises(ConfigError, match="field 'ground.enabled': a fit has no ground contact"):
+        fit_spec(fit, cfg)
 
 
 def test_run_of_a_free_root_records_the_ground(flight):
@@ -334,3 +336,68 @@ def test_floor_is_the_lowest_foot_point_of_the_capture(flight):
     on_floor = prepare(simulation_config(data, "<test>"), character, traj)
     assert float(on_floor.ground.height) == pytest.approx(floor, abs=1e-12)
     assert float(setup.ground.height) == -50.0
+
+
+# A platform (issue 38): a base motion under a free root moves the ground. Constant acceleration
+# a along x from t_0, for 1 s: below mu g the box is carried, above it slides (Coulomb).
+PLATFORM_STEPS, PLATFORM_MU = 120, 0.3
+
+
+def _platform(sim, a):
+    """Base-motion pulses of constant acceleration ``a`` (m/s^2, +x) on the grid of ``sim``:
+    V_k = a t_k, D_k+1 = D_k + h V_k+1 (the base motion's own update)."""
+    t = np.asarray(sim.ref.time[: PLATFORM_STEPS + 1]) - float(sim.ref.time[0])
+    vel = np.zeros((t.shape[0], 3))
+    vel[:, 0] = a * t
+    offset = np.concatenate([np.zeros((1, 3)), H * np.cumsum(vel[1:], 0)])
+    return vel, offset
+
+
+@pytest.fixture(scope="module")
+def platform_runs(box):
+    """The box on the platform: still (no base motion), a zero base motion, a = 0.2 g and 0.6 g."""
+    sim, params, shapes, _ = box
+    sim = eqx.tree_at(lambda s: s.options, sim, dataclasses.replace(sim.options, n_steps=PLATFORM_STEPS))
+    scene = ct.ContactScene(None, None, ct.ContactSettings(), ct.make_ground(shapes, 0.0, PLATFORM_MU, 0.0))
+    still = jax.jit(ct.simulate_contact)(sim, params, scene)
+    accels = jnp.array([0.0, 0.2 * G, 0.6 * G])
+    motions = [_platform(sim, float(a)) for a in accels]
+    vel = jnp.asarray(np.stack([m[0] for m in motions]))
+    off = jnp.asarray(np.stack([m[1] for m in motions]))
+
+    def one(v, d):
+        pulses = dataclasses.replace(params.pulses, base_velocity=v, base_offset=d)
+        return ct.simulate_contact(sim, dataclasses.replace(params, pulses=pulses), scene)
+
+    out = jax.jit(jax.vmap(one))(vel, off)
+    moving = [jax.tree_util.tree_map(lambda x, i=i: x[i], out) for i in range(3)]
+    return still, moving, np.asarray(vel)
+
+
+def test_a_still_platform_is_the_still_ground(platform_runs):
+    """A zero base motion (another program: vmapped, with the platform's terms) gives the still
+    ground's run to round-off; without a base motion the step is the one before platforms
+    (``ground_motion`` is None), which the tests above check against the physics."""
+    still, (zero, *_), _ = platform_runs
+    for a, b in zip(jax.tree_util.tree_leaves(still), jax.tree_util.tree_leaves(zero)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
+
+
+def test_platform_below_mu_g_carries_the_box(platform_runs):
+    _, (_, slow, _), vel = platform_runs
+    vx = np.asarray(slow.run.states.vel[:, 0, 0])
+    np.testing.assert_allclose(vx, vel[1, :, 0], rtol=0, atol=1e-6)  # sticking from the first step
+    assert vx[-1] == pytest.approx(0.2 * G * PLATFORM_STEPS * H, rel=1e-9)
+    np.testing.assert_allclose(_weight_ratio(slow), 1.0, rtol=1e-9)
+    height = np.asarray(slow.run.states.pos[:, 0, 1])
+    assert np.abs(height - HALF[1]).max() < 1e-9  # neither sinks nor lifts
+
+
+def test_platform_above_mu_g_drags_the_box_by_coulomb_friction(platform_runs):
+    _, (_, _, fast), vel = platform_runs
+    vx = np.asarray(fast.run.states.vel[:, 0, 0])
+    rel = vx - vel[2, :, 0]
+    acc = np.diff(rel) / H
+    np.testing.assert_allclose(acc, -(0.6 - PLATFORM_MU) * G, rtol=0.01)  # a - mu g, backwards
+    np.testing.assert_allclose(np.diff(vx) / H, PLATFORM_MU * G, rtol=0.01)  # friction's mu g forwards
+    np.testing.assert_allclose(_weight_ratio(fast), 1.0, rtol=1e-9)

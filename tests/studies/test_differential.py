@@ -276,3 +276,47 @@ def test_a_ball_gives_the_same_answer_through_every_command(character, tmp_path)
     with pytest.raises(ConfigError, match="field 'ball': a sweep varies either"):
         sw.simulate_grid(mixed, SweepSpec([50.0], [GainSetting(400.0, 20.0)]), prepare(mixed, *character),
                          progress=False)
+
+
+GROUND_FIGURES = ("ground_peak_force_N", "ground_contact_fraction", "sway_rms_mm", "sway_range_ap_mm",
+                  "sway_range_ml_mm", "sway_rms_late_mm")
+
+
+def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):
+    """A free root standing on the ground (the postural loop on) on a moving platform (a base
+    motion moves the ground): each row of a 2-row sweep, and experiment's run and its one-row
+    sweep, equal ``neuromotor simulate`` (d(t) to 1e-10 deg, the ground and balance metrics to
+    1e-9); a fit, whose forward model has no contact, refuses it naming the field."""
+    from neuromotor.config.parse import fit_spec
+
+    platform = dict(kind="base", direction="backward", unit="m/s^2", magnitude=2.0, shape="half_sine",
+                    duration=0.15, start=0.85)
+    data = config_data([platform], options={"root": "free", "still": 12.567, "duration": 0.3})
+    cfg = simulation_config(data, "platform.toml")
+    spec = SweepSpec([2.0, 4.0], [GainSetting(400.0, 20.0)], chunk=2)
+    grid = sw.simulate_grid(cfg, spec, prepare(cfg, *character), progress=False, keep_curves=True)
+    assert len(grid.rows) == 2
+    for m, row, curve in zip(spec.magnitudes, grid.rows, grid.curves):
+        single = dataclasses.replace(cfg, perturbations=[dataclasses.replace(cfg.perturbations[0], magnitude=m)])
+        setup = prepare(single, *character)
+        result = run(setup)
+        metrics = result.metrics
+        np.testing.assert_allclose(curve, deviation_curve(setup, result.perturbed, result.unperturbed), rtol=0,
+                                   atol=CURVE_TOL)
+        _same_figures(row, metrics, f"ground row {row['run']}")
+        for key in GROUND_FIGURES:
+            assert row[key] == pytest.approx(metrics[key], rel=1e-9, abs=1e-12), key
+        assert (row["fell"], row["fall_time_s"], row["fall_body"]) == (metrics["fell"], metrics["fall_time_s"],
+                                                                       metrics["fall_body"])
+        assert metrics["sway_range_ap_mm"] > 0.1 and not metrics["diverged"]  # the platform moves the body
+    # The experiment's run, and its sweep (the same two magnitudes: the sweep's program again).
+    exp = ExperimentSpec(kind="contrast", output=tmp_path, controllers=(GainSetting(400.0, 20.0),),
+                         magnitudes=tuple(spec.magnitudes))
+    numbers = experiments.contrast(cfg, exp, progress=False)
+    assert numbers["controllers"][0]["sway_rms_mm"] == pytest.approx(grid.rows[0]["sway_rms_mm"], rel=1e-9)
+    table = sw.read_csv(tmp_path / "sweep.csv")
+    assert [r["fell"] for r in table] == [r["fell"] for r in grid.rows]
+    assert [r["sway_rms_mm"] for r in table] == pytest.approx([r["sway_rms_mm"] for r in grid.rows], rel=1e-9)
+    fit = {"fit": {"target": {"kind": "features", "case": [{"peak_deviation_deg": 1.0}]}}}
+    with pytest.raises(ConfigError, match="field 'ground.enabled': a fit has no ground contact"):
+        fit_spec(fit, cfg)

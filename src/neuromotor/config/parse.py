@@ -90,6 +90,12 @@ def parse_perturbation(table, where: str, source: str, base_dir=None) -> Perturb
             f.fail(name, f"is required for kind = {kind!r}")
         values[name] = _perturbation_field(f, table, field, base_dir)
     if kind == "base":
+        for name in ("tilt", "axis", "rotation"):  # a platform's tilt: not modelled
+            if name in table:
+                f.fail(
+                    name,
+                    "is not supported: a base motion translates (along direction); platform tilts are not modelled",
+                )
         if values["file"] is None:
             for name in ("time_unit",):
                 if name in table:
@@ -544,18 +550,18 @@ def _sweep_fitted(f: Fields, base_dir) -> tuple[float, float] | None:
 
 
 def refuse_ground(cfg: SimulationConfig, what: str) -> None:
-    """ConfigError for a command whose forward model has no ground contact yet (sweeps, fits,
-    experiments) on a config whose bodies touch the ground."""
+    """ConfigError for a command whose forward model has no ground contact (a fit) on a config
+    whose bodies touch the ground."""
     if cfg.ground_on:
         raise ConfigError(
-            f"{cfg.source}: field 'ground.enabled': {what} does not simulate the ground contact yet "
-            '(only `neuromotor simulate` does); set [ground] enabled = false, or [sim] root = "driven"'
+            f"{cfg.source}: field 'ground.enabled': {what} has no ground contact in its forward model "
+            "(`neuromotor simulate`, sweep and experiment do); set [ground] enabled = false, "
+            'or [sim] root = "driven"'
         )
 
 
 def sweep_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> SweepSpec:
     """The ``[sweep]`` table of a config (layout in :mod:`neuromotor.studies.sweep`)."""
-    refuse_ground(cfg, "a sweep")
     f = Fields(data.get("sweep", {}), "sweep", cfg.source)
     kind, mags = _sweep_magnitudes(f, cfg)
     axes = _sweep_axes(f)
@@ -586,7 +592,6 @@ def experiment_spec(
     data: dict, cfg: SimulationConfig, base_dir=None, default_kind: str | None = None
 ) -> ExperimentSpec:
     """The ``[experiment]`` table (layout in :mod:`neuromotor.studies.experiments`)."""
-    refuse_ground(cfg, "an experiment")
     f = Fields(data.get("experiment", {}), "experiment", cfg.source)
     d = lambda name: default(ExperimentSpec, name)
     kind = f.choice("kind", default_kind, EXPERIMENT_KINDS)

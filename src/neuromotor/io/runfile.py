@@ -17,8 +17,9 @@ The file is a plain NumPy ``.npz`` (no pickles). Its fields, by group:
   and ``ball_radius`` (scalar > 0), which come together, ``contact_force`` (T, C, 3) and
   ``body_names`` (B,), ``deviation`` (T,) the deviation d(t) in degrees that the metrics were
   computed from, ``base_offset`` (T, 3) the base motion's displacement of the driven root
-  (world, m), and ``deviation_metric`` its definition (a string: ``geodesic`` or ``euler``,
-  see :mod:`neuromotor.studies.metrics`; files without them are drawn with the Euler form),
+  (with a free root on a ground: of the ground, a platform) (world, m), and
+  ``deviation_metric`` its definition (a string: ``geodesic`` or ``euler``, see
+  :mod:`neuromotor.studies.metrics`; files without them are drawn with the Euler form),
   ``clip_still`` (scalar, s) the clip time of the pose a ``[sim] still`` run holds (absent: the
   clip plays, ``time`` is clip time);
 * the capture's residuals with the ground (``RESIDUAL_FIELDS``, all or none; issue 38,

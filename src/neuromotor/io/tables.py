@@ -25,7 +25,8 @@ TEXT_COLUMNS = {
     "feedback",
     "stability",
     "path",
-}  # the last three: the reflex studies (studies.reflex)
+    "fall_body",
+}  # feedback, stability, path: the reflex studies (studies.reflex); fall_body: a sweep on the ground
 INT_COLUMNS = {"run", "diverged_step"}
 
 
@@ -79,8 +80,10 @@ def write_csv(rows: list[dict], path, columns: Sequence[str]) -> pathlib.Path:
 def _cell(key: str, value: str):
     if key in TEXT_COLUMNS:
         return value
-    if key == "diverged":
+    if key in ("diverged", "fell"):
         return value == "True"
+    if value == "":  # None: e.g. fall_time_s of a run that did not fall
+        return None
     if key in INT_COLUMNS:
         return int(value)
     return float(value)

@@ -265,6 +265,14 @@ def body_poses(model: Model, q: Float[Array, " Q"]) -> tuple[Float[Array, "B 3"]
     return pos, rot
 
 
+def grid_poses(model: Model, traj, times) -> tuple[Float[Array, "T B 3"], Float[Array, "T B 3 3"]]:
+    """:func:`body_poses` of a :class:`Trajectory` at each of ``times`` (T,), vmapped."""
+    return jax.vmap(lambda t: body_poses(model, traj.q(t)))(times)
+
+
+grid_poses_jit = compiler.jit(grid_poses)  # one program (not a per-time loop) for host callers
+
+
 def body_kinematics(model: Model, q, qd, qdd):
     """Body pose, velocity and acceleration (world frame) by the chain rule through forward
     kinematics (exact: the product rule on each composition, not finite differences).

@@ -15,6 +15,8 @@ does not anticipate the jolt). On the grid t_k it is the root's added velocity V
 (exact for both forms) and displacement D_k, with D_0 = 0 and D_k+1 = D_k + h V_k+1: the step's
 own position update, so a base-motion run equals the unperturbed frame's run under the inertial
 forces -m_b (V_k+1 - V_k) / h on every body to round-off (tests/physics/test_base_motion.py).
+Under a free root on a ground the same V_k and D_k move the ground instead (a platform:
+:class:`neuromotor.physics.contact.step.GroundMotion`), translation only.
 
 Every field is an array leaf with a leading axis P (several pulses per run; the shape too, as an
 index into :data:`SHAPES`), so a batch of magnitudes, directions, bodies, start times or shapes is
@@ -221,22 +223,6 @@ def stack_runs(runs) -> ForcePulses:
 
 
 POINT_FIELDS = ("body", "point", "direction", "magnitude", "start", "duration", "shape")  # the P-axis leaves
-
-
-def replace_first(p: ForcePulses, first: ForcePulses) -> ForcePulses:
-    """``p`` with pulse 0 replaced by the one pulse ``first`` (the pulse a sweep varies)."""
-    return ForcePulses(
-        **{
-            f.name: np.concatenate(
-                [
-                    np.asarray(getattr(first, f.name)),  # type: ignore[arg-type]
-                    np.asarray(getattr(p, f.name))[1:],
-                ]
-            )
-            for f in dataclasses.fields(p)
-            if f.name in POINT_FIELDS
-        },
-    )
 
 
 def unperturbed(p: ForcePulses) -> ForcePulses:

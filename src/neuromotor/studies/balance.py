@@ -8,6 +8,7 @@ The physics is :mod:`neuromotor.physics.balance`.
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -75,19 +76,63 @@ def fold_support(model, ref: Reference, balance: Balance) -> tuple[Reference, Ba
     return ref, dataclasses.replace(balance, support=jnp.zeros_like(balance.support))
 
 
-def falls(setup, out: ContactRollout) -> dict:
+def com_path(model, pos) -> np.ndarray:
+    """The whole body's COM (T, 3) of body positions ``pos`` (T, B, 3)."""
+    mass = np.asarray(model.mass)
+    return np.einsum("b,tbi->ti", mass / mass.sum(), np.asarray(pos))
+
+
+def ground_touch(setup, normal_impulse) -> np.ndarray:
+    """(T, B): whether each body carries a ground impulse in each step (``normal_impulse``: the
+    ground's slots, (T, G))."""
+    lam = np.asarray(normal_impulse)
+    slot_body = np.asarray(setup.ground.slot_body)
+    bodies = np.arange(setup.model.n_bodies)
+    return ((lam > 0)[:, :, None] & (slot_body[:, None] == bodies)[None]).any(1)
+
+
+class StandingTrace(NamedTuple):
+    """What the balance metrics read of a run on the ground (a sweep keeps only this per run)."""
+
+    time: np.ndarray  # (T,) s
+    com: np.ndarray  # (T, 3) whole-body COM relative to the ground's motion (world, m)
+    touch: np.ndarray  # (T, B) bool: the body carries a ground impulse
+    root_pos: np.ndarray  # (T, 3) the pelvis's COM (world)
+    root_vel: np.ndarray  # (T, 3)
+    diverged_step: int
+
+
+def standing_trace(setup, out: ContactRollout, platform=None) -> StandingTrace:
+    """The :class:`StandingTrace` of a contact rollout; ``platform`` (T, 3): the ground's
+    displacement (a base motion under a free root; None: a still ground)."""
+    n, states = out.run.time.shape[0], out.run.states
+    com = com_path(setup.model, states.pos) - (0.0 if platform is None else np.asarray(platform)[:n])
+    touch = ground_touch(setup, np.asarray(out.contact.normal_impulse)[:, -setup.ground.n_slots :])
+    return StandingTrace(
+        np.asarray(out.run.time),
+        com,
+        touch,
+        np.asarray(states.pos[:, 0]),
+        np.asarray(states.vel[:, 0]),
+        int(out.run.diverged_step),
+    )
+
+
+def _trace(setup, out: ContactRollout | StandingTrace) -> StandingTrace:
+    return out if isinstance(out, StandingTrace) else standing_trace(setup, out)
+
+
+def falls(setup, out: ContactRollout | StandingTrace) -> dict:
     """``fell``, ``fall_time_s`` (None: never) and ``fall_body`` (""): the first step where a body
     other than a foot carries a ground impulse, or the COM drops below ``FALL_FRACTION`` of its
     initial height above the ground."""
+    trace = _trace(setup, out)
     model, ground = setup.model, setup.ground
     feet = foot_bodies(setup.character)
-    lam = np.asarray(out.contact.normal_impulse)[:, -ground.n_slots :]
-    bodies = np.asarray(ground.slot_body)
-    other = (lam > 0) & ~np.isin(bodies, feet)[None]
-    time = np.asarray(out.run.time) - float(out.run.time[0])
+    other = trace.touch & ~np.isin(np.arange(model.n_bodies), feet)[None]
+    time = trace.time - float(trace.time[0])
     up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
-    mass = np.asarray(model.mass)
-    com = np.einsum("b,tbi->ti", mass / mass.sum(), np.asarray(out.run.states.pos)) @ up - float(ground.height)
+    com = trace.com @ up - float(ground.height)
     low = com < FALL_FRACTION * com[0]
     hit = np.nonzero(other.any(-1))[0]
     k_touch = int(hit[0]) if hit.size else None
@@ -95,23 +140,23 @@ def falls(setup, out: ContactRollout) -> dict:
     if k_touch is None and k_low is None:
         return {"fell": False, "fall_time_s": None, "fall_body": ""}
     if k_touch is not None and (k_low is None or k_touch <= k_low):
-        names = sorted({model.body_names[b] for b in bodies[other[k_touch]]})
+        names = sorted(model.body_names[b] for b in np.nonzero(other[k_touch])[0])
         return {"fell": True, "fall_time_s": float(time[k_touch]), "fall_body": ",".join(names)}
     return {"fell": True, "fall_time_s": float(time[k_low]), "fall_body": "(COM low)"}
 
 
-def sway(setup, out: ContactRollout) -> dict:
+def sway(setup, out: ContactRollout | StandingTrace) -> dict:
     """The COM's horizontal sway about its mean: radial RMS and the ranges along the facing
     direction (AP) and across it (ML), mm; and the radial RMS over the run's second half
     (``sway_rms_late_mm``: after the first settling)."""
+    trace = _trace(setup, out)
     model = setup.model
     up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
     fwd = np.asarray(setup.character.anatomy.forward, float)
     fwd = fwd - fwd @ up * up
     fwd /= np.linalg.norm(fwd)
     side = np.cross(up, fwd)
-    mass = np.asarray(model.mass)
-    com = np.einsum("b,tbi->ti", mass / mass.sum(), np.asarray(out.run.states.pos))
+    com = trace.com
     d = com - com.mean(0)
     ap, ml = d @ fwd, d @ side
     late = com[com.shape[0] // 2 :]
@@ -124,29 +169,31 @@ def sway(setup, out: ContactRollout) -> dict:
     }
 
 
-def assist_impulse(setup, out: ContactRollout) -> dict:
+def assist_impulse(setup, out: ContactRollout | StandingTrace) -> dict:
     """The assist's impulse (N s, and % of body weight x duration); empty when it is off."""
+    trace = _trace(setup, out)
     bal = setup.gains.balance
     if bal is None or float(bal.assist) == 0.0:
         return {}
     model, ref = setup.model, setup.ref
     k = float(bal.assist)
     mass = float(np.sum(model.mass))
-    states = out.run.states
-    n = states.pos.shape[0]
+    n = trace.root_pos.shape[0]
     target = np.asarray(ref.root_origin[:n]) + np.einsum(
         "tij,j->ti", np.asarray(ref.root_rot[:n]), np.asarray(model.com[0])
     )
-    force = mass * (k * (target - np.asarray(states.pos[:, 0])) - 2 * np.sqrt(k) * np.asarray(states.vel[:, 0]))
+    force = mass * (k * (target - trace.root_pos) - 2 * np.sqrt(k) * trace.root_vel)
     h = setup.options.h
     impulse = float(np.sum(np.linalg.norm(force[:-1], axis=-1)) * h)
     weight = mass * float(np.linalg.norm(np.asarray(model.gravity)))
     return {"assist_impulse_Ns": impulse, "assist_impulse_pct": 100 * impulse / (weight * h * (n - 1))}
 
 
-def balance_metrics(setup, out: ContactRollout) -> dict:
+def balance_metrics(setup, out: ContactRollout | StandingTrace, platform=None) -> dict:
     """Falls, sway and (when on) the assist's impulse; ``diverged_s``: when the rollout blew up
-    (None: it did not; the states after it are held, so the other figures cover the time before)."""
-    bad = int(out.run.diverged_step)
-    when = None if bad < 0 else float(out.run.time[bad + 1] - out.run.time[0])
-    return falls(setup, out) | sway(setup, out) | assist_impulse(setup, out) | {"diverged_s": when}
+    (None: it did not; the states after it are held, so the other figures cover the time before).
+    The COM is taken relative to ``platform`` (the ground's displacement, (T, 3); None: still)."""
+    trace = out if isinstance(out, StandingTrace) else standing_trace(setup, out, platform)
+    bad = trace.diverged_step
+    when = None if bad < 0 else float(trace.time[bad + 1] - trace.time[0])
+    return falls(setup, trace) | sway(setup, trace) | assist_impulse(setup, trace) | {"diverged_s": when}

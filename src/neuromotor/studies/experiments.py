@@ -256,11 +256,11 @@ def contrast(cfg: SimulationConfig, exp: ExperimentSpec, progress: bool = True) 
     fig.tight_layout()
     numbers["files"] = {"plot": str(save_figure(fig, out / "contrast.png"))}
     if exp.magnitudes:
-        from neuromotor.studies.sweep import SweepSpec, plot_sweep, simulate_grid, write_csv
+        from neuromotor.studies.sweep import SweepSpec, plot_sweep, simulate_grid, table_columns, write_csv
 
         spec = SweepSpec(list(exp.magnitudes), list(exp.controllers), kind="force" if cfg.perturbations else "ball")
         res = simulate_grid(cfg, spec, base_setup, chunk=len(spec.magnitudes) * len(spec.gains), progress=progress)
-        numbers["files"]["sweep_csv"] = str(write_csv(res.rows, out / "sweep.csv"))
+        numbers["files"]["sweep_csv"] = str(write_csv(res.rows, out / "sweep.csv", table_columns(cfg, spec)))
         numbers["files"]["sweep_plot"] = str(
             plot_sweep(res.rows, out / "contrast_sweep.png", title="same hit, growing magnitude")
         )

@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import functools
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from neuromotor import compiler
-from neuromotor.model.kinematics import Trajectory, body_poses
+from neuromotor.model.kinematics import Trajectory, grid_poses
 from neuromotor.model.skeleton import Character, Model
 from neuromotor.physics.contact import (
     ContactRollout,
@@ -42,7 +41,7 @@ def foot_bodies(character: Character) -> tuple[int, ...]:
 
 @functools.partial(compiler.jit, static_argnames=("bodies",))
 def _lowest_over(model: Model, traj: Trajectory, ground: Ground, times, bodies):
-    poses = jax.vmap(lambda t: body_poses(model, traj.q(t)))(times)
+    poses = grid_poses(model, traj, times)
     return jnp.min(lowest_points(model, ground, poses[0], poses[1], bodies))
 
 
@@ -82,15 +81,30 @@ def ground_rollouts(setup, base_pulses, check: bool = True) -> tuple[ContactRoll
 
 
 def ground_metrics(out: ContactRollout, first: int) -> dict:
-    """What the ground adds to a run's metrics: the peak total normal force (N) and the fraction
-    of steps with a contact. ``first``: the index of the ground's first candidate."""
+    """What the ground adds to a run's metrics (:func:`ground_figures`); ``first``: the index of
+    the ground's first candidate."""
     lam = np.asarray(out.contact.normal_impulse)[:, first:]
-    h = float(out.run.time[1] - out.run.time[0])
-    touching = lam.sum(-1) > 0
+    return ground_figures(lam.sum(-1), float(out.run.time[1] - out.run.time[0]))
+
+
+def ground_figures(total, h: float) -> dict:
+    """The peak total normal force (N) and the fraction of steps with a contact, of the total
+    normal impulse on the ground per step (``total``, (S+1,), row 0 before any step)."""
+    total = np.asarray(total)
     return {
-        "ground_peak_force_N": float(lam.sum(-1).max() / h),
-        "ground_contact_fraction": float(touching[1:].mean()),
+        "ground_peak_force_N": float(total.max() / h),
+        "ground_contact_fraction": float((total > 0)[1:].mean()),
     }
+
+
+def moves_ground(setup) -> bool:
+    """Whether a base motion moves the ground (a platform): a free root, a ground, a base motion."""
+    return setup.options.free_root and setup.ground is not None and setup.pulses.base_offset is not None
+
+
+def platform_offset(setup) -> np.ndarray | None:
+    """The ground's displacement (S+1, 3) on the grid when a base motion moves it, else None."""
+    return np.asarray(setup.pulses.base_offset) if moves_ground(setup) else None
 
 
 def ground_arrays(setup, out: ContactRollout) -> dict[str, np.ndarray]:

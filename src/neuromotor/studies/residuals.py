@@ -24,9 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from neuromotor import compiler
-from neuromotor.model.kinematics import Trajectory, body_poses
-from neuromotor.model.skeleton import Character, Model
+from neuromotor.model.kinematics import Trajectory, grid_poses_jit
+from neuromotor.model.skeleton import Character
 from neuromotor.physics import grf
 from neuromotor.physics.contact.detection import up_direction
 from neuromotor.physics.dynamics import Reference, StepOptions
@@ -35,11 +34,6 @@ from neuromotor.studies.ground import capture_floor  # one floor rule, one set o
 
 FOOT = "foot"  # the mass model's segment of the feet (Character.body_segment)
 GRAVITY_FALLBACK = 9.81  # m/s^2: the body weight's g on a rig without gravity
-
-
-@compiler.jit
-def _grid_poses(model: Model, traj: Trajectory, times):
-    return jax.vmap(lambda t: body_poses(model, traj.q(t)))(times)
 
 
 def body_height(character: Character, pos, rot, verts, valid) -> float:
@@ -85,7 +79,7 @@ def capture_residuals(
         raise ValueError("contact-aware inverse dynamics needs the discrete feedforward (Reference.velocity)")
     model = character.model
     floor = capture_floor(character, traj) if floor is None else float(floor)
-    pos, rot = _grid_poses(model, traj, ref.time)
+    pos, rot = grid_poses_jit(model, traj, ref.time)
     cfg = dataclasses.replace(options, free_root=False)
     required, com = grf.required_wrench(model, cfg, pos, rot, ref.velocity)
     verts, valid = grf.body_vertices(character.shapes)
@@ -241,7 +235,7 @@ def ground_reference(
     :func:`capture_residuals` of it, if already computed."""
     res = capture_residuals(character, traj, ref, options) if res is None else res
     model = character.model
-    pos, rot = _grid_poses(model, traj, ref.time)
+    pos, rot = grid_poses_jit(model, traj, ref.time)
     external = grf.body_wrenches(model, res.contacts, res.ground.force, np.asarray(pos))
     cfg = dataclasses.replace(options, free_root=False)
     tau, _, _ = grf.contact_feedforward(model, cfg, ref, matrix_to_quat(rot), jnp.asarray(external))

@@ -50,7 +50,7 @@ from neuromotor.studies import metrics as mx
 from neuromotor.studies.balance import balance_for, balance_metrics, fold_support
 from neuromotor.studies.ball_hit import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies.gains import gains_for
-from neuromotor.studies.ground import ground_metrics, ground_rollouts, ground_setup
+from neuromotor.studies.ground import ground_metrics, ground_rollouts, ground_setup, platform_offset
 
 
 @dataclasses.dataclass(frozen=True)
@@ -378,7 +378,7 @@ def run(setup: Setup, check: bool = True) -> RunResult:
         return RunResult(pert.run, base.run, metrics, pert)
     if setup.ground is not None:
         pert, base = ground_rollouts(setup, _zero(setup.pulses), check)
-        extra = ground_metrics(pert, 0) | balance_metrics(setup, pert)
+        extra = ground_metrics(pert, 0) | balance_metrics(setup, pert, platform_offset(setup))
         return RunResult(pert.run, base.run, run_metrics(setup, pert.run, base.run) | extra, ground=pert)
     model, sim = setup.model, setup.sim_model
     pert = simulate_jit(sim, setup.params)

@@ -52,6 +52,14 @@ Time of impact and restitution
     the spirit of Cline & Pai's post-stabilization (mu >= 0, g_end + W_nn mu >= 0,
     complementary; displacement X_n mu), then the joint constraints are post-stabilized as in
     the contact-free step.
+
+A moving ground (a platform)
+    A base motion (``ForcePulses.base_velocity``/``base_offset``) under a free root moves the
+    ground instead of the root (:class:`GroundMotion`): over the step from t_k the plane is at
+    ``height + up . D_k`` and moves with V_k+1 (the base motion's own position update,
+    D_k+1 = D_k + h V_k+1). The ground's contacts then see the body's velocity relative to the
+    plane, ``Jc v - d . V``, in the ranking of the slots, the activity, the restitution target
+    and the LCP, so friction drags the feet along. Translation only: the plane keeps its normal.
 """
 
 from __future__ import annotations
@@ -142,6 +150,32 @@ def scene_gaps(model: Model, scene: ContactScene, ball_pos, pos, rot) -> Float[A
     if scene.ground is not None:
         parts.append(ground_slots(model, scene.ground, pos, rot).gap)
     return jnp.concatenate(parts) if len(parts) > 1 else parts[0]
+
+
+class GroundMotion(eqx.Module):
+    """The ground's motion over one step (a platform: a base motion under a free root)."""
+
+    offset: Float[Array, ""]  # up . D_k: how far the plane has risen at the step start (m)
+    vel: Float[Array, " 3"]  # V_k+1: its velocity over the step (world, m/s)
+    vel_pre: Float[Array, " 3"]  # V_k: its velocity at the step start
+
+
+def ground_motion(sim: SimModel, params: Params, scene: ContactScene, k) -> GroundMotion | None:
+    """The ground's motion in step k: the base motion's when the root is free and there is a
+    ground, else None (a still ground: the step's program is the one without a base motion)."""
+    pulses = params.pulses
+    if scene.ground is None or not sim.options.free_root or pulses.base_velocity is None:
+        return None
+    assert pulses.base_offset is not None
+    up = up_direction(sim.model)
+    return GroundMotion(pulses.base_offset[k] @ up, pulses.base_velocity[k + 1], pulses.base_velocity[k])
+
+
+def _moved(scene: ContactScene, gm: GroundMotion | None) -> ContactScene:
+    """The scene with its ground at the step start's height (``gm`` None: unchanged)."""
+    if gm is None or scene.ground is None:
+        return scene
+    return dataclasses.replace(scene, ground=dataclasses.replace(scene.ground, height=scene.ground.height + gm.offset))
 
 
 class ContactInfo(eqx.Module):
@@ -389,6 +423,18 @@ def responses(
     return Responses(v_free, x_char, x_ball, w_mat, u_free, u_pre, lam, residual)
 
 
+def relative_to_ground(frame: ContactFrame, resp: Responses, gm: GroundMotion | None) -> Responses:
+    """The ground's contacts' velocities relative to a moving ground, ``Jc v - d . V`` (``gm``
+    None: unchanged)."""
+    if gm is None:
+        return resp
+    nb = frame.n_ball
+    dirs = frame.dirs[nb:]
+    u_free = resp.u_free.at[nb:].add(-dirs @ gm.vel)
+    u_pre = resp.u_pre.at[nb:].add(-dirs[:, 0] @ gm.vel_pre)
+    return dataclasses.replace(resp, u_free=u_free, u_pre=u_pre)
+
+
 class Impact(eqx.Module):
     """Which contacts act in the step, when, and with which normal velocity target."""
 
@@ -513,8 +559,9 @@ def ball_after(bstate: BallState, free: BallFree, mo: Motion) -> BallState:
     )
 
 
-def _gaps_at_impact(model: Model, scene: ContactScene, h: float, data: ContactData, free, frame, resp, imp):
-    """Each contact's gap at its impact instant, from the configuration moved by s h v_free."""
+def _gaps_at_impact(model: Model, scene: ContactScene, h: float, data: ContactData, free, frame, resp, imp, gm=None):
+    """Each contact's gap at its impact instant, from the configuration moved by s h v_free (and
+    a moving ground by s h V)."""
     state, vf6 = data.state, resp.v_free.reshape(model.n_bodies, 6)
     sh, bidx = imp.toi * h, frame.body
     pb = state.pos[bidx] + sh[:, None] * vf6[bidx, :3]
@@ -532,11 +579,12 @@ def _gaps_at_impact(model: Model, scene: ContactScene, h: float, data: ContactDa
         )
     if scene.ground is not None:
         ground = scene.ground
-        parts.append(
-            jax.vmap(lambda b, v, p_, q_: vertex_gap(model, ground, b, v, p_, q_))(
-                bidx[nb:], frame.vertex, pb[nb:], qb[nb:]
-            )
+        gaps = jax.vmap(lambda b, v, p_, q_: vertex_gap(model, ground, b, v, p_, q_))(
+            bidx[nb:], frame.vertex, pb[nb:], qb[nb:]
         )
+        if gm is not None:
+            gaps = gaps - sh[nb:] * (gm.vel @ up_direction(model))
+        parts.append(gaps)
     return jnp.concatenate(parts) if len(parts) > 1 else parts[0]
 
 
@@ -551,10 +599,11 @@ def contact_info(
     imp: Impact,
     p,
     slack,
+    gm: GroundMotion | None = None,
 ) -> ContactInfo:
     """The step's record over all candidates, with the gap at the impact instant from the
-    configuration moved by s h v_free."""
-    gap_imp = _gaps_at_impact(model, scene, h, data, free, frame, resp, imp)
+    configuration moved by s h v_free (``gm``: the ground's motion, None: still)."""
+    gap_imp = _gaps_at_impact(model, scene, h, data, free, frame, resp, imp, gm)
     scatter = lambda x, fill: jnp.full(frame.gap_all.shape + x.shape[1:], fill, x.dtype).at[frame.sel].set(x)
     return ContactInfo(
         impulse=scatter(jnp.einsum("kd,kdj->kj", p, frame.dirs), 0.0),
@@ -583,14 +632,18 @@ def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: Conta
         assert data.ball is not None
         free = ball_free_motion(model, scene.ball, h, sim.ref.time[k], k, data.ball)
     fs = free_solve(solver, eq)
-    frame = contact_frame(model, scene, state, data.ball, fs.v_free, h)
-    resp = responses(solver, eq, fs, frame, scene.ball, free, state.v)
+    gm = ground_motion(sim, params, scene, k)
+    scene = _moved(scene, gm)
+    # The slots rank by the vertices' velocities relative to the ground.
+    rank = fs.v_free if gm is None else fs.v_free.reshape(-1, 6).at[:, :3].add(-gm.vel).reshape(fs.v_free.shape)
+    frame = contact_frame(model, scene, state, data.ball, rank, h)
+    resp = relative_to_ground(frame, responses(solver, eq, fs, frame, scene.ball, free, state.v), gm)
     imp = impact(frame, resp, scene, h, True if free is None else free.flying)
     p, slack = contact_impulses(frame, resp, imp, scene, data.warm[frame.sel])
     mo = motion(frame, resp, imp, p, free, scene.settings, h)
     n = model.n_bodies
     new, violation = integrate(sim, solver, k, state, mo.d_char.reshape(n, 6), mo.v_char.reshape(n, 6), params.pulses)
-    record = contact_info(model, scene, h, data, free, frame, resp, imp, p, slack)
+    record = contact_info(model, scene, h, data, free, frame, resp, imp, p, slack, gm)
     ball = None
     if free is not None:
         assert data.ball is not None

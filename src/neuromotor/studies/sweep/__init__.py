@@ -68,8 +68,13 @@ apply (the aim and launch time come from ``[ball]``), and the config may not als
 ``fitted`` work as for pulses. The table gets ``kind = "ball"``, the peak contact impulse on
 the character and the body that received it (:data:`BALL_COLUMNS`).
 
+Sweeps on the ground: when the bodies touch a ground (``[sim] root = "free"``, ``[ground]``)
+every run is a contact rollout on it (:mod:`.on_ground`), the postural loop included when
+``[balance]`` is on, and each row also gets ``simulate``'s ground and balance metrics
+(:data:`GROUND_METRICS`: falls, sway, ground forces). A base motion then moves the ground.
+
 Modules: :mod:`.grid` (the batch of a grid), :mod:`.runner` (sharded execution),
-:mod:`.ball` (ball-speed sweeps); the ``[sweep]`` table is parsed by
+:mod:`.ball_speed` (ball-speed sweeps), :mod:`.on_ground` (sweeps on the ground); the ``[sweep]`` table is parsed by
 :func:`neuromotor.config.sweep_spec`, the CSV is written by :mod:`neuromotor.io.tables` and the
 figures drawn by :mod:`neuromotor.viz.sweep_plots` (and :mod:`neuromotor.viz.reflex_plots`).
 """
@@ -77,6 +82,7 @@ figures drawn by :mod:`neuromotor.viz.sweep_plots` (and :mod:`neuromotor.viz.ref
 from __future__ import annotations
 
 import dataclasses
+import functools
 import pathlib
 from collections.abc import Sequence
 
@@ -100,6 +106,7 @@ from neuromotor.studies.sweep.grid import (
     gain_keys,
     with_reflex_columns,
 )
+from neuromotor.studies.sweep.on_ground import GROUND_METRICS, GroundSweeper, ground_row_metrics
 from neuromotor.studies.sweep.runner import AXIS, Sweeper, SweepResult, device_mesh, run_sweep, sweep_batches
 from neuromotor.viz.sweep_plots import plot_gains_map, plot_sweep, save_figure
 
@@ -127,6 +134,11 @@ def simulate_grid(
     from neuromotor.studies.ball_hit import balls_at_speeds
     from neuromotor.studies.simulate import body_lookup
 
+    if spec.kind == "ball" and setup.ground is not None:
+        raise ConfigError(
+            f"{cfg.source}: field 'ground.enabled': a ball-speed sweep does not simulate the bodies' ground "
+            "contact yet (a pulse sweep and `neuromotor simulate` do); set [ground] enabled = false"
+        )
     if (cfg.ball is not None) != (spec.kind == "ball") or (spec.kind == "ball" and cfg.perturbations):
         # A pulse sweep's rollouts have no contact, a ball sweep's twins no pulses: never half a config.
         raise ConfigError(
@@ -156,7 +168,12 @@ def simulate_grid(
         setup.window.check(dataclasses.replace(hit, body=b), f"sweep.bodies[{i}]", "perturbation[0].start")
     for i, t in enumerate(spec.starts or []):
         setup.window.check(dataclasses.replace(hit, start=float(t)), "perturbation[0].body", f"sweep.starts[{i}]")
-    sweeper = Sweeper(model, setup.ref, setup.options, **sizes)
+    extra = None
+    if setup.ground is None:
+        sweeper = Sweeper(model, setup.ref, setup.options, **sizes)
+    else:  # contact rollouts on the ground, with simulate's ground and balance metrics per row
+        sweeper = GroundSweeper(model, setup.ref, setup.options, setup.ground, **sizes)
+        extra = functools.partial(ground_row_metrics, setup)
     return run_sweep(
         sweeper,
         setup.gains,
@@ -167,6 +184,7 @@ def simulate_grid(
         keep_curves=keep_curves,
         progress=progress,
         direction_of=setup.direction_of,
+        extra=extra,
     )
 
 
@@ -180,15 +198,24 @@ def _gains_map_title(cfg, spec: SweepSpec, name: str) -> str:
     return name
 
 
+def table_columns(cfg, spec: SweepSpec) -> tuple[str, ...]:
+    """sweep.csv's columns for a config: a ball sweep's or a pulse sweep's, with the ground and
+    balance metrics on the ground (the assist's impulse when it is on) and the reflex's."""
+    columns: tuple[str, ...] = BALL_COLUMNS if spec.kind == "ball" else COLUMNS
+    if cfg.ground_on and spec.kind != "ball":  # after the recovery metrics
+        i = columns.index(METRIC_KEYS[-1]) + 1
+        assist = ("assist_impulse_Ns", "assist_impulse_pct") if cfg.balance_on and cfg.balance.assist else ()
+        columns = (*columns[:i], *GROUND_METRICS, *assist, *columns[i:])
+    return with_reflex_columns(columns) if cfg.reflex is not None else columns
+
+
 def write_outputs(cfg, spec: SweepSpec, result: SweepResult, out: pathlib.Path, name: str) -> dict[str, pathlib.Path]:
     """sweep.csv (with the precision of its runs, ``[sim] dtype``, and the reflex columns when
     the config has a ``[reflex]``), sweep.png (several magnitudes), gains_map.png (ks and kd
     both vary, one reflex setting) and reflex_map.png (reflex gain and delay both vary, one
     gain setting and magnitude: :func:`neuromotor.viz.reflex_plots.plot_stability_map`)."""
     rows = [dict(r, dtype=str(cfg.dtype)) for r in result.rows]
-    columns: tuple[str, ...] = BALL_COLUMNS if spec.kind == "ball" else COLUMNS
-    columns = with_reflex_columns(columns) if cfg.reflex is not None else columns
-    files = {"csv": write_csv(rows, out / "sweep.csv", (*columns, "dtype"))}
+    files = {"csv": write_csv(rows, out / "sweep.csv", (*table_columns(cfg, spec), "dtype"))}
     if len(spec.magnitudes) > 1:
         files["plot"] = plot_sweep(result.rows, out / "sweep.png", title=name)
     one_reflex = len(spec.reflexes or ()) <= 1
@@ -241,7 +268,9 @@ __all__ = [
     "BallSweeper",
     "COLUMNS",
     "CONTROLLERS",
+    "GROUND_METRICS",
     "GainSetting",
+    "GroundSweeper",
     "METRIC_KEYS",
     "REFLEX_COLUMNS",
     "RunBatch",
@@ -265,6 +294,7 @@ __all__ = [
     "sweep_batches",
     "sweep_from_config",
     "sweep_spec",
+    "table_columns",
     "write_csv",
     "write_outputs",
 ]

@@ -13,7 +13,7 @@ from jaxtyping import Array, Float, Int
 
 from neuromotor.errors import ConfigError
 from neuromotor.physics.control import Gains
-from neuromotor.physics.perturbation import ForcePulses, build_pulses, replace_first, stack_runs, vector_direction
+from neuromotor.physics.perturbation import ForcePulses, build_pulses, stack_runs, vector_direction
 from neuromotor.physics.reflex import Reflex
 from neuromotor.studies.gains import gains_for
 
@@ -120,9 +120,9 @@ def build_batch(
     direction_of=vector_direction,
     times=None,
 ) -> RunBatch:
-    """Batched gains and perturbations for ``runs``: each run's ``perturbations`` (its varied
-    ``perturbation`` with the grid's axes applied, then the config's others; a run without the
-    key varies pulse 0 of ``template_pulses``) through the one builder,
+    """Batched gains and perturbations for ``runs`` (:meth:`~neuromotor.config.specs.SweepSpec.runs`):
+    each run's ``perturbations`` (its varied ``perturbation`` with the grid's axes applied, then
+    the config's others) through the one builder,
     :func:`~neuromotor.physics.perturbation.build_pulses` at step ``h`` on ``model`` and the
     grid ``times`` (a base motion needs them); the reflex, for runs that carry one, is built
     at step ``h``."""
@@ -134,12 +134,7 @@ def build_batch(
         if key not in settings:
             settings[key] = run_controller(template_gains, r, h)
     gains = _stack([settings[(r["gain"], r.get("reflex"))] for r in runs])
-    rows = [
-        build_pulses(r["perturbations"], model, h, body_index, direction_of, times)
-        if "perturbations" in r
-        else replace_first(template_pulses, build_pulses([r["perturbation"]], model, h, body_index, direction_of))
-        for r in runs
-    ]
+    rows = [build_pulses(r["perturbations"], model, h, body_index, direction_of, times) for r in runs]
     return RunBatch(gains, stack_runs(rows))
 
 

@@ -199,9 +199,11 @@ def run_sweep(
     keep_curves: bool = False,
     progress: bool = True,
     direction_of=vector_direction,
+    extra=None,
 ) -> SweepResult:
     """Simulate every run of ``runs`` (from :meth:`SweepSpec.runs`) and measure its recovery;
-    ``direction_of`` resolves a direction keyword (:func:`~neuromotor.studies.simulate.direction_lookup`)."""
+    ``direction_of`` resolves a direction keyword (:func:`~neuromotor.studies.simulate.direction_lookup`);
+    ``extra(batch, i, outputs)``: more of run i's row (a sweep on the ground: its metrics)."""
     from tqdm.auto import tqdm
 
     times = sweeper.times
@@ -231,6 +233,7 @@ def run_sweep(
             "start": r["start"],
             "duration": r["duration"],
             **mx.recovery_metrics(time, dev, r["onset"]),
+            **({} if extra is None else extra(batch, i, out)),
             "max_kkt_residual": float(out["max_residual"]),
             "max_constraint_violation": float(out["max_violation"]),
         }
