@@ -21,7 +21,7 @@ import _common  # noqa: F401  (float64, compile cache)
 import numpy as np
 
 from neuromotor.config.parse import load_simulation_config
-from neuromotor.studies.balance import com_path
+from neuromotor.studies.balance import com_path, facing_axes
 from neuromotor.studies.ground import foot_bodies, platform_offset
 from neuromotor.studies.simulate import prepare, run
 
@@ -44,11 +44,7 @@ def main() -> None:
     result = run(setup, check=False)  # a run that blows up is reported (diverged_s), not raised
     m = result.metrics
     model = setup.model
-    up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
-    fwd = np.asarray(setup.character.anatomy.forward, float)
-    fwd = fwd - fwd @ up * up
-    fwd /= np.linalg.norm(fwd)
-    side = np.cross(up, fwd)
+    _, fwd, side = facing_axes(setup)
     bad = int(result.perturbed.diverged_step)  # after a blow-up the state is held: cut there
     last = result.perturbed.time.shape[0] if bad < 0 else bad + 1
     time = np.asarray(result.perturbed.time)[:last] - float(result.perturbed.time[0])

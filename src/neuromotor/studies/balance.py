@@ -145,17 +145,21 @@ def falls(setup, out: ContactRollout | StandingTrace) -> dict:
     return {"fell": True, "fall_time_s": float(time[k_low]), "fall_body": "(COM low)"}
 
 
+def facing_axes(setup) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Up (against gravity), the horizontal facing direction and its left (``up x forward``)."""
+    model = setup.model
+    up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
+    fwd = np.asarray(setup.character.anatomy.forward, float)
+    fwd = fwd - fwd @ up * up
+    return up, fwd / np.linalg.norm(fwd), np.cross(up, fwd / np.linalg.norm(fwd))
+
+
 def sway(setup, out: ContactRollout | StandingTrace) -> dict:
     """The COM's horizontal sway about its mean: radial RMS and the ranges along the facing
     direction (AP) and across it (ML), mm; and the radial RMS over the run's second half
     (``sway_rms_late_mm``: after the first settling)."""
     trace = _trace(setup, out)
-    model = setup.model
-    up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
-    fwd = np.asarray(setup.character.anatomy.forward, float)
-    fwd = fwd - fwd @ up * up
-    fwd /= np.linalg.norm(fwd)
-    side = np.cross(up, fwd)
+    _, fwd, side = facing_axes(setup)
     com = trace.com
     d = com - com.mean(0)
     ap, ml = d @ fwd, d @ side
