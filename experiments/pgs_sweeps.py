@@ -16,24 +16,19 @@ import _common  # noqa: F401  (float64, compile cache)
 import numpy as np
 
 from neuromotor.config import simulation_config
-from neuromotor.model.load import default_clip_path, load_character
 from neuromotor.physics.contact import simulate_contact_jit
 from neuromotor.physics.contact.detection import ContactSettings
 from neuromotor.studies.ground import ground_scene
 from neuromotor.studies.simulate import prepare
+from neuromotor.studies.standing import standing_pose
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=2.0)
     args = ap.parse_args()
-    path = str(default_clip_path())
-    probe = simulation_config({"clip": path}, "<pgs>")
-    character, traj = load_character(probe.clip, probe.units, probe.up_axis, probe.stature, probe.mass_options())
-    anatomy = character.anatomy
-    assert anatomy is not None
-    still = anatomy.reference_frame * character.clip.frame_time
-    fwd = np.asarray(anatomy.forward, float)
+    path, character, traj, still = standing_pose()
+    fwd = np.asarray(character.anatomy.forward, float)
     for sign, force in ((1.0, 100.0), (-1.0, 150.0)):
         push = {
             "kind": "force",

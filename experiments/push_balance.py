@@ -37,7 +37,6 @@ import numpy as np
 
 from neuromotor.compiler import jit
 from neuromotor.config import simulation_config
-from neuromotor.model.load import default_clip_path, load_character
 from neuromotor.physics.balance import joint_origins, posture_signals
 from neuromotor.physics.contact import simulate_contact
 from neuromotor.physics.dynamics import Params
@@ -46,6 +45,7 @@ from neuromotor.rotations import quat_to_matrix
 from neuromotor.studies.balance import falls
 from neuromotor.studies.ground import foot_bodies, ground_scene
 from neuromotor.studies.simulate import prepare
+from neuromotor.studies.standing import standing_pose
 
 ONSET, DURATION = 0.5, 0.1
 FAR = 0.5  # m: COM this far from the nearer ankle: a fall
@@ -176,12 +176,9 @@ def main() -> None:
     ap.add_argument("--no-stepping", action="store_true")
     ap.add_argument("--figure", type=pathlib.Path, default=None)
     args = ap.parse_args()
-    path = str(default_clip_path())
-    probe = simulation_config({"clip": path}, "<push>")
-    character, _ = load_character(probe.clip, probe.units, probe.up_axis, probe.stature, probe.mass_options())
+    path, character, _, still = standing_pose()
     anatomy = character.anatomy
     assert anatomy is not None
-    still = anatomy.reference_frame * character.clip.frame_time
     up, fwd = np.asarray(anatomy.up, float), np.asarray(anatomy.forward, float)
     side = np.cross(up, fwd)
     stepping = not args.no_stepping

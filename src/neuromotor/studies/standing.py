@@ -8,6 +8,17 @@ from neuromotor.model.load import default_clip_path, load_character
 from neuromotor.studies.simulate import prepare
 
 
+def standing_pose(clip=None, top: dict | None = None):
+    """``(path, character, traj, still)``: the clip (default: the embedded one) as its config
+    loads it (``top``: its top-level keys) and the clip time of its most upright frame."""
+    path = str(default_clip_path() if clip is None else clip)
+    probe = simulation_config({**(top or {}), "clip": path}, "<standing>")
+    character, traj = load_character(probe.clip, probe.units, probe.up_axis, probe.stature, probe.mass_options())
+    anatomy = character.anatomy
+    assert anatomy is not None, "a standing pose needs the clip's anatomy"
+    return path, character, traj, anatomy.reference_frame * character.clip.frame_time
+
+
 def standing_setup(
     seconds: float,
     h: float = 1.0 / 120.0,
@@ -21,12 +32,7 @@ def standing_setup(
     (``character.anatomy.reference_frame``) for ``seconds``; ``balance`` and ``ground``: the
     ``[balance]`` and ``[ground]`` tables; ``top``: top-level keys of the clip and body (units,
     up_axis, stature, body_mass, ...)."""
-    path = str(default_clip_path() if clip is None else clip)
-    probe = simulation_config({**(top or {}), "clip": path}, "<standing>")
-    character, _ = load_character(probe.clip, probe.units, probe.up_axis, probe.stature, probe.mass_options())
-    anatomy = character.anatomy
-    assert anatomy is not None, "a standing pose needs the clip's anatomy"
-    still = anatomy.reference_frame * character.clip.frame_time
+    path, _, _, still = standing_pose(clip, top)
     data = {**(top or {}), "clip": path, "sim": {"root": root, "duration": seconds, "h": h, "still": still}}
     if balance is not None:
         data["balance"] = balance
