@@ -249,12 +249,12 @@ def _sim_config(args):
 
 def cmd_simulate(args) -> int:
     from neuromotor.studies.record import run_arrays
-    from neuromotor.studies.simulate import load_character, prepare, run, save_npz_atomic
+    from neuromotor.studies.simulate import config_character, prepare, run, save_npz_atomic
 
     stage = _Stages("simulate", getattr(args, "quiet", False))
     cfg = _sim_config(args)
     stage(f"loading clip {cfg.clip or '(embedded default)'}")
-    character, traj = load_character(cfg.clip, cfg.units, cfg.up_axis, cfg.stature, cfg.mass_options())
+    character, traj = config_character(cfg)
     stage("inverse dynamics of the reference motion (compiling on first use)")
     setup = prepare(cfg, character, traj)
     for line in setup.warnings:

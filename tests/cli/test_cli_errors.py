@@ -82,7 +82,7 @@ def test_bench_runs_on_any_rig_with_the_clip_options():
     from conftest import ALL_CLIPS
     from neuromotor.studies import bench
 
-    setup = bench._setup(ALL_CLIPS["bandai_kick_22joint_6ch"], 0.05, "nullspace", load={"units": "cm", "up_axis": 1})
+    setup = bench._setup(ALL_CLIPS["bandai_kick_22joint_6ch"], 0.05, "nullspace", {"units": "cm", "up_axis": 1})
     model = setup.model
     assert model.body_names[int(setup.pulses.body[0])] == "Chest" and model.n_bodies == 19
     assert setup.character.anatomy.units == "cm" and float(model.gravity[1]) == -9.81

@@ -36,14 +36,14 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
 from neuromotor import compiler
-from neuromotor.config import DEFAULT_HIT, SimulationConfig
+from neuromotor.config import DEFAULT_HIT, SimulationConfig, simulation_config
 from neuromotor.physics import dynamics as dy, solvers
 from neuromotor.physics.constraints import constraint_count, post_stabilize
 from neuromotor.physics.inverse import inverse_dynamics
 from neuromotor.physics.perturbation import build_pulses
 from neuromotor.physics.stiffness import DenseStiffness, StiffBlocks
 from neuromotor.physics.system import world_inertia
-from neuromotor.studies.simulate import load_character, prepare
+from neuromotor.studies.simulate import config_character, prepare
 
 H = 1.0 / 120.0
 
@@ -83,16 +83,20 @@ def machine() -> str:
     )
 
 
-def _setup(clip, seconds: float, solver: str, load=None):
-    """The default hit on ``clip``; ``load``: keyword arguments of :func:`load_character`
-    (units, up_axis, stature, options), as the command line's clip options give them."""
-    character, traj = load_character(clip, **(load or {}))
-    config = SimulationConfig(
-        clip=None if clip is None else str(clip),
+def _clip_config(clip, top: dict | None) -> SimulationConfig:
+    """``clip`` (None: the embedded one) as a config with the top-level keys ``top`` (units,
+    up_axis, stature, body_mass, ...) reads it."""
+    return simulation_config({**(top or {}), **({} if clip is None else {"clip": str(clip)})}, "<bench>")
+
+
+def _setup(clip, seconds: float, solver: str, top: dict | None = None):
+    """The default hit on ``clip``; ``top``: the clip's top-level config keys."""
+    config = dataclasses.replace(
+        _clip_config(clip, top),
         duration=seconds,
         perturbations=[dataclasses.replace(DEFAULT_HIT, start=min(0.3, seconds / 2))],
     )
-    setup = prepare(config, character, traj)
+    setup = prepare(config)
     return dataclasses.replace(setup, options=dataclasses.replace(setup.options, solver=solvers.Solver(solver)))
 
 
@@ -350,11 +354,11 @@ def gain_jacobian(setup, repeats: int, programs: dict | None = None) -> dict:
     }
 
 
-def inverse(clips, repeats: int, load=None) -> list[dict]:
+def inverse(clips, repeats: int, top: dict | None = None) -> list[dict]:
     """Inverse dynamics (Eq. 3) on every frame of whole clips."""
     out = []
     for clip in clips:
-        character, traj = load_character(clip, **(load or {}))
+        character, traj = config_character(_clip_config(clip, top))
         times = jnp.asarray(np.arange(character.clip.n_frames) * character.clip.frame_time)
         t = time.perf_counter()
         jax.block_until_ready(inverse_dynamics(character.model, traj, times))
@@ -543,7 +547,6 @@ def run_all(
     plot=None,
     log=print,
     dense_too: bool = True,
-    load=None,
     mjx: bool = True,
     free: bool = True,
     top: dict | None = None,
@@ -553,14 +556,14 @@ def run_all(
     clip's top-level config keys for it)."""
     log(f"machine: {machine()}")
     res: dict = {"machine": machine()}
-    setup = _setup(clip, 1.0, solver, load)
+    setup = _setup(clip, 1.0, solver, top)
     log(f"model: {setup.model.n_bodies} bodies, {setup.model.n_dofs} DOFs, h = {setup.options.h:.6f} s")
     res["single"], ours = single(setup, repeats)
     _log_single(res["single"], log)
     if dense_too:  # the other solvers, for comparison
         for other in ("tree", "dense"):
             if other != solver:
-                res[f"single_{other}"] = single(_setup(clip, 1.0, other, load), max(2, repeats // 2))[0]
+                res[f"single_{other}"] = single(_setup(clip, 1.0, other, top), max(2, repeats // 2))[0]
                 _log_single(res[f"single_{other}"], log)
     res["compiler_options"] = compiler_options_ab(setup, 2 * repeats)
     ab = res["compiler_options"]
@@ -598,7 +601,7 @@ def run_all(
                 f"{il['mujoco_us']:.1f} us/step -> ours/MuJoCo {il['ratio']:.2f}x (real-time factor "
                 f"{H / il['ours_us'] * 1e6:.0f} at that moment)"
             )
-    bsetup = _setup(clip, batch_seconds, solver, load)
+    bsetup = _setup(clip, batch_seconds, solver, top)
     res["batch"] = batched(bsetup, sizes, max(2, repeats // 2), programs)
     res["batch_float32"] = batched(bsetup, [max(sizes)], max(2, repeats // 2), programs, dtype="float32")
     for r in res["batch"] + res["batch_float32"]:
@@ -630,7 +633,7 @@ def run_all(
     if mjx:
         res["mjx"] = mjx_beside(setup, bsetup, programs, res, repeats, log)
     if idyn_clips:
-        res["inverse_dynamics"] = inverse(idyn_clips, repeats, load)
+        res["inverse_dynamics"] = inverse(idyn_clips, repeats, top)
         for r in res["inverse_dynamics"]:
             log(
                 f"inverse dynamics {r['clip']}: {r['frames']} frames in {r['seconds'] * 1e3:.1f} ms "
@@ -677,18 +680,8 @@ def add_arguments(ap) -> None:
 
 
 def run_from_args(args) -> int:
-    load, top = None, None
-    if hasattr(args, "units"):  # the command line's clip options
-        from neuromotor.model.skeleton import MassModelOptions
-
-        load = dict(
-            units=args.units,
-            up_axis=args.up_axis,
-            stature=args.stature,
-            options=MassModelOptions(
-                body_mass=args.body_mass, sex=args.sex, simulate_extremities=args.simulate_extremities
-            ),
-        )
+    top = None
+    if hasattr(args, "units"):  # the command line's clip options, as a config's top-level keys
         top = {
             k: v
             for k, v in dict(
@@ -722,7 +715,6 @@ def run_from_args(args) -> int:
         idyn_clips=tuple(args.idyn),
         plot=args.plot,
         dense_too=not args.no_dense,
-        load=load,
         mjx=not getattr(args, "no_mjx", False),
         free=not getattr(args, "no_free", False),
         top=top,

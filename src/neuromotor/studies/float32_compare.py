@@ -15,7 +15,7 @@ import pathlib
 
 from neuromotor.config import SimulationConfig
 from neuromotor.physics.precision import Precision
-from neuromotor.studies.simulate import RunResult, load_character, prepare, run
+from neuromotor.studies.simulate import RunResult, config_character, prepare, run
 
 # The agreement float32 must keep with float64 (issue 17): peak deviation within 1 %, recovery
 # time within one step.
@@ -79,7 +79,7 @@ class PrecisionComparison:
 def run_both(config: SimulationConfig) -> dict[Precision, RunResult]:
     """The config's hit run in float64 and in float32 (one character for both; no divergence
     check: divergence is part of what is compared)."""
-    character, traj = load_character(config.clip, config.units, config.up_axis, config.stature, config.mass_options())
+    character, traj = config_character(config)
     return {p: run(prepare(dataclasses.replace(config, dtype=p), character, traj), check=False) for p in Precision}
 
 

@@ -193,6 +193,12 @@ class ActingWindow:
             )
 
 
+def config_character(config: SimulationConfig) -> tuple[Character, Trajectory]:
+    """The character and trajectory of a config's clip, read with its units, up axis, stature
+    and body options."""
+    return load_character(config.clip, config.units, config.up_axis, config.stature, config.mass_options())
+
+
 def prepare(config: SimulationConfig, character: Character | None = None, traj: Trajectory | None = None) -> Setup:
     if config.dtype is Precision.FLOAT64 and not jax.config.jax_enable_x64:  # type: ignore[attr-defined]
         raise ConfigError(
@@ -200,9 +206,7 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
             '(JAX_ENABLE_X64 is set to false): unset it, or set [sim] dtype = "float32"'
         )
     if character is None:
-        character, traj = load_character(
-            config.clip, config.units, config.up_axis, config.stature, config.mass_options()
-        )
+        character, traj = config_character(config)
     assert traj is not None, "prepare: a character comes with its trajectory"
     model, clip = character.model, character.clip
     capture, still = traj, still_time(config, clip.duration)

@@ -4,8 +4,8 @@ a free root on the ground, the postural loop of :mod:`neuromotor.studies.balance
 from __future__ import annotations
 
 from neuromotor.config import simulation_config
-from neuromotor.model.load import default_clip_path, load_character
-from neuromotor.studies.simulate import prepare
+from neuromotor.model.load import default_clip_path
+from neuromotor.studies.simulate import config_character, prepare
 
 
 def standing_pose(clip=None, top: dict | None = None):
@@ -13,7 +13,7 @@ def standing_pose(clip=None, top: dict | None = None):
     loads it (``top``: its top-level keys) and the clip time of its most upright frame."""
     path = str(default_clip_path() if clip is None else clip)
     probe = simulation_config({**(top or {}), "clip": path}, "<standing>")
-    character, traj = load_character(probe.clip, probe.units, probe.up_axis, probe.stature, probe.mass_options())
+    character, traj = config_character(probe)
     anatomy = character.anatomy
     assert anatomy is not None, "a standing pose needs the clip's anatomy"
     return path, character, traj, anatomy.reference_frame * character.clip.frame_time

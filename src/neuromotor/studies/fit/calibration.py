@@ -386,11 +386,11 @@ def calibration_from_spec(cfg, spec: FitSpec, solver: str | None = None, charact
             if t.files and table.values.shape[0] != 1:
                 raise ConfigError(f"{path}: holds {table.values.shape[0]} cases; each of files = [...] gives one case")
             if table.bvh is not None:  # a recorded trial: checked against the clip before the inverse dynamics too
-                from neuromotor.studies.simulate import load_character
+                from neuromotor.studies.simulate import config_character
                 from neuromotor.studies.targets import match_trial
 
                 if character is None:
-                    character, traj = load_character(cfg.clip, cfg.units, cfg.up_axis, cfg.stature, cfg.mass_options())
+                    character, traj = config_character(cfg)
                 table = match_trial(table, character, cfg.h)
             tables.append(table)
         read.append(tables if t.files else tables[0])

@@ -157,11 +157,11 @@ def record_trial(
     from neuromotor.config.parse import simulation_config
     from neuromotor.io.export import export_bvh
     from neuromotor.studies.record import run_arrays
-    from neuromotor.studies.simulate import load_character, prepare, run, save_npz_atomic
+    from neuromotor.studies.simulate import config_character, prepare, run, save_npz_atomic
 
     cfg = simulation_config(data, source).with_gains(ks, kd)
     if character is None:
-        character, traj = load_character(cfg.clip, cfg.units, cfg.up_axis, cfg.stature, cfg.mass_options())
+        character, traj = config_character(cfg)
     setup = prepare(cfg, character, traj)
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
