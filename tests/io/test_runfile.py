@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -56,3 +58,17 @@ def test_info_of_a_bad_file_is_a_user_error(tmp_path, kind):
         np.savez(path, x=np.zeros(3))
     with pytest.raises(UserError, match="bad.npz"):
         read_run_info(path)
+
+
+@pytest.mark.parametrize("fields, needle", [
+    (dict(assist_force=np.zeros((5, 3))), "field 'assist_point' is missing (assist_force and assist_point come together)"),
+    (dict(assist_force=np.zeros((4, 3)), assist_point=np.zeros((5, 3))), "field 'assist_force' must have shape (T=5, 3)"),
+    (dict(assist_force=np.full((5, 3), np.nan), assist_point=np.zeros((5, 3))), "field 'assist_force'"),
+])
+def test_the_assist_fields_come_together_and_are_checked(tmp_path, fields, needle):
+    path = write_run(tmp_path / "run.npz", {**_minimal(), **fields})
+    with pytest.raises(RunFileError, match=re.escape(needle)):
+        read_run(path, EXPORT_FIELDS)
+    both = dict(assist_force=np.ones((5, 3)), assist_point=np.zeros((5, 3)))
+    got = read_run(write_run(tmp_path / "ok.npz", {**_minimal(), **both}), EXPORT_FIELDS)
+    np.testing.assert_array_equal(got["assist_force"], both["assist_force"])

@@ -5,6 +5,7 @@ central differences."""
 
 from __future__ import annotations
 
+import base64
 import dataclasses
 
 import jax
@@ -146,3 +147,47 @@ def test_assist_pulls_the_pelvis_back_and_reports_its_impulse():
     assert on["assist_impulse_Ns"] > 0 and 0 < on["assist_impulse_pct"] < 100
     drift = {k: float(jnp.linalg.norm(o.run.states.pos[-1, 0] - o.run.states.pos[0, 0])) for k, (_, o) in runs.items()}
     assert drift[50.0] < drift[0.0]
+
+
+def test_assist_on_a_platform_is_the_force_the_file_and_the_viewer_show():
+    """On a moving platform the assist pulls toward the captured path carried along with the
+    ground. What RUN.npz records as ``assist_force`` is the force the step applied: the body's
+    linear momentum changes by h (M g + F_assist) plus the ground's impulses, to round-off (the
+    joints' and the loop's torques are internal). Its impulse is the metrics', and the viewer
+    draws it as an arrow |F| / 500 N per m long from the pelvis."""
+    from neuromotor.studies.record import run_arrays
+    from neuromotor.studies.simulate import prepare, run
+    from neuromotor.studies.standing import standing_pose
+    from neuromotor.viz.html import viewer_data, yup_order
+
+    path, _, _, still = standing_pose()
+    base = {"kind": "base", "direction": "backward", "unit": "g", "magnitude": 0.1, "shape": "half_sine",
+            "duration": 0.2, "start": 0.1}
+    data = {"clip": path, "sim": {"root": "free", "still": still, "duration": 0.5}, "balance": {"assist": 40.0},
+            "perturbation": [base]}
+    setup = prepare(simulation_config(data, "platform.toml"))
+    result = run(setup)
+    arrays = run_arrays(setup, result)
+    force, h = arrays["assist_force"], setup.options.h
+    np.testing.assert_array_equal(arrays["assist_point"], np.asarray(result.perturbed.states.pos[:, 0]))
+    mass = np.asarray(setup.model.mass)
+    momentum = np.einsum("b,tbi->ti", mass, np.asarray(result.perturbed.states.vel))
+    ground = np.asarray(result.ground.contact.impulse).sum(1)[1:]  # the record after each step
+    gravity = np.asarray(setup.model.gravity) * mass.sum()
+    change = np.diff(momentum, axis=0)
+    np.testing.assert_allclose(change, h * (gravity + force[:-1]) + ground, rtol=0, atol=1e-11)
+    assert np.abs(h * force[:-1]).max() > 1e3 * 1e-11  # the check sees the assist
+    # The target moves with the platform: the same force about the still capture does not balance.
+    n, total = force.shape[0], mass.sum()
+    platform, platform_vel = (np.asarray(a)[:n] for a in (setup.pulses.base_offset, setup.pulses.base_velocity))
+    still = force - 40.0 * total * platform - 2 * np.sqrt(40.0) * total * platform_vel
+    assert np.abs(h * (still - force)[:-1]).max() > 1e-4
+    impulse = float(np.sum(np.linalg.norm(force[:-1], axis=1)) * h)
+    assert result.metrics["assist_impulse_Ns"] == pytest.approx(impulse, rel=1e-12)
+
+    page = viewer_data(arrays)
+    unpack = lambda part: np.frombuffer(base64.b64decode(part["b64"]), "<f4").reshape(part["shape"])
+    tail, tip = unpack(page["assist"]["tail"]), unpack(page["assist"]["tip"])
+    order = yup_order(int(arrays["up_axis"]))  # the page's frame is Y up
+    np.testing.assert_allclose(tip - tail, force[:, order] / 500.0, atol=1e-5)
+    np.testing.assert_allclose(tail, arrays["assist_point"][:, order], atol=1e-5)

@@ -283,8 +283,8 @@ GROUND_FIGURES = ("ground_peak_force_N", "ground_contact_fraction", "sway_rms_mm
 
 
 def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):
-    """A free root standing on the ground (the postural loop on) on a moving platform (a base
-    motion moves the ground): each row of a 2-row sweep, and experiment's run and its one-row
+    """A free root standing on the ground (the postural loop and the assist on) on a moving
+    platform (a base motion moves the ground): each row of a 2-row sweep, and experiment's run and its one-row
     sweep, equal ``neuromotor simulate`` (d(t) to 1e-10 deg, the ground and balance metrics to
     1e-9); a fit, whose forward model has no contact, refuses it naming the field."""
     from neuromotor.config.parse import fit_spec
@@ -292,6 +292,7 @@ def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):
     platform = dict(kind="base", direction="backward", unit="m/s^2", magnitude=2.0, shape="half_sine",
                     duration=0.15, start=0.85)
     data = config_data([platform], options={"root": "free", "still": 12.567, "duration": 0.3})
+    data["balance"] = {"assist": 20.0}  # its target rides on each row's own platform
     cfg = simulation_config(data, "platform.toml")
     spec = SweepSpec([2.0, 4.0], [GainSetting(400.0, 20.0)], chunk=2)
     grid = sw.simulate_grid(cfg, spec, prepare(cfg, *character), progress=False, keep_curves=True)
@@ -304,7 +305,7 @@ def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):
         np.testing.assert_allclose(curve, deviation_curve(setup, result.perturbed, result.unperturbed), rtol=0,
                                    atol=CURVE_TOL)
         _same_figures(row, metrics, f"ground row {row['run']}")
-        for key in GROUND_FIGURES:
+        for key in GROUND_FIGURES + ("assist_impulse_Ns", "assist_impulse_pct"):
             assert row[key] == pytest.approx(metrics[key], rel=1e-9, abs=1e-12), key
         assert (row["fell"], row["fall_time_s"], row["fall_body"]) == (metrics["fell"], metrics["fall_time_s"],
                                                                        metrics["fall_body"])

@@ -319,3 +319,29 @@ def test_page_without_webgl_says_so_and_still_draws_the_curve(run_file, tmp_path
     cursor = (r > 150) & (g < 60) & (b < 60)
     assert curve.sum() > 200 and cursor.sum() > 50
     assert _character(_view((dom, img))).sum() == 0   # no figure drawn
+
+
+def test_the_balance_assist_is_drawn_and_named_in_chromium(tmp_path):
+    """A run with the balance assist on (issue 38): its virtual force on the pelvis is an arrow
+    |F| / 500 N per m long in the page's Y-up frame, and the metrics line names it as help, not
+    physics, with its impulse."""
+    _need_chromium()
+    d = _zup_run(with_bodies=False, with_ball=False)
+    T = d["time"].shape[0]
+    point = np.tile([0.1, 0.2, 0.9], (T, 1))                  # Z up, as the run
+    force = np.zeros((T, 3))
+    force[:, 0] = 60.0 * np.sin(np.linspace(0.0, np.pi, T))   # along x, growing then shrinking
+    d.update(assist_force=force, assist_point=point,
+             metrics_json=np.asarray('{"peak_deviation_deg": 3.0, "assist_impulse_Ns": 12.5, "assist_impulse_pct": 0.75}'))
+    data = viewer_data(d)
+    tail, tip = _unpack(data["assist"]["tail"]), _unpack(data["assist"]["tip"])
+    order = [1, 2, 0]  # Z up to the page's Y up: a cyclic permutation (html.yup_order)
+    np.testing.assert_allclose(tail, point[:, order], atol=1e-6)
+    np.testing.assert_allclose(tip - tail, force[:, order] / 500.0, atol=1e-6)
+    np.savez(tmp_path / "assist.npz", **d)
+    page = write_viewer(tmp_path / "assist.npz", tmp_path / "assist.html")
+    dom = _open(page, "t=0.5", None, tmp_path, budget_ms=1500, window=(480, 360))
+    assert dom["errors"] == "", dom["errors"]
+    assert dom["console"] == [] and dom["status"] == "ready"
+    line = re.search(r'<div id="nm-metrics">([^<]*)<', dom["dom"]).group(1)
+    assert "assist (not physics, purple arrow) 12.5 N s = 0.75 % BW" in html.unescape(line), line

@@ -13,4 +13,5 @@ COLOR_PERTURBED = (0.90, 0.45, 0.20)  # orange
 COLOR_PERTURBED_JOINT = (0.62, 0.26, 0.10)
 COLOR_FORCE = (0.85, 0.05, 0.05)
 COLOR_BALL = (0.95, 0.85, 0.15)
+COLOR_ASSIST = (0.55, 0.20, 0.75)  # purple: the balance assist's virtual force (help, not physics)
 GROUND_COLORS = ((0.93, 0.93, 0.91), (0.84, 0.84, 0.82))

@@ -29,6 +29,9 @@ The file is a plain NumPy ``.npz`` (no pickles). Its fields, by group:
   ``grf_force`` (T, K, 3) its ground reaction force (N), ``grf_point`` (T, K, 3) the centre of
   pressure on the floor and ``grf_torque`` (T, K, 3) the free torque about it (N m);
   ``contact_points`` (T,) the touching vertices; ``residuals_json`` the RMS and peak figures;
+* the balance assist (issue 38; only when ``[balance] assist`` is on, both or neither):
+  ``assist_force`` (T, 3) the virtual force on the pelvis (N, world: help, not physics) and
+  ``assist_point`` (T, 3) the pelvis's COM where it acts (m);
 * body shapes (``SHAPE_FIELDS``, all or none): ``shape_vertices`` (V, 3) in the body frame less
   the body's COM, ``shape_faces`` (F, 3) and ``shape_body`` (V,) integer, with the poses
   ``body_pos`` (T, B, 3), ``body_quat`` (T, B, 4, w x y z) and their ``_unperturbed`` twins.
@@ -75,6 +78,8 @@ OPTIONAL_FIELDS = (
     "deviation_metric",
     "base_offset",
     "clip_still",
+    "assist_force",
+    "assist_point",
     "residual_force",
     "residual_moment",
     "residual_point",
@@ -350,6 +355,11 @@ class _Checker:
             self.finite("base_offset")
         if any(f in d for f in RESIDUAL_FIELDS):
             self.residuals(T)
+        if "assist_force" in d or "assist_point" in d:
+            for name in ("assist_force", "assist_point"):
+                if name not in d:
+                    fail(name, "is missing (assist_force and assist_point come together)")
+                self.vector_series(name, T)
         if "clip_still" in d:
             v = d["clip_still"]
             if v.shape != () or v.dtype.kind not in "fiu" or not (np.isfinite(v) and float(v) >= 0):

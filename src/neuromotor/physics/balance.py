@@ -433,8 +433,9 @@ def stepping_torques(model: Model, balance: Balance, sp: Stepping, state: State,
     return StepState(t_next, swing, start, anchor, held, count), torque, share
 
 
-def assist_force(model: Model, balance: Balance, state: State, target) -> Float[Array, " 3"]:
-    """The assist's force on the pelvis (N) toward ``target`` (its captured COM position)."""
+def assist_force(model: Model, balance: Balance, state: State, target, target_vel=0.0) -> Float[Array, " 3"]:
+    """The assist's force on the pelvis (N) toward ``target`` (its captured COM position, moved
+    with a moving ground) and ``target_vel`` (that ground's velocity; 0 on a still one)."""
     k = balance.assist
     mass = jnp.sum(model.mass)
-    return mass * (k * (target - state.pos[0]) - 2.0 * jnp.sqrt(jnp.maximum(k, 0.0)) * state.vel[0])
+    return mass * (k * (target - state.pos[0]) - 2.0 * jnp.sqrt(jnp.maximum(k, 0.0)) * (state.vel[0] - target_vel))

@@ -453,7 +453,7 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
         applied = applied.at[:, 3:].add(body_torques(model, torque))
     posture = None
     if params.gains.balance is not None:
-        applied, posture = balance_stage(sim, params.gains.balance, k, state, data.posture, applied)
+        applied, posture = balance_stage(sim, params.gains.balance, params.pulses, k, state, data.posture, applied)
     inertia = world_inertia(model, rot)
     r = momentum_rhs(
         model,
@@ -473,15 +473,20 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
     return Eq2(system, r, b, per_body, points, reflex, history, posture)
 
 
-def balance_stage(sim: SimModel, balance: Balance, k, state: State, posture, applied):
+def balance_stage(sim: SimModel, balance: Balance, pulses: ForcePulses, k, state: State, posture, applied):
     """Stage 3c: the standing feedforward, the delayed postural loop and the assist
-    (:mod:`neuromotor.physics.balance`) added to the applied forces: ``(applied, posture history)``."""
+    (:mod:`neuromotor.physics.balance`) added to the applied forces: ``(applied, posture history)``.
+    The assist pulls toward the captured path carried along by a base motion (a platform)."""
     model, ref = sim.model, sim.ref
     assert posture is not None  # init_data gives a balance loop its history
     torque, posture = balance_torques(model, balance, state, posture, sim.options.h)
     applied = applied.at[:, 3:].add(body_torques(model, torque))
     target = ref.root_origin[k] + ref.root_rot[k] @ model.com[0]
-    applied = applied.at[0, :3].add(assist_force(model, balance, state, target))
+    target_vel: Array | float = 0.0
+    if pulses.base_offset is not None:
+        assert pulses.base_velocity is not None
+        target, target_vel = target + pulses.base_offset[k], pulses.base_velocity[k]
+    applied = applied.at[0, :3].add(assist_force(model, balance, state, target, target_vel))
     return applied, posture
 
 

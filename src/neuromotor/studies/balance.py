@@ -100,6 +100,10 @@ class StandingTrace(NamedTuple):
     root_pos: np.ndarray  # (T, 3) the pelvis's COM (world)
     root_vel: np.ndarray  # (T, 3)
     diverged_step: int
+    # The base motion's displacement and velocity (T, 3; None: none): the assist pulls toward
+    # the captured path carried along by it (neuromotor.physics.dynamics.balance_stage).
+    base_offset: np.ndarray | None = None
+    base_velocity: np.ndarray | None = None
 
 
 def standing_trace(setup, out: ContactRollout, platform=None) -> StandingTrace:
@@ -108,6 +112,7 @@ def standing_trace(setup, out: ContactRollout, platform=None) -> StandingTrace:
     n, states = out.run.time.shape[0], out.run.states
     com = com_path(setup.model, states.pos) - (0.0 if platform is None else np.asarray(platform)[:n])
     touch = ground_touch(setup, np.asarray(out.contact.normal_impulse)[:, -setup.ground.n_slots :])
+    pulses = setup.pulses
     return StandingTrace(
         np.asarray(out.run.time),
         com,
@@ -115,6 +120,8 @@ def standing_trace(setup, out: ContactRollout, platform=None) -> StandingTrace:
         np.asarray(states.pos[:, 0]),
         np.asarray(states.vel[:, 0]),
         int(out.run.diverged_step),
+        None if pulses.base_offset is None else np.asarray(pulses.base_offset)[:n],
+        None if pulses.base_velocity is None else np.asarray(pulses.base_velocity)[:n],
     )
 
 
@@ -173,23 +180,35 @@ def sway(setup, out: ContactRollout | StandingTrace) -> dict:
     }
 
 
-def assist_impulse(setup, out: ContactRollout | StandingTrace) -> dict:
-    """The assist's impulse (N s, and % of body weight x duration); empty when it is off."""
-    trace = _trace(setup, out)
+def assist_forces(setup, root_pos, root_vel, base_offset=None, base_velocity=None) -> np.ndarray | None:
+    """The assist's force on the pelvis per sample (T, 3, N, world) from the pelvis's COM
+    position and velocity (T, 3), as the step applies it (:func:`neuromotor.physics.balance.assist_force`):
+    toward the captured path, carried along by a base motion (its displacement and velocity,
+    (T, 3) each, or None); None when the assist is off."""
     bal = setup.gains.balance
     if bal is None or float(bal.assist) == 0.0:
-        return {}
+        return None
     model, ref = setup.model, setup.ref
-    k = float(bal.assist)
+    k, n = float(bal.assist), root_pos.shape[0]
     mass = float(np.sum(model.mass))
-    n = trace.root_pos.shape[0]
     target = np.asarray(ref.root_origin[:n]) + np.einsum(
         "tij,j->ti", np.asarray(ref.root_rot[:n]), np.asarray(model.com[0])
     )
-    force = mass * (k * (target - trace.root_pos) - 2 * np.sqrt(k) * trace.root_vel)
-    h = setup.options.h
+    target_vel: np.ndarray | float = 0.0
+    if base_offset is not None:
+        target, target_vel = target + np.asarray(base_offset)[:n], np.asarray(base_velocity)[:n]
+    return mass * (k * (target - root_pos) - 2 * np.sqrt(k) * (root_vel - target_vel))
+
+
+def assist_impulse(setup, out: ContactRollout | StandingTrace) -> dict:
+    """The assist's impulse (N s, and % of body weight x duration); empty when it is off."""
+    trace = _trace(setup, out)
+    force = assist_forces(setup, trace.root_pos, trace.root_vel, trace.base_offset, trace.base_velocity)
+    if force is None:
+        return {}
+    n, h = force.shape[0], setup.options.h
     impulse = float(np.sum(np.linalg.norm(force[:-1], axis=-1)) * h)
-    weight = mass * float(np.linalg.norm(np.asarray(model.gravity)))
+    weight = float(np.sum(setup.model.mass)) * float(np.linalg.norm(np.asarray(setup.model.gravity)))
     return {"assist_impulse_Ns": impulse, "assist_impulse_pct": 100 * impulse / (weight * h * (n - 1))}
 
 

@@ -232,6 +232,15 @@ def run_arrays(setup: Setup, result: RunResult, residuals: bool | None = None) -
         from neuromotor.studies.ball_hit import ball_arrays
 
         arrays.update(ball_arrays(setup, result))
+    if getattr(setup.gains, "balance", None) is not None:  # the assist, when on: help, not physics
+        from neuromotor.studies.balance import assist_forces
+
+        states = result.perturbed.states
+        root_pos, root_vel = np.asarray(states.pos[:, 0]), np.asarray(states.vel[:, 0])
+        pulses = setup.pulses
+        assist = assist_forces(setup, root_pos, root_vel, pulses.base_offset, pulses.base_velocity)
+        if assist is not None:
+            arrays["assist_force"], arrays["assist_point"] = assist, root_pos
     contact = result.ball if getattr(result, "ball", None) is not None else getattr(result, "ground", None)
     if getattr(setup, "ground", None) is not None and contact is not None:
         from neuromotor.studies.ground import ground_arrays

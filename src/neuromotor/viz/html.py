@@ -46,10 +46,12 @@ from neuromotor.io.runfile import DRAW_FIELDS, PLOT_FIELDS, check_run, json_fiel
 from neuromotor.viz.data import RenderError, load_run
 from neuromotor.viz.scene import Scene
 from neuromotor.viz.style import (
+    COLOR_ASSIST,
     COLOR_BALL,
     COLOR_FORCE,
     COLOR_GHOST,
     COLOR_PERTURBED,
+    FORCE_SCALE_N_PER_M,
     GROUND_TILE_M,
 )
 
@@ -162,6 +164,20 @@ def _force_part(scene: Scene, order) -> dict:
     }
 
 
+def _assist_part(d, order) -> dict | None:
+    """The balance assist's virtual force on the pelvis (when the run had it on): an arrow from
+    the pelvis's COM along the force, ``|F| / FORCE_SCALE_N_PER_M`` long, at every sample, so
+    that help is never taken for physics."""
+    if "assist_force" not in d:
+        return None
+    force, point = np.asarray(d["assist_force"], float), np.asarray(d["assist_point"], float)
+    return {
+        "tail": _packed(point[:, order]),
+        "tip": _packed((point + force / FORCE_SCALE_N_PER_M)[:, order]),
+        "peak_N": float(np.linalg.norm(force, axis=1).max()),
+    }
+
+
 def _framing(scene: Scene, order) -> dict:
     """Camera (three-quarter front view as in the filmstrip, perspective) and ground grid."""
     pts = np.concatenate([scene.P.reshape(-1, 3), scene.U.reshape(-1, 3)])[:, order]
@@ -198,7 +214,13 @@ def _meta(d, scene: Scene) -> dict:
         "up_axis": scene.up_axis,
         "hits": [[float(t[a]), float(t[b])] for a, b in zip(starts, ends)],
         "metrics": _strict_json(json_field(d, "metrics_json")),
-        "colors": {"perturbed": COLOR_PERTURBED, "ghost": COLOR_GHOST, "force": COLOR_FORCE, "ball": COLOR_BALL},
+        "colors": {
+            "perturbed": COLOR_PERTURBED,
+            "ghost": COLOR_GHOST,
+            "force": COLOR_FORCE,
+            "ball": COLOR_BALL,
+            "assist": COLOR_ASSIST,
+        },
     }
 
 
@@ -228,6 +250,7 @@ def viewer_data(d: Mapping[str, np.ndarray]) -> dict:
         "force": _force_part(scene, order),
         "deviation": None,
         "ball": None,
+        "assist": _assist_part(d, order),
     }
     if "deviation" in d:  # the curve the run's metrics came from ([sim] metric)
         out["deviation"] = _packed(d["deviation"])

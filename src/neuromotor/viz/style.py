@@ -4,6 +4,7 @@ are the run's one palette (:mod:`neuromotor.io.palette`), shared with the glTF e
 from __future__ import annotations
 
 from neuromotor.io.palette import (  # noqa: F401  (re-exported: the pictures' colours)
+    COLOR_ASSIST,
     COLOR_BALL,
     COLOR_FORCE,
     COLOR_GHOST,

@@ -162,26 +162,40 @@ function poseFigure(fig, k) {
   }
 }
 
-// Force arrow: shaft and head, tail -> tip.
-const F = D.force;
-const fTail = unpack(F.tail), fTip = unpack(F.tip), fOn = unpack(F.on);
-const forceMat = new THREE.MeshStandardMaterial({ color: rgb(COLORS.force), roughness: 0.5 });
-const shaft = new THREE.Mesh(new THREE.CylinderGeometry(0.012, 0.012, 1, 12), forceMat);
-const head = new THREE.Mesh(new THREE.ConeGeometry(0.035, 0.09, 16), forceMat);
-layers.forces.add(shaft, head);
+// Arrows: shaft and head, tail -> tip. The hit's force, and the balance assist's virtual force
+// on the pelvis when the run had it on (help, not physics: drawn so that it is seen).
+function arrowMeshes(color) {
+  const mat = new THREE.MeshStandardMaterial({ color: rgb(color), roughness: 0.5 });
+  const m = { shaft: new THREE.Mesh(new THREE.CylinderGeometry(0.012, 0.012, 1, 12), mat),
+              head: new THREE.Mesh(new THREE.ConeGeometry(0.035, 0.09, 16), mat) };
+  layers.forces.add(m.shaft, m.head);
+  return m;
+}
 
-function poseArrow(k) {
-  const on = fOn[k] > 0;
-  shaft.visible = head.visible = on;
+function poseArrowMeshes(m, tail, tip, k, on) {
+  _a.fromArray(tail, 3 * k);
+  _b.fromArray(tip, 3 * k);
+  on = on && _a.distanceTo(_b) > 1e-6;
+  m.shaft.visible = m.head.visible = on;
   if (!on) return;
-  _a.fromArray(fTail, 3 * k);
-  _b.fromArray(fTip, 3 * k);
   const headLen = Math.min(0.09, 0.5 * _a.distanceTo(_b));
   _d.subVectors(_b, _a).normalize();
   const neck = _b.clone().addScaledVector(_d, -headLen);
-  shaft.scale.set(1, Math.max(spanBetween(shaft, _a, neck), 1e-6), 1);
-  spanBetween(head, neck, _b);
-  head.scale.set(1, Math.max(headLen, 1e-6) / 0.09, 1);
+  m.shaft.scale.set(1, Math.max(spanBetween(m.shaft, _a, neck), 1e-6), 1);
+  spanBetween(m.head, neck, _b);
+  m.head.scale.set(1, Math.max(headLen, 1e-6) / 0.09, 1);
+}
+
+const F = D.force;
+const fTail = unpack(F.tail), fTip = unpack(F.tip), fOn = unpack(F.on);
+const forceArrow = arrowMeshes(COLORS.force);
+const A = D.assist;
+const assistArrow = A ? arrowMeshes(COLORS.assist) : null;
+const aTail = A ? unpack(A.tail) : null, aTip = A ? unpack(A.tip) : null;
+
+function poseArrow(k) {
+  poseArrowMeshes(forceArrow, fTail, fTip, k, fOn[k] > 0);
+  if (assistArrow) poseArrowMeshes(assistArrow, aTail, aTip, k, true);
 }
 
 // Ball.
@@ -400,6 +414,7 @@ function describe() {
   if (num(m.peak_deviation_deg)) bits.push('peak ' + m.peak_deviation_deg.toFixed(2) + ' deg' + (num(m.time_of_peak_s) ? ' at ' + m.time_of_peak_s.toFixed(2) + ' s' : ''));
   if (num(m.recovery_time_s)) bits.push('recovery ' + m.recovery_time_s.toFixed(2) + ' s');
   if (F.label) bits.push('hit ' + F.label);
+  if (num(m.assist_impulse_Ns)) bits.push('assist (not physics, purple arrow) ' + m.assist_impulse_Ns.toFixed(1) + ' N s' + (num(m.assist_impulse_pct) ? ' = ' + m.assist_impulse_pct.toFixed(2) + ' % BW' : ''));
   $('nm-metrics').textContent = bits.join(' \u00b7 ');
 }
 

@@ -121,7 +121,18 @@ def ground_row_metrics(setup, batch: RunBatch, i: int, out: dict) -> dict:
     if setup.options.free_root and offset is not None:  # a base motion moves the ground
         com = com - np.asarray(offset)[i][: com.shape[0]]
     touch = np.asarray(out["touch"]) > 0
+    # The row's own base motion (the sweep may vary it): the assist's target moves with it.
+    pulses, n = batch.pulses, com.shape[0]
+    base = None if pulses.base_offset is None else np.asarray(pulses.base_offset)[i][:n]
+    base_vel = None if pulses.base_velocity is None else np.asarray(pulses.base_velocity)[i][:n]
     trace = StandingTrace(
-        time, com, touch, np.asarray(out["root_pos"]), np.asarray(out["root_vel"]), int(out["diverged_step"])
+        time,
+        com,
+        touch,
+        np.asarray(out["root_pos"]),
+        np.asarray(out["root_vel"]),
+        int(out["diverged_step"]),
+        base,
+        base_vel,
     )
     return ground_figures(out["total"], setup.options.h) | balance_metrics(setup, trace)
