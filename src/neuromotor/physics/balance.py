@@ -378,17 +378,20 @@ def balance_torques(model: Model, balance: Balance, state: State, posture: Postu
     history = push(posture.history, angle, rate)
     past, past_rate = delayed(history.angle, balance.delay, h), delayed(history.rate, balance.delay, h)
     up = up_of(model)
-    lean, lean_rate, extra = past[0], past_rate[0], None
-    share = jnp.full(len(balance.ankles), 1.0 / len(balance.ankles))
-    if sp is not None:
+    extra, share = None, None
+    # Torque on the bodies above the ankles (opposes gravity's m g H up x lean) and on the pelvis.
+    if sp is None:
+        body = -balance.mgh * jnp.cross(up, balance.kp * past[0] + balance.kd * past_rate[0])
+    else:
         assert step is not None
         step, extra, share, frontal = stepping_torques(model, balance, sp, state, step, past, past_rate, h, origin)
-        lean, lean_rate = lean - frontal @ lean, lean_rate - frontal @ lean_rate
-    # Torque on the bodies above the ankles (opposes gravity's m g H up x lean) and on the pelvis.
-    body = -balance.mgh * jnp.cross(up, balance.kp * lean + balance.kd * lean_rate)
+        lean, lean_rate = past[0] - frontal @ past[0], past_rate[0] - frontal @ past_rate[0]
+        body = -balance.mgh * jnp.cross(up, balance.kp * lean + balance.kd * lean_rate)
     pelvis = -balance.mgh * (balance.hip_kp * past[1] + balance.hip_kd * past_rate[1])
     rot = quat_to_matrix(state.quat)
     torque = mv(rot[np.asarray(model.topology.parent)], balance.support)
+    if share is None:  # the ops in the order of the loop without stepping (the same program)
+        share = jnp.full(len(balance.ankles), 1.0 / len(balance.ankles))
     if extra is not None:
         torque = torque + extra
     # A joint torque acts +T on the child, -T on the parent: the ankle's parent is the shank.
