@@ -321,7 +321,7 @@ def parse_balance(top: Fields) -> BalanceSpec:
     if out["delay"] > out["max_delay"]:
         f.fail("delay", f"= {out['delay']:g} s is longer than balance.max_delay = {out['max_delay']:g} s")
     out["stepping"] = f.boolean("stepping", d("stepping"))
-    zero_ok = ("step_margin", "step_offset", "step_lift")
+    zero_ok = ("step_margin", "step_offset", "step_lift", "shift_fraction", "step_crouch")
     for k in STEPPING_KEYS:
         out[k] = f.number(k, d(k), nonneg=k in zero_ok, positive=k not in zero_ok)
     f.done()

@@ -332,14 +332,15 @@ class BalanceSpec:
     assist: float = 0.0  # 1/s^2: spring-damper on the pelvis toward its captured path; 0: off
     max_delay: float = _balance.MAX_DELAY  # s: the history buffer
     # Stepping when the capture point leaves the support (neuromotor.physics.balance, "Stepping").
-    stepping: bool = False  # off: it does not lift the foot yet (docs/balance.md, "Stepping")
+    stepping: bool = False  # off: it steps but does not recover yet (docs/balance.md, "Stepping")
     step_margin: float = _balance.STEP_MARGIN  # m beyond the soles' segment
     step_offset: float = _balance.STEP_OFFSET  # m beyond the capture point
     max_step: float = _balance.MAX_STEP  # m
     swing_time: float = _balance.SWING_TIME  # s
     step_lift: float = _balance.STEP_LIFT  # m
-    foot_kp: float = _balance.FOOT_KP  # N/m
-    foot_kd: float = _balance.FOOT_KD  # N s/m
+    weight_shift: float = _balance.WEIGHT_SHIFT  # s before lift-off
+    shift_fraction: float = _balance.SHIFT_FRACTION  # of the way to the stance foot
+    step_crouch: float = _balance.STEP_CROUCH  # m
     step_blend: float = _balance.STEP_BLEND  # s
 
     def on(self, root: str, ground_on: bool) -> bool:
@@ -362,8 +363,9 @@ STEPPING_KEYS = (
     "max_step",
     "swing_time",
     "step_lift",
-    "foot_kp",
-    "foot_kd",
+    "weight_shift",
+    "shift_fraction",
+    "step_crouch",
     "step_blend",
 )
 

@@ -54,7 +54,14 @@ from neuromotor.errors import UserError
 from neuromotor.model.kinematics import Trajectory, body_kinematics, joint_angles_from_q
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import solvers
-from neuromotor.physics.balance import Balance, Posture, assist_force, balance_torques, empty_posture
+from neuromotor.physics.balance import (
+    Balance,
+    Posture,
+    assist_force,
+    balance_torques,
+    empty_posture,
+    swing_reference,
+)
 from neuromotor.physics.constraints import PoseTargets, constraint_count, constraint_velocity, post_stabilize
 from neuromotor.physics.control import (
     ControllerInputs,
@@ -444,6 +451,17 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
     k, state = data.k, data.state
     rot = state.rot
     inputs = reference_inputs(sim, params.gains, k)
+    balance, stepped = params.gains.balance, None
+    if balance is not None and balance.stepping is not None:
+        # Stepping retargets the legs' reference, so the loop runs before the stiff forces.
+        assert data.posture is not None  # init_data gives a balance loop its carry
+        stepped = balance_torques(model, balance, state, data.posture, cfg.h)
+        step_state = stepped[1].step
+        assert step_state is not None
+        rel_rot, rel_quat, rel_omega = swing_reference(
+            model, balance, state, step_state, inputs.rel_rot, inputs.rel_quat, inputs.rel_omega
+        )
+        inputs = dataclasses.replace(inputs, rel_rot=rel_rot, rel_quat=rel_quat, rel_omega=rel_omega)
     stiff = stiff_forces(sim, params.gains, inputs, state, solver.tree_blocks, solver.unrolled)
     applied, per_body, points = applied_forces(sim, params.pulses, k, state)
     reflex, history = None, None
@@ -452,8 +470,8 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
         torque, reflex, history = delayed_reflex(sim, params.gains, inputs, state, data.history)
         applied = applied.at[:, 3:].add(body_torques(model, torque))
     posture = None
-    if params.gains.balance is not None:
-        applied, posture = balance_stage(sim, params.gains.balance, params.pulses, k, state, data.posture, applied)
+    if balance is not None:
+        applied, posture = balance_stage(sim, balance, params.pulses, k, state, data.posture, applied, stepped)
     inertia = world_inertia(model, rot)
     r = momentum_rhs(
         model,
@@ -473,16 +491,20 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
     return Eq2(system, r, b, per_body, points, reflex, history, posture)
 
 
-def balance_stage(sim: SimModel, balance: Balance, pulses: ForcePulses, k, state: State, posture, applied):
+def balance_stage(sim: SimModel, balance: Balance, pulses: ForcePulses, k, state: State, posture, applied, done=None):
     """Stage 3c: the standing feedforward, the delayed postural loop and the assist
-    (:mod:`neuromotor.physics.balance`) added to the applied forces: ``(applied, posture history)``.
-    The assist pulls toward the captured path carried along by a base motion (a platform)."""
+    (:mod:`neuromotor.physics.balance`) added to the applied forces: ``(applied, posture history)``;
+    ``done``: the loop's ``(torque, posture)`` when already computed (stepping). The assist pulls
+    toward the captured path carried along by a base motion (a platform)."""
     model, ref = sim.model, sim.ref
     assert posture is not None  # init_data gives a balance loop its history
-    torque, posture = balance_torques(model, balance, state, posture, sim.options.h)
+    if done is None:
+        torque, posture = balance_torques(model, balance, state, posture, sim.options.h)
+    else:
+        torque, posture = done
     applied = applied.at[:, 3:].add(body_torques(model, torque))
     target = ref.root_origin[k] + ref.root_rot[k] @ model.com[0]
-    target_vel: Array | float = 0.0
+    target_vel = None
     if pulses.base_offset is not None:
         assert pulses.base_velocity is not None
         target, target_vel = target + pulses.base_offset[k], pulses.base_velocity[k]
