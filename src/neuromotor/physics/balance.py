@@ -407,6 +407,11 @@ def smoothstep(s):
     return s * s * (3.0 - 2.0 * s), 6.0 * s * (1.0 - s)
 
 
+def sole_world(sp: Stepping, state: State, feet, rot) -> Float[Array, "2 3"]:
+    """Each foot's point of support (``Stepping.sole_local``) in the world at ``state``."""
+    return state.pos[feet] + jnp.einsum("fij,fj->fi", rot[feet], sp.sole_local)
+
+
 def capture_excess(model: Model, balance: Balance, sp: Stepping, state: State, lean, rate, origin=None):
     """``(capture point (3,), its horizontal excess beyond the soles' segment (3,), soles (2, 3),
     ankles (2, 3))``, the capture point ``x_com + v_com / omega0`` from the delayed lean
@@ -414,7 +419,7 @@ def capture_excess(model: Model, balance: Balance, sp: Stepping, state: State, l
     up, rot = up_of(model), quat_to_matrix(state.quat)
     feet = jnp.asarray(balance.feet)
     ankle = joint_origins(model, state.pos, rot)[feet]
-    sole = state.pos[feet] + jnp.einsum("fij,fj->fi", rot[feet], sp.sole_local)
+    sole = sole_world(sp, state, feet, rot)
     omega0 = jnp.sqrt(jnp.linalg.norm(model.gravity) / balance.height)
     origin = jnp.mean(ankle, 0) if origin is None else origin
     cp = horizontal(origin, up) + balance.height * (lean + balance.lean0 + rate / omega0)
@@ -480,7 +485,7 @@ def pelvis_shift(model: Model, balance: Balance, sp: Stepping, state: State, ste
     ph = phase_of(sp, step)
     up, rot = up_of(model), quat_to_matrix(state.quat)
     feet = jnp.asarray(balance.feet)
-    sole = horizontal(state.pos[feet] + jnp.einsum("fij,fj->fi", rot[feet], sp.sole_local), up)
+    sole = horizontal(sole_world(sp, state, feet, rot), up)
     d = sole[1] - sole[0]
     across = d / jnp.sqrt(jnp.dot(d, d))
     lateral = jnp.dot((1.0 - ph.pick) @ sole - 0.5 * (sole[0] + sole[1]), across) * across
