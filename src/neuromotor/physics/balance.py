@@ -523,15 +523,15 @@ def stepping_torques(
     # The stance foot's anchor follows it until landing: from then both feet hold where they are.
     landed = ph.active & ~ph.shifting & ~ph.in_air
     anchor = jnp.where((ph.pick[:, None] < 0.5) & ph.active & ~landed, ankle, anchor)
-    # The weight shift is the legs' (swing_reference): the ankles, whose toe-ring feet roll
-    # under any sizeable torque across the feet's axis, drop the loop's lean across it.
+    # The weight shift is the legs' (swing_reference): the loop drops its lean across the feet's
+    # axis, so that it does not resist the shift.
     stance = 1.0 - ph.pick
     across = d / jnp.sqrt(jnp.dot(d, d))
     frontal = ph.lean * jnp.outer(across, across)
     # From lift-off the swing leg drops its standing feedforward and the stance leg carries it all.
     torque = ph.single * mv(rot[np.asarray(model.topology.parent)], jnp.einsum("f,fci->ci", stance, sp.shift))
     # The loop's ankle torque follows the load: onto the swing foot while the weight shift loads
-    # it, then half of it on the stance foot alone (a toe-ring foot tips under more).
+    # it, then half of it on the stance foot alone.
     apa = 0.5 + ph.lean * (ph.pick - 0.5)
     share = (1.0 - ph.single) * apa + ph.single * stance * 0.5
     # The clock runs while stepping; idle again once landed and blended.
