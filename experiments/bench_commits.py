@@ -1,7 +1,7 @@
 """Speed of the working tree against an earlier commit, timed in alternation in one process.
 
     .venv/bin/python experiments/bench_commits.py REV [--batch 1] [--repeats 15] [--solver branch] [--rev-solver branch]
-        [--jacobians jacfwd] [--seconds 1.0] [--gain-jacobian] [--rates]
+        [--jacobians jacfwd] [--seconds 1.0] [--gain-jacobian] [--rates] [--free]
 
 The host's speed drifts by 2x between runs minutes apart, so two separate benchmark runs cannot
 resolve a 10 % change. This script extracts ``src/neuromotor`` of commit REV (``git archive``)
@@ -10,7 +10,8 @@ both versions on the embedded clip (one trajectory, or ``--batch N`` pulse magni
 ``vmap``), checks that they compute the same joint angles, and times the two alternately
 (``--gain-jacobian``: ``jax.jacfwd`` of the joint angles over (ks, kd) instead, as in
 ``neuromotor bench``; ``--rates``: the joint rates theta_dot returned beside the angles, as
-sweeps that write them and the acceleration targets of ``fit`` use them). The best of each is
+sweeps that write them and the acceleration targets of ``fit`` use them; ``--free``: the free root
+standing on the ground with its balance loop, issue 38, instead of the driven rollout). The best of each is
 printed, in microseconds per trajectory-step, and the speedup both as the ratio of the bests and
 as the median of the rounds' ratios (the steadier of the two when the host drifts within the run).
 """
@@ -91,6 +92,24 @@ def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | N
     return (lambda: fn(scales, g, ref)), theta, batch * cfg.n_steps
 
 
+def _free_program(pkg: str, seconds: float):
+    """(zero-argument compiled call, its body positions, steps per call) of the free-standing
+    rollout on the ground (issue 38): ``standing_setup``'s pose, balance on, one trajectory."""
+    import jax
+
+    standing = _module(pkg, "studies.standing")
+    ground = _module(pkg, "studies.ground")
+    contact = _module(pkg, "physics.contact")
+    compiler = importlib.import_module(f"{pkg}.compiler")
+    s = standing.standing_setup(seconds)
+    scene = ground.ground_scene(s.ground)
+    fn = compiler.jit(lambda sim, params: contact.simulate_contact(sim, params, scene).run.states.pos)
+    start = time.perf_counter()
+    pos = jax.block_until_ready(fn(s.sim_model, s.params))
+    print(f"{pkg}: trace and compile {time.perf_counter() - start:.1f} s")
+    return (lambda: fn(s.sim_model, s.params)), pos, s.options.n_steps
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("rev", help="the commit to compare with (e.g. HEAD~1)")
@@ -102,6 +121,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=1.0, help="simulated seconds per rollout (neuromotor bench's batches: 0.25)")
     ap.add_argument("--gain-jacobian", action="store_true", help="time jacfwd over (ks, kd) instead of the rollout")
     ap.add_argument("--rates", action="store_true", help="return the joint rates beside the angles")
+    ap.add_argument("--free", action="store_true", help="the free-standing rollout on the ground instead (issue 38)")
     args = ap.parse_args(argv)
     import jax
     import jax.numpy as jnp
@@ -113,10 +133,13 @@ def main(argv=None) -> int:
         runs = {}
         for name, pkg, solver, jac in (("working tree", "neuromotor", args.solver, args.jacobians),
                                        (args.rev, old_pkg, args.rev_solver, None)):
-            runs[name] = _program(pkg, args.batch, solver, jac, args.seconds, args.gain_jacobian, args.rates)
+            if args.free:
+                runs[name] = _free_program(pkg, args.seconds)
+            else:
+                runs[name] = _program(pkg, args.batch, solver, jac, args.seconds, args.gain_jacobian, args.rates)
         (new, th_new, steps), (old, th_old, _) = runs.values()
         what = ("theta, theta_dot" if args.rates else "theta")
-        what = f"d({what}) / d(ks, kd)" if args.gain_jacobian else what
+        what = f"d({what}) / d(ks, kd)" if args.gain_jacobian else "body positions" if args.free else what
         print(f"max |{what}: working tree - {args.rev}|: {float(jnp.max(jnp.abs(th_new - th_old))):.2e}")
         times = {name: [] for name in runs}
         for _ in range(args.repeats):

@@ -184,6 +184,12 @@ def test_assist_on_a_platform_is_the_force_the_file_and_the_viewer_show():
     assert np.abs(h * (still - force)[:-1]).max() > 1e-4
     impulse = float(np.sum(np.linalg.norm(force[:-1], axis=1)) * h)
     assert result.metrics["assist_impulse_Ns"] == pytest.approx(impulse, rel=1e-12)
+    # The contact solve's residual: the metrics are the record's, over the steps with a contact.
+    residual, touching = np.asarray(result.ground.contact.residual), np.asarray(result.ground.contact.active)
+    assert result.metrics["max_lcp_residual_mps"] == residual.max() > 0.0
+    step_max = residual.max(-1)[touching.any(-1)]
+    assert result.metrics["lcp_residual_p95_mps"] == pytest.approx(np.percentile(step_max, 95), rel=1e-12)
+    assert np.all(residual[~touching] == 0.0)
 
     page = viewer_data(arrays)
     unpack = lambda part: np.frombuffer(base64.b64decode(part["b64"]), "<f4").reshape(part["shape"])

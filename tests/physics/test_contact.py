@@ -251,6 +251,30 @@ def test_pgs_solves_random_contact_lcps():
             assert (normals @ ft).max() <= mu * lam * np.cos(np.pi / sides) + 1e-12
 
 
+def test_lcp_residual_is_zero_at_solutions_and_measures_the_distance_otherwise():
+    """lcp_residual in closed form on one isotropic contact (W = 2 I): zero at the sticking and
+    at the sliding solution, |w_n| at an impulse that leaves the contact approaching; zero on an
+    inactive contact; on random LCPs small after 300 PGS sweeps and not after one."""
+    w, sides, mu = 2.0 * jnp.eye(3), 8, 0.5
+    on = jnp.array([True])
+    res = lambda q, p, active=on: float(ct.lcp_residual(w, jnp.asarray(q), mu, active, jnp.asarray([p]), sides)[0])
+    assert res([-1.0, 0.0, 0.0], [0.5, 0.0, 0.0]) == 0.0  # lam = -q_n / W_nn, no tangential load
+    # Sliding: the sticking force (1.5) is beyond mu lam = 0.25, so f_t = 0.25 against w_t = -2.5.
+    assert res([-1.0, -3.0, 0.0], [0.5, 0.25, 0.0]) == pytest.approx(0.0, abs=1e-15)
+    assert res([-1.0, 0.0, 0.0], [0.3, 0.0, 0.0]) == pytest.approx(0.4, rel=1e-12)  # w_n = -0.4
+    # Friction off the law: f_t = 0.1 while sliding; Proj(0.1 + 0.5 * 2.8) = 0.25, over s = 0.5.
+    assert res([-1.0, -3.0, 0.0], [0.5, 0.1, 0.0]) == pytest.approx(0.3, rel=1e-12)
+    assert res([-1.0, 0.0, 0.0], [0.3, 0.0, 0.0], jnp.array([False])) == 0.0
+    rng = np.random.default_rng(11)
+    for _ in range(3):
+        j = rng.normal(size=(9, 12))
+        wm, q = jnp.asarray(j @ j.T / 12 + 2.0 * np.eye(9)), jnp.asarray(rng.normal(size=9) - 1.0)
+        active = jnp.array([True, True, True])
+        solve = lambda n: ct.solve_lcp_pgs(wm, q, 0.6, active, jnp.zeros((3, 3)), sides, n)
+        assert float(jnp.max(ct.lcp_residual(wm, q, 0.6, active, solve(300), sides))) < 1e-10
+        assert float(jnp.max(ct.lcp_residual(wm, q, 0.6, active, solve(1), sides))) > 1e-6
+
+
 def test_capsules_cover_every_polyhedron_vertex():
     character, _ = load_character()
     caps = ct.fit_capsules(character)

@@ -152,6 +152,7 @@ def test_box_at_rest_carries_its_weight_without_drift(box, runs):
     active = np.asarray(out.contact.active)[1:]
     assert np.all(active.sum(-1) == 4)
     assert np.abs(np.asarray(out.contact.slack)[1:][active]).max() < 1e-9
+    assert float(np.asarray(out.contact.residual).max()) < 1e-9  # the LCP solved every step
 
 
 def test_sliding_box_decelerates_at_mu_g_and_stops(runs):

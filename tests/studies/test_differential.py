@@ -262,6 +262,9 @@ def test_a_ball_gives_the_same_answer_through_every_command(character, tmp_path)
                             progress=False, keep_curves=True)
     np.testing.assert_allclose(grid.curves[0], dev, rtol=0, atol=CURVE_TOL)
     _same_figures(grid.rows[0], metrics, "ball sweep")
+    assert metrics["max_lcp_residual_mps"] > 0.0  # the contact solve's residual, as the sweep reports it
+    for key in ("max_lcp_residual_mps", "lcp_residual_p95_mps"):
+        assert grid.rows[0][key] == pytest.approx(metrics[key], rel=1e-9, abs=1e-12), key
 
     exp = ExperimentSpec(kind="contrast", output=tmp_path, controllers=(GainSetting(400.0, 20.0),), magnitudes=(10.0,))
     numbers = experiments.contrast(cfg, exp, progress=False)
@@ -279,7 +282,7 @@ def test_a_ball_gives_the_same_answer_through_every_command(character, tmp_path)
 
 
 GROUND_FIGURES = ("ground_peak_force_N", "ground_contact_fraction", "sway_rms_mm", "sway_range_ap_mm",
-                  "sway_range_ml_mm", "sway_rms_late_mm")
+                  "sway_range_ml_mm", "sway_rms_late_mm", "max_lcp_residual_mps", "lcp_residual_p95_mps")
 
 
 def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):

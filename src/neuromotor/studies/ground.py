@@ -97,6 +97,17 @@ def ground_figures(total, h: float) -> dict:
     }
 
 
+def lcp_figures(step_residual, touching) -> dict:
+    """How well each step's contact LCP was solved (any contact run, the ball's too): the
+    largest residual (m/s, :func:`~neuromotor.physics.contact.lcp.lcp_residual`) over the run,
+    and the 95th percentile of each step's largest over the steps with a contact (both 0.0 with
+    no contact). ``step_residual``, ``touching``: per step, as ``ContactInfo`` gives them."""
+    r = np.asarray(step_residual)[np.asarray(touching)]
+    if not r.size:
+        return {"max_lcp_residual_mps": 0.0, "lcp_residual_p95_mps": 0.0}
+    return {"max_lcp_residual_mps": float(r.max()), "lcp_residual_p95_mps": float(np.percentile(r, 95))}
+
+
 def moves_ground(setup) -> bool:
     """Whether a base motion moves the ground (a platform): a free root, a ground, a base motion."""
     return setup.options.free_root and setup.ground is not None and setup.pulses.base_offset is not None

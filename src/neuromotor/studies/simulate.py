@@ -50,7 +50,7 @@ from neuromotor.studies import metrics as mx
 from neuromotor.studies.balance import balance_for, balance_metrics, fold_support
 from neuromotor.studies.ball_hit import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies.gains import gains_for
-from neuromotor.studies.ground import ground_metrics, ground_rollouts, ground_setup, platform_offset
+from neuromotor.studies.ground import ground_metrics, ground_rollouts, ground_setup, lcp_figures, platform_offset
 
 
 @dataclasses.dataclass(frozen=True)
@@ -379,10 +379,12 @@ def run(setup: Setup, check: bool = True) -> RunResult:
         metrics = run_metrics(setup, pert.run, base.run) | ball_metrics(pert, n_ball)
         if setup.ground is not None:
             metrics |= ground_metrics(pert, n_ball)
+        metrics |= lcp_figures(pert.contact.step_residual, pert.contact.touching)
         return RunResult(pert.run, base.run, metrics, pert)
     if setup.ground is not None:
         pert, base = ground_rollouts(setup, _zero(setup.pulses), check)
-        extra = ground_metrics(pert, 0) | balance_metrics(setup, pert, platform_offset(setup))
+        extra = ground_metrics(pert, 0) | lcp_figures(pert.contact.step_residual, pert.contact.touching)
+        extra |= balance_metrics(setup, pert, platform_offset(setup))
         return RunResult(pert.run, base.run, run_metrics(setup, pert.run, base.run) | extra, ground=pert)
     model, sim = setup.model, setup.sim_model
     pert = simulate_jit(sim, setup.params)

@@ -27,7 +27,7 @@ from neuromotor.physics.contact.detection import (
     tangent_basis,
 )
 from neuromotor.physics.contact.ground import Ground, GroundSlots, ground_slots, lowest_points, make_ground, vertex_gap
-from neuromotor.physics.contact.lcp import project_polygon, solve_gap_projection, solve_lcp_pgs
+from neuromotor.physics.contact.lcp import lcp_residual, project_polygon, solve_gap_projection, solve_lcp_pgs
 from neuromotor.physics.contact.rollout import (
     ContactRollout,
     batched_simulate_contact,
@@ -66,6 +66,7 @@ __all__ = [
     "fit_capsules",
     "ground_slots",
     "initial_ball_state",
+    "lcp_residual",
     "lowest_points",
     "make_ground",
     "make_ball",

@@ -85,7 +85,7 @@ from neuromotor.physics.contact.detection import (
     up_direction,
 )
 from neuromotor.physics.contact.ground import Ground, ground_slots, vertex_gap
-from neuromotor.physics.contact.lcp import solve_gap_projection, solve_lcp_pgs
+from neuromotor.physics.contact.lcp import lcp_residual, solve_gap_projection, solve_lcp_pgs
 from neuromotor.physics.contact.shapes import Capsules
 from neuromotor.physics.dynamics import Eq2, Params, SimModel, StepInfo, badness, equations_of_motion, hold, integrate
 from neuromotor.physics.reflex import History
@@ -190,12 +190,25 @@ class ContactInfo(eqx.Module):
     gap_impact: Float[Array, " C"]  # gap at the impact instant t + s h (m)
     toi: Float[Array, " C"]  # impact fraction s of the step
     active: Bool[Array, " C"]
+    residual: Float[Array, " C"]  # the LCP's residual at the impulses (m/s, lcp.lcp_residual)
+
+    @property
+    def step_residual(self) -> Float[Array, ...]:
+        """The largest LCP residual of each step (m/s; over the last axis, the candidates)."""
+        return jnp.max(self.residual, -1)
+
+    @property
+    def touching(self) -> Bool[Array, ...]:
+        """Whether each step had an active contact (over the last axis, the candidates)."""
+        return jnp.any(self.active, -1)
 
     @classmethod
     def before_any_step(cls, gap: Float[Array, " C"]) -> ContactInfo:
         """The record at t_0: no impulse, the gaps of the initial configuration."""
         zero = jnp.zeros_like(gap)
-        return cls(jnp.zeros(gap.shape + (3,), gap.dtype), zero, zero, zero, gap, gap, zero, jnp.zeros(gap.shape, bool))
+        return cls(
+            jnp.zeros(gap.shape + (3,), gap.dtype), zero, zero, zero, gap, gap, zero, jnp.zeros(gap.shape, bool), zero
+        )
 
 
 class ContactData(eqx.Module):
@@ -492,8 +505,8 @@ def _when_touching(active, solve, zeros):
 
 
 def contact_impulses(frame: ContactFrame, resp: Responses, imp: Impact, scene: ContactScene, warm):
-    """The LCP by PGS, warm started: impulses (K, 3) and the normal slack w_n (K,). Each contact
-    has its source's friction (the ball's, or the ground's)."""
+    """The LCP by PGS, warm started: impulses (K, 3), the normal slack w_n (K,) and the LCP's
+    residual (K,) in m/s. Each contact has its source's friction (the ball's, or the ground's)."""
     settings = scene.settings
     mu = per_contact(frame, scene, _ball_attr(scene, "friction"), _ground_attr(scene, "friction"))
     p = _when_touching(
@@ -504,7 +517,8 @@ def contact_impulses(frame: ContactFrame, resp: Responses, imp: Impact, scene: C
         jnp.zeros_like(warm),
     )
     slack = (resp.w_mat @ p.reshape(-1) + imp.q).reshape(-1, 3)[:, 0]
-    return p, slack
+    residual = lcp_residual(resp.w_mat, imp.q, mu, imp.active, p, settings.friction_directions)
+    return p, slack, residual
 
 
 class Motion(eqx.Module):
@@ -599,6 +613,7 @@ def contact_info(
     imp: Impact,
     p,
     slack,
+    residual,
     gm: GroundMotion | None = None,
 ) -> ContactInfo:
     """The step's record over all candidates, with the gap at the impact instant from the
@@ -614,6 +629,7 @@ def contact_info(
         gap_impact=frame.gap_all.at[frame.sel].set(gap_imp),
         toi=scatter(imp.toi, 0.0),
         active=scatter(imp.active, False),
+        residual=scatter(residual, 0.0),
     )
 
 
@@ -639,11 +655,11 @@ def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: Conta
     frame = contact_frame(model, scene, state, data.ball, rank, h)
     resp = relative_to_ground(frame, responses(solver, eq, fs, frame, scene.ball, free, state.v), gm)
     imp = impact(frame, resp, scene, h, True if free is None else free.flying)
-    p, slack = contact_impulses(frame, resp, imp, scene, data.warm[frame.sel])
+    p, slack, residual = contact_impulses(frame, resp, imp, scene, data.warm[frame.sel])
     mo = motion(frame, resp, imp, p, free, scene.settings, h)
     n = model.n_bodies
     new, violation = integrate(sim, solver, k, state, mo.d_char.reshape(n, 6), mo.v_char.reshape(n, 6), params.pulses)
-    record = contact_info(model, scene, h, data, free, frame, resp, imp, p, slack, gm)
+    record = contact_info(model, scene, h, data, free, frame, resp, imp, p, slack, residual, gm)
     ball = None
     if free is not None:
         assert data.ball is not None

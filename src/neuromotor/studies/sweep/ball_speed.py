@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec as P
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from neuromotor import compiler
 from neuromotor.config.specs import GainSetting
@@ -22,6 +22,7 @@ from neuromotor.physics.dynamics import Params, Reference, SimModel, StepOptions
 from neuromotor.physics.perturbation import ForcePulses
 from neuromotor.studies import metrics as mx
 from neuromotor.studies.gains import gains_for
+from neuromotor.studies.ground import lcp_figures
 from neuromotor.studies.sweep.grid import _stack
 from neuromotor.studies.sweep.runner import AXIS, Sweeper, SweepResult, sweep_batches
 
@@ -44,6 +45,8 @@ class BallRunOut(eqx.Module):
     peak_impulse: Float[Array, ""]  # largest |impulse| of one step on a body of the character (N s)
     hit_body: Int[Array, ""]  # the body that received it; -1: the ball never touched the character
     first_contact: Int[Array, ""]  # first sample with a contact on the character; -1: none
+    lcp_residual: Float[Array, " S1"]  # each step's largest LCP residual (m/s)
+    touching: Bool[Array, " S1"]  # each step had an active contact
 
 
 class BallSweeper(Sweeper):
@@ -85,6 +88,8 @@ class BallSweeper(Sweeper):
             peak,
             jnp.where(peak > 0, bodies[cand], -1),
             jnp.where(jnp.any(touched), jnp.argmax(touched), -1),
+            r.contact.step_residual,
+            r.contact.touching,
         )
 
 
@@ -140,6 +145,7 @@ def run_ball_sweep(
             "peak_impulse_Ns": float(out["peak_impulse"]),
             "hit_body": body_names[hit] if hit >= 0 else "",
             "first_contact_s": float(time[first]) if first >= 0 else float("nan"),
+            **lcp_figures(out["lcp_residual"], out["touching"]),
             "max_kkt_residual": float(out["max_residual"]),
             "max_constraint_violation": float(out["max_violation"]),
         }

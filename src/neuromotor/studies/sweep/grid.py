@@ -64,7 +64,16 @@ def with_reflex_columns(columns: Sequence[str]) -> tuple[str, ...]:
     return (*columns[:i], *REFLEX_COLUMNS, *columns[i:])
 
 
-BALL_COLUMNS = (*RUN_COLUMNS, *METRIC_KEYS, "peak_impulse_Ns", "hit_body", "first_contact_s", *DIAGNOSTIC_COLUMNS)
+BALL_COLUMNS = (
+    *RUN_COLUMNS,
+    *METRIC_KEYS,
+    "peak_impulse_Ns",
+    "hit_body",
+    "first_contact_s",
+    "max_lcp_residual_mps",
+    "lcp_residual_p95_mps",
+    *DIAGNOSTIC_COLUMNS,
+)
 
 
 class RunBatch(eqx.Module):

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec as P
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from neuromotor import compiler
 from neuromotor.model.skeleton import Model
@@ -27,6 +27,8 @@ from neuromotor.studies.sweep.runner import AXIS, Sweeper, _Layout, _pose, _put
 GROUND_METRICS = (
     "ground_peak_force_N",
     "ground_contact_fraction",
+    "max_lcp_residual_mps",
+    "lcp_residual_p95_mps",
     "fell",
     "fall_time_s",
     "fall_body",
@@ -51,6 +53,8 @@ class GroundRunOut(eqx.Module):
     root_vel: Float[Array, "S1 3"]
     touch: Float[Array, "S1 B"]  # each body's normal impulse from the ground (N s)
     total: Float[Array, " S1"]  # the ground's total normal impulse (N s)
+    lcp_residual: Float[Array, " S1"]  # each step's largest LCP residual (m/s)
+    touching: Bool[Array, " S1"]  # each step had an active contact
 
 
 class GroundSweeper(Sweeper):
@@ -101,6 +105,8 @@ def _ground_program(layout: _Layout, scene_layout: _Layout, options: StepOptions
             states.vel[:, 0],
             touch,
             jnp.sum(lam, -1),
+            r.contact.step_residual,
+            r.contact.touching,
         )
 
     def local(shared, batch: RunBatch) -> GroundRunOut:
@@ -113,7 +119,7 @@ def ground_row_metrics(setup, batch: RunBatch, i: int, out: dict) -> dict:
     """Run i's ground and balance metrics, as ``simulate`` reports them (the COM relative to a
     moving ground's displacement, :func:`~neuromotor.studies.ground.platform_offset`)."""
     from neuromotor.studies.balance import StandingTrace, balance_metrics
-    from neuromotor.studies.ground import ground_figures
+    from neuromotor.studies.ground import ground_figures, lcp_figures
 
     time = np.asarray(setup.ref.time)[: setup.options.n_steps + 1]
     com = np.asarray(out["com"])
@@ -135,4 +141,5 @@ def ground_row_metrics(setup, batch: RunBatch, i: int, out: dict) -> dict:
         base,
         base_vel,
     )
-    return ground_figures(out["total"], setup.options.h) | balance_metrics(setup, trace)
+    lcp = lcp_figures(out["lcp_residual"], out["touching"])
+    return ground_figures(out["total"], setup.options.h) | lcp | balance_metrics(setup, trace)
