@@ -298,6 +298,44 @@ def test_filmstrip_draws_force_arrow(synth, tmp_path):
     assert red_fraction(d0) == 0.0
 
 
+def _purple(img):
+    """Pixels of the balance assist's arrow (io.palette.COLOR_ASSIST, shaded)."""
+    r, g, b = (img[..., i].astype(int) for i in range(3))
+    return (g < 90) & (b > 130) & (r > 80) & (b - g > 70)
+
+
+def test_filmstrip_and_video_draw_the_balance_assist(tmp_path):
+    """A run with the assist on (RUN.npz assist_force at assist_point): its purple arrow, F / 500 N
+    per m from the pelvis, and its label in the perturbed row of the filmstrip and in the video's
+    frames; none in the original row, and none without the assist."""
+    d = synthetic_run(duration=0.4)
+    T = len(d["time"])
+    force = np.zeros((T, 3))
+    force[:, 0] = 150.0 * np.sin(np.pi * d["time"] / d["time"][-1])  # a pull toward +x, peak mid-run
+    helped = dict(d, assist_force=force, assist_point=d["skeleton_points"][:, 0].copy())
+    scene = Scene(helped)
+    k = T // 2
+    tail, tip = scene.assist_arrow(k)
+    np.testing.assert_allclose(tip - tail, force[k] / 500.0)
+    np.testing.assert_allclose(tail, d["skeleton_points"][k, 0])
+    assert scene.assist_on[k] and not Scene(d).assist_on.any()
+    assert scene.assist_label(k) == f"assist {np.linalg.norm(force[k]):.0f} N (not physics)"
+    for arrays, name in ((helped, "helped"), (d, "plain")):
+        npz = _save(tmp_path / f"{name}.npz", arrays)
+        render_run(npz, tmp_path / f"{name}.png", frames=3)
+        img = iio.imread(tmp_path / f"{name}.png")[..., :3]
+        half = img.shape[0] // 2
+        if name == "helped":
+            assert _purple(img[half:]).mean() > 2e-4  # the perturbed row shows the arrow
+        else:
+            assert _purple(img[half:]).sum() == 0
+        assert _purple(img[:half]).sum() == 0  # never on the original
+        render_run(npz, tmp_path / f"{name}.mp4", progress=False)
+        frames = np.stack(list(iio.imiter(tmp_path / f"{name}.mp4", plugin="FFMPEG")))
+        seen = _purple(frames[len(frames) // 2]).mean()
+        assert seen > 2e-4 if name == "helped" else seen < 1e-5  # (the codec may tint an edge)
+
+
 def test_video_mp4_and_gif_synthetic(tmp_path):
     arrays = synthetic_run(duration=0.4)
     npz = _save(tmp_path / "run.npz", arrays)

@@ -9,6 +9,7 @@ from neuromotor.viz.camera import fit, ghost_offset, set_camera
 from neuromotor.viz.geometry import ArrowGeometry, FigureGeometry, add_ground
 from neuromotor.viz.scene import Scene
 from neuromotor.viz.style import (
+    COLOR_ASSIST,
     COLOR_BALL,
     COLOR_FORCE,
     COLOR_GHOST,
@@ -54,7 +55,7 @@ def _framing(scene: Scene, ks, aspect):
 
 def _draw_perturbed(pl, scene: Scene, k, geom, ghost):
     """The perturbed figure at sample k, with the pale original behind it, the force arrow and
-    its label, and the ball."""
+    its label, the balance assist's arrow and label (purple), and the ball."""
     import pyvista as pv
 
     geom.add(pl, COLOR_PERTURBED, COLOR_PERTURBED_JOINT)
@@ -66,6 +67,11 @@ def _draw_perturbed(pl, scene: Scene, k, geom, ghost):
         arrow.update(*scene.arrow(k))
         pl.add_mesh(arrow.mesh, color=COLOR_FORCE, smooth_shading=False)
         pl.add_text(scene.force_label(k), position="lower_right", font_size=9, color=COLOR_FORCE)
+    if scene.assist_on[k]:
+        arrow = ArrowGeometry()
+        arrow.update(*scene.assist_arrow(k))
+        pl.add_mesh(arrow.mesh, color=COLOR_ASSIST, smooth_shading=False)
+        pl.add_text(scene.assist_label(k), position="upper_right", font_size=8, color=COLOR_ASSIST)
     if scene.has_ball:
         pl.add_mesh(pv.Sphere(radius=float(scene.d["ball_radius"]), center=scene.d["ball_pos"][k]), color=COLOR_BALL)
 

@@ -27,6 +27,9 @@ Drawing conventions (also in docs/rendering.md):
 * The external force is an arrow whose tip stops 1 cm outside the body surface at the point of
   application and which points along the force; its length is ``|F| / FORCE_SCALE_N_PER_M``
   metres (1 m per 500 N). It is drawn only while ``|F|`` exceeds 1% of its peak.
+* The balance assist (RUN.npz ``assist_force`` at ``assist_point``, runs with ``[balance]
+  assist`` on) is a purple arrow from the pelvis's COM along its force, at the same scale,
+  labelled "assist X N (not physics)": help is never drawn as physics.
 * The camera looks at the character's front: its horizontal direction is the facing direction
   (``facing``, else :func:`facing_from_skeleton`) turned by ``CAMERA_AZIMUTH_DEG`` (40 degrees)
   about the up axis, to the side that sees the hit most side-on (on a tie, the side the hit comes

@@ -2,7 +2,8 @@
 
 :class:`Scene` holds the arrays read from a RUN.npz and answers the questions the filmstrip and
 the video ask: where the body shapes are at a sample, where the force arrow goes (its tip 1 cm
-outside the body surface at the point of application, ``|F| / FORCE_SCALE_N_PER_M`` long), when
+outside the body surface at the point of application, ``|F| / FORCE_SCALE_N_PER_M`` long) and
+the balance assist's (from the pelvis's COM, at the same scale), when
 the character is hit, which instants a filmstrip shows, and where the ground lies.
 """
 
@@ -49,6 +50,7 @@ class Scene:
         self._init_camera()
         self.ground = self._lowest_point()
         self.has_ball = "ball_pos" in d
+        self._init_assist()
         self._init_hit()
         self.metrics = json_field(d, "metrics_json")
         self.provenance = json_field(d, "provenance_json")
@@ -111,6 +113,26 @@ class Scene:
             hb = self.d["ball_pos"] @ self.up - float(self.d["ball_radius"])
             low = min(low, float(hb.min()))
         return low
+
+    def _init_assist(self):
+        """The balance assist's virtual force on the pelvis (RUN.npz ``assist_force`` at
+        ``assist_point``; off: never drawn): help, not physics, drawn in its own colour so that
+        nobody takes it for either."""
+        d = self.d
+        n = len(self.time)
+        self.assist_force = np.asarray(d["assist_force"], float) if "assist_force" in d else np.zeros((n, 3))
+        self.assist_point = np.asarray(d["assist_point"], float) if "assist_point" in d else np.zeros((n, 3))
+        self.assist_mag = np.linalg.norm(self.assist_force, axis=1)
+        self.assist_on = _on(self.assist_mag)
+
+    def assist_arrow(self, k):
+        """(tail, tip) of the assist's arrow at sample k: from the pelvis's COM along the force,
+        ``|F| / FORCE_SCALE_N_PER_M`` long (the browser viewer's arrow)."""
+        tail = self.assist_point[k]
+        return tail, tail + self.assist_force[k] / FORCE_SCALE_N_PER_M
+
+    def assist_label(self, k):
+        return f"assist {self.assist_mag[k]:.0f} N (not physics)"
 
     def _init_hit(self):
         """What hits the character over time (N): the applied force, or the ball's contact force."""
@@ -271,14 +293,16 @@ class Scene:
         return np.where(np.abs(t[lo] - times) <= np.abs(t[hi] - times), lo, hi)
 
     def extent_points(self, k, which, offset=_NO_OFFSET):
-        """Points whose screen footprint must fit (up to ``pad``): the skeleton, the body shapes
-        and the force arrow. (A ball is drawn but does not steer the framing: it may fly in from
-        far away.)"""
+        """Points whose screen footprint must fit (up to ``pad``): the skeleton, the body shapes,
+        the force arrow and the assist's. (A ball is drawn but does not steer the framing: it may
+        fly in from far away.)"""
         pts = [self.points(which)[k] + offset]
         if self.has_shapes:
             pts.append(self.shape_points(k, which) + offset)
         if which == "perturbed" and self.force_on[k]:
             pts.append(np.stack(self.arrow(k)))
+        if which == "perturbed" and self.assist_on[k]:
+            pts.append(np.stack(self.assist_arrow(k)))
         return np.concatenate(pts)
 
     def box_centre(self, pts):

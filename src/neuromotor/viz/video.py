@@ -13,6 +13,7 @@ from neuromotor.viz.camera import fit, ghost_offset, set_camera
 from neuromotor.viz.geometry import ArrowGeometry, FigureGeometry, add_ground
 from neuromotor.viz.scene import Scene
 from neuromotor.viz.style import (
+    COLOR_ASSIST,
     COLOR_BALL,
     COLOR_FORCE,
     COLOR_GHOST,
@@ -114,7 +115,8 @@ def _camera_track(scene: Scene, ks, shift, fps, aspect):
 
 @dataclasses.dataclass
 class _Actors:
-    """What a video frame moves: both figures (and the ghost), the arrow, the ball, the texts."""
+    """What a video frame moves: both figures (and the ghost), the arrows (the force's and the
+    balance assist's), the ball, the texts."""
 
     pert: FigureGeometry
     orig: FigureGeometry
@@ -126,6 +128,9 @@ class _Actors:
     ball_actor: Any  # pyvista objects
     clock: Any  # pyvista objects
     ftext: Any  # pyvista objects
+    assist: ArrowGeometry
+    assist_actor: Any  # pyvista objects
+    atext: Any  # pyvista objects
 
 
 def _add_actors(pl, scene: Scene, ghost: bool) -> _Actors:
@@ -150,7 +155,25 @@ def _add_actors(pl, scene: Scene, ghost: bool) -> _Actors:
     pl.add_text("perturbed", position="upper_right", font_size=10, color=COLOR_PERTURBED_JOINT)
     clock = pl.add_text("", position="lower_left", font_size=10, color="black")
     ftext = pl.add_text("", position="lower_right", font_size=10, color=COLOR_FORCE)
-    return _Actors(g_pert, g_orig, g_ghost, arrow, arrow_actor, ball, ball_dirs, ball_actor, clock, ftext)
+    assist = ArrowGeometry()
+    assist_actor = pl.add_mesh(assist.mesh, color=COLOR_ASSIST, smooth_shading=False)
+    assist_actor.SetVisibility(False)
+    atext = pl.add_text("", position="upper_edge", font_size=9, color=COLOR_ASSIST)
+    return _Actors(
+        g_pert,
+        g_orig,
+        g_ghost,
+        arrow,
+        arrow_actor,
+        ball,
+        ball_dirs,
+        ball_actor,
+        clock,
+        ftext,
+        assist,
+        assist_actor,
+        atext,
+    )
 
 
 def _pose_frame(a: _Actors, scene: Scene, k, shift):
@@ -164,6 +187,11 @@ def _pose_frame(a: _Actors, scene: Scene, k, shift):
     if on:
         a.arrow.update(*scene.arrow(k))
     a.ftext.set_text("lower_right", f"force {scene.fmag[k]:.0f} N" if on else "")
+    help_on = bool(scene.assist_on[k])
+    a.assist_actor.SetVisibility(help_on)
+    if help_on:
+        a.assist.update(*scene.assist_arrow(k))
+    a.atext.set_text("upper_edge", scene.assist_label(k) if help_on else "")
     if a.ball is not None:
         # The ball belongs to the perturbed run: drawn on its (right) half of the frame
         # only, never over the original figure beside it.
