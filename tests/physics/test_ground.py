@@ -44,7 +44,7 @@ from neuromotor.physics import contact as ct
 from neuromotor.physics.dynamics import SimModel
 from neuromotor.physics.system import world_inertia
 from neuromotor.rotations import quat_exp, quat_mul, quat_to_matrix
-from neuromotor.studies.ground import capture_floor, foot_bodies
+from neuromotor.studies.ground import capture_floor, foot_bodies, ground_scene
 from neuromotor.studies.record import provenance, run_arrays
 from neuromotor.studies.simulate import load_character, prepare, run
 
@@ -296,10 +296,20 @@ def test_root_and_ground_config():
         ({"ground": {"contacts_per_body": 0}}, "ground.contacts_per_body"),
         ({"ground": {"height": "floor"}}, "ground.height"),
         ({"ground": {"mu": 0.5}}, "ground.mu"),
+        ({"ground": {"pgs_iterations": 0}}, "ground.pgs_iterations"),
+        # One LCP with a ball: its sweeps are [ball] pgs_iterations, never two counts.
+        ({"ground": {"pgs_iterations": 80}, "ball": {"radius": 0.1, "mass": 1.0, "position": [0.0, 1.0, 2.0],
+                                                     "speed": 5.0, "target": "chest", "launch": 0.5}},
+         "ground.pgs_iterations"),
     ]
     for data, field in bad:
         with pytest.raises(ConfigError, match=f"field '{field}'"):
             simulation_config(data, "x.toml")
+    # The sweep count reaches the ground's scene (and so every run on it); 40 without the key.
+    swept = prepare(simulation_config({"sim": {"root": "free", "duration": 0.1}, "ground": {"pgs_iterations": 7}}, "x"))
+    assert swept.ground.pgs_iterations == 7 and ground_scene(swept.ground).settings.pgs_iterations == 7
+    plain = prepare(simulation_config({"sim": {"root": "free", "duration": 0.1}}, "x"))
+    assert ground_scene(plain.ground).settings == ct.ContactSettings()
     cfg = simulation_config({"sim": {"root": "free"}, "perturbation": [{"body": "chest", "magnitude": 1.0}]}, "x")
     sweep_spec({"sweep": {"magnitudes": [1.0]}}, cfg)  # a sweep runs on the ground; a fit does not
     fit = {"fit": {"target": {"kind": "features", "case": [{"peak_deviation_deg": 1.0}]}}}

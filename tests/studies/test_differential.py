@@ -296,6 +296,7 @@ def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):
                     duration=0.15, start=0.85)
     data = config_data([platform], options={"root": "free", "still": 12.567, "duration": 0.3})
     data["balance"] = {"assist": 20.0}  # its target rides on each row's own platform
+    data["ground"] = {"pgs_iterations": 30}  # the sweep's program solves with the config's sweep count
     cfg = simulation_config(data, "platform.toml")
     spec = SweepSpec([2.0, 4.0], [GainSetting(400.0, 20.0)], chunk=2)
     grid = sw.simulate_grid(cfg, spec, prepare(cfg, *character), progress=False, keep_curves=True)

@@ -304,6 +304,7 @@ def parse_ground(top: Fields) -> GroundSpec:
         restitution=restitution,
         contacts_per_body=f.integer("contacts_per_body", d("contacts_per_body"), 1),
         max_contacts=f.integer("max_contacts", d("max_contacts"), 1),
+        pgs_iterations=None if f.get("pgs_iterations") is None else f.integer("pgs_iterations", None, 1),
     )
     f.done()
     return spec
@@ -367,6 +368,9 @@ def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> Simu
         fields["reflex"] = parse_reflex(top)
     if "ground" in data:
         fields["ground"] = parse_ground(top)
+        if "ball" in data and fields["ground"].pgs_iterations is not None:  # one LCP, one sweep count
+            why = "cannot be set with a [ball]: the one contact LCP uses [ball] pgs_iterations"
+            top.sub("ground").fail("pgs_iterations", why)
     if "balance" in data:
         fields["balance"] = parse_balance(top)
     top.done(allowed_tables=TABLES)

@@ -311,6 +311,7 @@ class GroundSpec:
     restitution: float = 0.0  # Newton's coefficient, 0..1
     contacts_per_body: int = _ground.DEFAULT_PER_BODY  # each body's lowest vertices that may touch
     max_contacts: int = _ground.DEFAULT_MAX_CONTACTS  # lowest of them solved per step
+    pgs_iterations: int | None = None  # PGS sweeps per step; None: 40 (with a [ball]: [ball] pgs_iterations)
 
     def on(self, root: str) -> bool:
         """Whether the bodies touch the ground with this root mode."""

@@ -28,6 +28,7 @@ from neuromotor.physics.contact import (
     make_ground,
     simulate_contact_jit,
 )
+from neuromotor.physics.contact.ground import DEFAULT_PGS_ITERATIONS
 from neuromotor.physics.dynamics import Params
 
 FOOT = "foot"  # the mass model's segment of the feet (Character.body_segment)
@@ -58,14 +59,23 @@ def ground_setup(spec, character: Character, traj: Trajectory) -> Ground:
     """The :class:`Ground` of a parsed ``[ground]`` table (:class:`~neuromotor.config.specs.GroundSpec`):
     at ``height``, or at the capture's floor (:func:`capture_floor`) when the table gives none."""
     height = capture_floor(character, traj) if spec.height is None else spec.height
+    sweeps = DEFAULT_PGS_ITERATIONS if spec.pgs_iterations is None else spec.pgs_iterations
     return make_ground(
-        character.shapes, height, spec.friction, spec.restitution, spec.contacts_per_body, spec.max_contacts
+        character.shapes,
+        height,
+        spec.friction,
+        spec.restitution,
+        spec.contacts_per_body,
+        spec.max_contacts,
+        pgs_iterations=sweeps,
     )
 
 
 def ground_scene(ground: Ground, settings: ContactSettings | None = None) -> ContactScene:
-    """A contact scene of the ground alone (no ball)."""
-    return ContactScene(None, None, ContactSettings() if settings is None else settings, ground)
+    """A contact scene of the ground alone (no ball); ``settings`` None: the defaults with the
+    ground's own PGS sweep count (``[ground] pgs_iterations``)."""
+    settings = ContactSettings(pgs_iterations=ground.pgs_iterations) if settings is None else settings
+    return ContactScene(None, None, settings, ground)
 
 
 def ground_rollouts(setup, base_pulses, check: bool = True) -> tuple[ContactRollout, ContactRollout]:

@@ -38,6 +38,7 @@ FAR = 1.0e6  # m: the gap of a padding vertex (never the lowest of a body)
 DEFAULT_FRICTION = 0.8
 DEFAULT_PER_BODY = 8
 DEFAULT_MAX_CONTACTS = 16
+DEFAULT_PGS_ITERATIONS = 40  # PGS sweeps of a scene of the ground alone (ContactSettings' default)
 # m: with a ground under the bodies, a contact (the ball's too) within this gap counts as touching.
 # Stacked contacts need it: the contact-free velocity of a ball resting on a body that rests on
 # the ground does not close their gap (both fall freely), so by that velocity alone the ball's
@@ -56,6 +57,8 @@ class Ground(eqx.Module):
     per_body: int = eqx.field(static=True, default=DEFAULT_PER_BODY)  # nearest vertices per body (slots)
     max_contacts: int = eqx.field(static=True, default=DEFAULT_MAX_CONTACTS)  # slots kept per step (nearest)
     margin: float = eqx.field(static=True, default=DEFAULT_MARGIN)  # m: a contact this close is touching
+    # PGS sweeps of a scene of the ground alone (with a ball: the ball's ContactSettings rule).
+    pgs_iterations: int = eqx.field(static=True, default=DEFAULT_PGS_ITERATIONS)
 
     @property
     def n_slots(self) -> int:
@@ -75,14 +78,17 @@ def make_ground(
     per_body: int = DEFAULT_PER_BODY,
     max_contacts: int = DEFAULT_MAX_CONTACTS,
     margin: float = DEFAULT_MARGIN,
+    pgs_iterations: int = DEFAULT_PGS_ITERATIONS,
 ) -> Ground:
     """A :class:`Ground` for bodies of the given shapes (one polyhedron, or an (N, 3) array of
     points, per body; body frame)."""
     verts = [np.asarray(getattr(s, "vertices", s), np.float64).reshape(-1, 3) for s in shapes]
     if not verts or min(len(v) for v in verts) < 1:
         raise ValueError("make_ground needs at least one point per body")
-    if per_body < 1 or max_contacts < 1:
-        raise ValueError(f"per_body and max_contacts must be >= 1, got {per_body}, {max_contacts}")
+    if per_body < 1 or max_contacts < 1 or pgs_iterations < 1:
+        raise ValueError(
+            f"per_body, max_contacts and pgs_iterations must be >= 1, got {per_body}, {max_contacts}, {pgs_iterations}"
+        )
     n = max(len(v) for v in verts)
     padded = np.zeros((len(verts), n, 3))
     valid = np.zeros((len(verts), n), bool)
@@ -92,7 +98,15 @@ def make_ground(
         valid[b, : len(v)] = True
     f = lambda x: jnp.asarray(x, jnp.float64)
     return Ground(
-        f(height), f(friction), f(restitution), f(padded), jnp.asarray(valid), min(per_body, n), max_contacts, margin
+        f(height),
+        f(friction),
+        f(restitution),
+        f(padded),
+        jnp.asarray(valid),
+        min(per_body, n),
+        max_contacts,
+        margin,
+        pgs_iterations,
     )
 
 

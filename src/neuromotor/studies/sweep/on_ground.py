@@ -19,6 +19,7 @@ from neuromotor import compiler
 from neuromotor.model.skeleton import Model
 from neuromotor.physics import contact as ct
 from neuromotor.physics.dynamics import Params, Reference, SimModel, StepOptions
+from neuromotor.studies.ground import ground_scene
 from neuromotor.studies.sweep.grid import RunBatch
 from neuromotor.studies.sweep.runner import AXIS, Sweeper, _Layout, _pose, _put
 
@@ -63,7 +64,7 @@ class GroundSweeper(Sweeper):
     one skeleton and ground layout share their program)."""
 
     def __init__(self, model: Model, ref: Reference, options: StepOptions, ground: ct.Ground, **kw):
-        self.scene = ct.ContactScene(None, None, ct.ContactSettings(), ground)
+        self.scene = ground_scene(ground)
         super().__init__(model, ref, options, **kw)
         arrays, self.scene_static = eqx.partition(self.scene, eqx.is_array)
         self.shared = (*self.shared, jax.tree_util.tree_map(lambda x: _put(x, self.mesh, P()), arrays))
