@@ -644,11 +644,13 @@ def swing_reference(model: Model, balance: Balance, state: State, step: StepStat
     return rel_rot, rel_quat, rel_omega
 
 
-def assist_force(model: Model, balance: Balance, state: State, target, target_vel=None) -> Float[Array, " 3"]:
-    """The assist's force on the pelvis (N) toward ``target`` (its captured COM position, moved
-    with a moving ground) and ``target_vel`` (that ground's velocity; None: a still one)."""
+def assist_force(model: Model, balance: Balance, pos, vel, target, target_vel=None) -> Float[Array, "... 3"]:
+    """The assist's force on the pelvis (N) at the pelvis's COM position ``pos`` and velocity
+    ``vel`` toward ``target`` (its captured COM position, moved with a moving ground) and
+    ``target_vel`` (that ground's velocity; None: a still one); leading axes broadcast (the step
+    passes one sample, the run's record all of them)."""
     k = balance.assist
     mass = jnp.sum(model.mass)
-    spring = k * (target - state.pos[0])
+    spring = k * (target - pos)
     damping = 2.0 * jnp.sqrt(jnp.maximum(k, 0.0))
-    return mass * (spring - damping * (state.vel[0] if target_vel is None else state.vel[0] - target_vel))
+    return mass * (spring - damping * (vel if target_vel is None else vel - target_vel))

@@ -503,13 +503,20 @@ def balance_stage(sim: SimModel, balance: Balance, pulses: ForcePulses, k, state
     else:
         torque, posture = done
     applied = applied.at[:, 3:].add(body_torques(model, torque))
-    target = ref.root_origin[k] + ref.root_rot[k] @ model.com[0]
-    target_vel = None
-    if pulses.base_offset is not None:
-        assert pulses.base_velocity is not None
-        target, target_vel = target + pulses.base_offset[k], pulses.base_velocity[k]
-    applied = applied.at[0, :3].add(assist_force(model, balance, state, target, target_vel))
+    target, target_vel = assist_target(model, ref, k, pulses.base_offset, pulses.base_velocity)
+    applied = applied.at[0, :3].add(assist_force(model, balance, state.pos[0], state.vel[0], target, target_vel))
     return applied, posture
+
+
+def assist_target(model: Model, ref: Reference, k, base_offset=None, base_velocity=None):
+    """``(target, target velocity or None)`` of the assist at grid step ``k`` (an index, or an
+    array of them): the pelvis's captured COM, carried along by a base motion's displacement and
+    velocity (``base_offset``, ``base_velocity``: (S+1, 3) each, or None)."""
+    target = ref.root_origin[k] + ref.root_rot[k] @ model.com[0]
+    if base_offset is None:
+        return target, None
+    assert base_velocity is not None
+    return target + base_offset[k], base_velocity[k]
 
 
 def pose_targets(sim: SimModel, pulses: ForcePulses, k) -> PoseTargets:

@@ -14,10 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from neuromotor.model.skeleton import Character
-from neuromotor.physics.balance import Balance, make_balance
+from neuromotor.physics.balance import Balance, assist_force, make_balance
 from neuromotor.physics.contact import ContactRollout
 from neuromotor.physics.control import joint_torque_magnitude
-from neuromotor.physics.dynamics import Reference
+from neuromotor.physics.dynamics import Reference, assist_target
 from neuromotor.physics.system import per_joint_to_dofs
 from neuromotor.rotations import quat_to_matrix
 from neuromotor.studies.ground import foot_bodies
@@ -182,22 +182,17 @@ def sway(setup, out: ContactRollout | StandingTrace) -> dict:
 
 def assist_forces(setup, root_pos, root_vel, base_offset=None, base_velocity=None) -> np.ndarray | None:
     """The assist's force on the pelvis per sample (T, 3, N, world) from the pelvis's COM
-    position and velocity (T, 3), as the step applies it (:func:`neuromotor.physics.balance.assist_force`):
+    position and velocity (T, 3), by the step's own law and target
+    (:func:`neuromotor.physics.balance.assist_force`, :func:`neuromotor.physics.dynamics.assist_target`):
     toward the captured path, carried along by a base motion (its displacement and velocity,
     (T, 3) each, or None); None when the assist is off."""
     bal = setup.gains.balance
     if bal is None or float(bal.assist) == 0.0:
         return None
-    model, ref = setup.model, setup.ref
-    k, n = float(bal.assist), root_pos.shape[0]
-    mass = float(np.sum(model.mass))
-    target = np.asarray(ref.root_origin[:n]) + np.einsum(
-        "tij,j->ti", np.asarray(ref.root_rot[:n]), np.asarray(model.com[0])
-    )
-    target_vel: np.ndarray | float = 0.0
-    if base_offset is not None:
-        target, target_vel = target + np.asarray(base_offset)[:n], np.asarray(base_velocity)[:n]
-    return mass * (k * (target - root_pos) - 2 * np.sqrt(k) * (root_vel - target_vel))
+    steps = jnp.arange(np.shape(root_pos)[0])
+    base = None if base_offset is None else (jnp.asarray(base_offset), jnp.asarray(base_velocity))
+    target, target_vel = assist_target(setup.model, setup.ref, steps, *(base or (None, None)))
+    return np.asarray(assist_force(setup.model, bal, jnp.asarray(root_pos), jnp.asarray(root_vel), target, target_vel))
 
 
 def assist_impulse(setup, out: ContactRollout | StandingTrace) -> dict:
