@@ -22,7 +22,7 @@ from neuromotor.physics import grf
 from neuromotor.physics.dynamics import StepOptions, make_reference
 from neuromotor.rotations import matrix_to_quat
 from neuromotor.studies import residuals as rs
-from neuromotor.studies.ground import foot_bodies
+from neuromotor.studies.ground import facing, foot_bodies
 
 STEPS = 24  # one window length for every case: the programs compile once
 STAND, WALK = 1.0, 4.6  # s: both feet flat; the left foot lifts off at about 4.75 s
@@ -108,7 +108,7 @@ def test_grfs_lie_in_the_friction_pyramid(walk, stepping):
     assert np.all(force[~active] == 0.0)
     normal = force @ res.up
     tangent = force - normal[..., None] * res.up
-    t1, t2 = grf.pyramid_edges(res.up, 1.0, 4)[:2] - res.up  # the LCP's (t1, t2) basis
+    t1, t2 = grf.pyramid_edges(res.up, 1.0, 4, facing(walk[0]))[:2] - res.up  # the LCP's (t1, t2): the facing's
     ang = 2 * np.pi * (np.arange(8) + 0.5) / 8  # the octagon's face normals
     faces = np.cos(ang)[:, None] * t1 + np.sin(ang)[:, None] * t2
     tol = 1e-9 * res.weight

@@ -50,7 +50,7 @@ from scipy.optimize import nnls
 
 from neuromotor import compiler
 from neuromotor.model.skeleton import Model
-from neuromotor.physics.contact.detection import tangent_basis, up_direction
+from neuromotor.physics.contact.detection import facing_basis, up_direction
 from neuromotor.physics.control import joint_torque_magnitude
 from neuromotor.physics.discrete import step_feedforward, step_rhs
 from neuromotor.physics.dynamics import Reference, active_mask
@@ -161,11 +161,13 @@ def root_wrench_about(model: Model, lam_root: Float[Array, "... 6"], pos, rot, p
     return jnp.concatenate([force, lam_root[..., 3:] + jnp.cross(origin - point, force)], -1)
 
 
-def pyramid_edges(up, mu: float = FRICTION, sides: int = FRICTION_DIRECTIONS) -> np.ndarray:
+def pyramid_edges(up, mu: float = FRICTION, sides: int = FRICTION_DIRECTIONS, heading=None) -> np.ndarray:
     """``(sides, 3)``: the friction pyramid's edges ``up + mu d_j`` on the Coulomb cone, with
-    ``d_j = cos(2 pi j / N) t1 + sin(2 pi j / N) t2`` (the ground LCP's polygon)."""
+    ``d_j = cos(2 pi j / N) t1 + sin(2 pi j / N) t2`` (the ground LCP's polygon: t1 along the
+    character's facing ``heading`` in the plane, :func:`facing_basis`; None: world axes)."""
     up = np.asarray(up, np.float64)
-    t1, t2 = (np.asarray(t) for t in tangent_basis(jnp.asarray(up)))
+    facing = jnp.zeros(3) if heading is None else jnp.asarray(heading, jnp.float64)
+    t1, t2 = (np.asarray(t) for t in facing_basis(jnp.asarray(up), facing))
     ang = 2.0 * np.pi * np.arange(sides) / sides
     return up + mu * (np.cos(ang)[:, None] * t1 + np.sin(ang)[:, None] * t2)
 
@@ -198,13 +200,15 @@ def solve_grf(
     sides: int = FRICTION_DIRECTIONS,
     regularization: float = REGULARIZATION,
     smoothing: float = SMOOTHING,
+    heading=None,
 ) -> GroundReaction:
     """The ground reaction forces of every step (module docstring, item 3): one NNLS per step,
-    in time order (each step leans on the previous one's forces at the same vertices)."""
+    in time order (each step leans on the previous one's forces at the same vertices);
+    ``heading``: the character's facing, which orients the pyramid (:func:`pyramid_edges`)."""
     required, com = np.asarray(required, np.float64), np.asarray(com, np.float64)
     point, active = np.asarray(contacts.point), np.asarray(contacts.active)
     key = np.asarray(contacts.body) * (1 << 20) + np.asarray(contacts.vertex)
-    edges = pyramid_edges(up, mu, sides)
+    edges = pyramid_edges(up, mu, sides, heading)
     scale = np.array([weight] * 3 + [weight * length] * 3)
     force = np.zeros(point.shape)
     previous: dict[int, np.ndarray] = {}

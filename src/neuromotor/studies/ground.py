@@ -68,7 +68,15 @@ def ground_setup(spec, character: Character, traj: Trajectory) -> Ground:
         spec.contacts_per_body,
         spec.max_contacts,
         pgs_iterations=sweeps,
+        heading=facing(character),
     )
+
+
+def facing(character: Character) -> np.ndarray | None:
+    """The character's facing (``anatomy.forward``), which orients the friction polygons of the
+    ground and of the capture's ground reaction forces; None without an anatomy (world axes)."""
+    anatomy = character.anatomy
+    return None if anatomy is None else np.asarray(anatomy.forward, np.float64)
 
 
 def ground_scene(ground: Ground, settings: ContactSettings | None = None) -> ContactScene:

@@ -329,6 +329,8 @@ def _ground_record(setup: Setup) -> dict | None:
         "restitution": float(g.restitution),
         "contacts_per_body": int(g.per_body),
         "max_contacts": int(g.max_contacts),
+        "pgs_iterations": int(g.pgs_iterations),
+        "friction_heading": [float(x) for x in np.asarray(g.heading)],
     }
 
 

@@ -24,6 +24,7 @@ from neuromotor.physics.contact.detection import (
     candidate_bodies,
     candidate_names,
     detect,
+    facing_basis,
     tangent_basis,
 )
 from neuromotor.physics.contact.ground import Ground, GroundSlots, ground_slots, lowest_points, make_ground, vertex_gap
@@ -63,6 +64,7 @@ __all__ = [
     "check_contact_rollout",
     "contact_step",
     "detect",
+    "facing_basis",
     "fit_capsules",
     "ground_slots",
     "initial_ball_state",

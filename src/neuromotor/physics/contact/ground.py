@@ -16,8 +16,11 @@ resting on it. The defaults (8 per body, 16 in all) hold a whole sole (the mass 
 a hull of two rings of 8 vertices) of each foot.
 
 A contact's + side is the body (at the vertex), its - side the static world; the normal is
-``up``. Every parameter of :class:`Ground` except the static counts is an array leaf (jit, vmap,
-grad over height, friction and restitution).
+``up``, and the friction polygon's first tangent is ``heading`` (the character's facing) in the
+plane, so the polygon turns with the character, not with the capture's axes (on world axes a
+turned copy of a clip got other friction forces). Every parameter of
+:class:`Ground` except the static counts is an array leaf (jit, vmap, grad over height,
+friction, restitution and heading).
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ class Ground(eqx.Module):
     restitution: Float[Array, ""]  # Newton's coefficient e (0: no bounce)
     vertices: Float[Array, "B V 3"]  # each body's polyhedron vertices (body frame, from the joint origin), padded
     valid: Bool[Array, "B V"]  # False on padding
+    heading: Float[Array, " 3"]  # the friction polygon's first tangent, in the plane (zero: world axes)
     per_body: int = eqx.field(static=True, default=DEFAULT_PER_BODY)  # nearest vertices per body (slots)
     max_contacts: int = eqx.field(static=True, default=DEFAULT_MAX_CONTACTS)  # slots kept per step (nearest)
     margin: float = eqx.field(static=True, default=DEFAULT_MARGIN)  # m: a contact this close is touching
@@ -79,9 +83,11 @@ def make_ground(
     max_contacts: int = DEFAULT_MAX_CONTACTS,
     margin: float = DEFAULT_MARGIN,
     pgs_iterations: int = DEFAULT_PGS_ITERATIONS,
+    heading=None,
 ) -> Ground:
     """A :class:`Ground` for bodies of the given shapes (one polyhedron, or an (N, 3) array of
-    points, per body; body frame)."""
+    points, per body; body frame); ``heading``: the character's facing (None: the friction
+    polygon on the world axes' tangents, :func:`~neuromotor.physics.contact.detection.tangent_basis`)."""
     verts = [np.asarray(getattr(s, "vertices", s), np.float64).reshape(-1, 3) for s in shapes]
     if not verts or min(len(v) for v in verts) < 1:
         raise ValueError("make_ground needs at least one point per body")
@@ -103,6 +109,7 @@ def make_ground(
         f(restitution),
         f(padded),
         jnp.asarray(valid),
+        f(np.zeros(3) if heading is None else heading),
         min(per_body, n),
         max_contacts,
         margin,

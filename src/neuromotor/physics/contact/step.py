@@ -80,6 +80,7 @@ from neuromotor.physics.contact.detection import (
     candidate_bodies,
     candidate_names,
     detect,
+    facing_basis,
     single_gap,
     tangent_basis,
     up_direction,
@@ -335,7 +336,7 @@ def _ground_frame(model: Model, ground: Ground, state: State, v_free, h: float, 
     _, sel = jax.lax.top_k(-slots.reach, n_keep)
     body = ground.slot_body[sel]
     nrm = jnp.broadcast_to(up_direction(model), (n_keep, 3))
-    t1, t2 = tangent_basis(nrm)
+    t1, t2 = facing_basis(nrm, ground.heading)
     dirs = jnp.stack([nrm, t1, t2], 1)
     lever = slots.point[sel] - state.pos[body]
     col = jnp.concatenate([dirs, jnp.cross(lever[:, None, :], dirs)], -1)  # (K, 3, 6)
