@@ -74,3 +74,31 @@ def test_ground_reaction_forces_do_not_depend_on_the_frame_or_unit(tmp_path):
     np.testing.assert_allclose(fb, fa @ TURN.T, rtol=0, atol=1e-3)  # N
     np.testing.assert_allclose(rb[:, :3], ra[:, :3] @ TURN.T, rtol=0, atol=1e-3)  # N
     np.testing.assert_allclose(rb[:, 3:], ra[:, 3:] @ TURN.T, rtol=0, atol=1e-3)  # N m
+
+
+def test_contact_tangents_turn_with_the_scene():
+    """The ball's and the ground's contact tangents (facing_basis of up, then the facing or the
+    ball's flight) turn with any rotation of the whole scene; the world-axis tangents
+    (tangent_basis, what every contact used before) do not."""
+    import jax.numpy as jnp
+
+    from neuromotor.physics.contact import facing_basis, tangent_basis
+
+    rng = np.random.default_rng(5)
+    up, flight = np.array([0.0, 1.0, 0.0]), np.array([0.3, -0.1, -0.95])
+    normals = rng.normal(size=(64, 3))
+    normals[:4] = [up, -up, [0.05, 1.0, 0.0], [1.0, 0.0, 0.0]]  # level (ground, top of a head), near level, side
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    turned = Rotation.random(random_state=7).as_matrix()
+    t1, t2 = facing_basis(jnp.asarray(normals), jnp.asarray(up), jnp.asarray(flight))
+    r1, r2 = facing_basis(jnp.asarray(normals @ turned.T), jnp.asarray(turned @ up), jnp.asarray(turned @ flight))
+    np.testing.assert_allclose(np.asarray(r1), np.asarray(t1) @ turned.T, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(r2), np.asarray(t2) @ turned.T, atol=1e-12)
+    frame = np.stack([normals, np.asarray(t1), np.asarray(t2)], 1)  # right-handed, orthonormal
+    np.testing.assert_allclose(frame @ np.swapaxes(frame, 1, 2), np.broadcast_to(np.eye(3), frame.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(frame), 1.0, atol=1e-12)
+    level = np.asarray(t1)[:2]  # the ground's normal: along the flight's horizontal part
+    along = flight - flight @ up * up
+    np.testing.assert_allclose(level[0], along / np.linalg.norm(along), atol=1e-12)
+    w1, _ = tangent_basis(jnp.asarray(normals @ turned.T))
+    assert np.abs(np.asarray(w1) - np.asarray(tangent_basis(jnp.asarray(normals))[0]) @ turned.T).max() > 0.1

@@ -110,15 +110,17 @@ def tangent_basis(n: Float[Array, "... 3"]) -> tuple[Float[Array, "... 3"], Floa
 
 
 def facing_basis(
-    n: Float[Array, "... 3"], heading: Float[Array, " 3"]
+    n: Float[Array, "... 3"], *references: Float[Array, " 3"]
 ) -> tuple[Float[Array, "... 3"], Float[Array, "... 3"]]:
-    """Tangents (t1, t2) completing n to a right-handed frame, t1 along ``heading``'s part
-    perpendicular to n, so that a friction polygon built on them turns with the character and
-    not with the capture's world axes (a turned or Z-up copy of a clip gets the same forces);
-    :func:`tangent_basis` where that part is shorter than 1e-6 (a zero heading: no facing)."""
-    along = heading - jnp.sum(heading * n, -1, keepdims=True) * n
-    size = safe_norm(along)[..., None]
-    ok = size > 1e-6
-    d1, _ = tangent_basis(n)
-    t1 = jnp.where(ok, along / jnp.where(ok, size, 1.0), d1)
+    """Tangents (t1, t2) completing n to a right-handed frame, t1 along the part perpendicular to
+    n of the first of ``references`` whose part is longer than 0.1, so that a friction polygon
+    built on them is tied to physical directions (up, the character's facing, the ball's flight)
+    and not to the capture's world axes: a turned or Z-up copy of a clip gets the same forces.
+    :func:`tangent_basis` where no reference has such a part (a zero heading: none given)."""
+    t1, _ = tangent_basis(n)
+    for ref in reversed(references):  # the first reference wins: it is applied last
+        along = ref - jnp.sum(ref * n, -1, keepdims=True) * n
+        size = safe_norm(along)[..., None]
+        ok = size > 0.1
+        t1 = jnp.where(ok, along / jnp.where(ok, size, 1.0), t1)
     return t1, jnp.cross(n, t1)

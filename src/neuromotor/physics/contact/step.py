@@ -82,7 +82,6 @@ from neuromotor.physics.contact.detection import (
     detect,
     facing_basis,
     single_gap,
-    tangent_basis,
     up_direction,
 )
 from neuromotor.physics.contact.ground import Ground, ground_slots, vertex_gap
@@ -313,7 +312,8 @@ def _ball_frame(model: Model, scene: ContactScene, state: State, bstate: BallSta
     )
     _, sel = jax.lax.top_k(-gap_all, n_keep)
     body, nrm = cand_body[sel], nrm_all[sel]
-    t1, t2 = tangent_basis(nrm)
+    # t1 up the body's surface; on a level one (the ground, the top of the head) along the flight.
+    t1, t2 = facing_basis(nrm, up_direction(model), scene.ball.direction)
     dirs = jnp.stack([nrm, t1, t2], 1)  # (K, 3 dirs, 3)
     r_ball = -scene.ball.radius * nrm  # ball surface point minus centre
     bcol = jnp.concatenate([dirs, jnp.cross(r_ball[:, None, :], dirs)], -1)  # (K, 3, 6)
