@@ -190,8 +190,7 @@ def assist_forces(setup, root_pos, root_vel, base_offset=None, base_velocity=Non
     if bal is None or float(bal.assist) == 0.0:
         return None
     steps = jnp.arange(np.shape(root_pos)[0])
-    base = None if base_offset is None else (jnp.asarray(base_offset), jnp.asarray(base_velocity))
-    target, target_vel = assist_target(setup.model, setup.ref, steps, *(base or (None, None)))
+    target, target_vel = assist_target(setup.model, setup.ref, steps, base_offset, base_velocity)
     return np.asarray(assist_force(setup.model, bal, jnp.asarray(root_pos), jnp.asarray(root_vel), target, target_vel))
 
 

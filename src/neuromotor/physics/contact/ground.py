@@ -17,8 +17,7 @@ a hull of two rings of 8 vertices) of each foot.
 
 A contact's + side is the body (at the vertex), its - side the static world; the normal is
 ``up``, and the friction polygon's first tangent is ``heading`` (the character's facing) in the
-plane, so the polygon turns with the character, not with the capture's axes (on world axes a
-turned copy of a clip got other friction forces). Every parameter of
+plane, so the polygon turns with the character, not with the capture's axes. Every parameter of
 :class:`Ground` except the static counts is an array leaf (jit, vmap, grad over height,
 friction, restitution and heading).
 """
