@@ -115,3 +115,28 @@ def test_bad_still_and_driven_joints_are_one_line_errors(sim, needle, tmp_path, 
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and str(cfg) in err and needle in err, err
     assert "Traceback" not in err and not out.exists()
+
+
+@pytest.mark.parametrize("frames", [1, 3])
+def test_a_clip_too_short_for_the_spline_is_a_one_line_error(frames, tmp_path, capsys):
+    """A single pose or a stub of 2-3 frames (the capture is a cubic spline through at least 4):
+    every command that builds the capture stops with exit 2 and one line naming the file and
+    the count, and writes nothing. Four frames load."""
+    from conftest import CLIPS
+
+    text = CLIPS["mocapbank"].read_text()
+    head, motion = text.split("MOTION", 1)
+    lines = [ln for ln in motion.strip().splitlines() if ln.strip()]
+
+    def clip(n):
+        path = tmp_path / f"stub{n}.bvh"
+        path.write_text(head + f"MOTION\nFrames: {n}\n{lines[1]}\n" + "\n".join(lines[2 : 2 + n]) + "\n")
+        return path
+
+    short, out = clip(frames), tmp_path / "run.npz"
+    for argv in (["inspect", str(short)], ["simulate", "--clip", str(short), "-o", str(out)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and str(short) in err and f"{frames} frame(s)" in err, err
+        assert "at least 4" in err and "Traceback" not in err and not out.exists()
+    assert main(["inspect", str(clip(4))]) == 0

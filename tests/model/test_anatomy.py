@@ -245,6 +245,11 @@ def test_extra_frame_lines_load_with_a_warning(tmp_path):
     assert clip.n_frames == 455 + 3
     assert anatomy.warnings[0] == (f"{path}:{len(lines) + 1}: 3 more frame lines than 'Frames: 455' declares; "
                                    f"loaded all 458")
+    # The character a command builds shows it once (the clip and its anatomy both carry it).
+    from neuromotor.model.load import load_character
+
+    warned = [w for w in load_character(path)[0].warnings if "more frame lines" in w]
+    assert warned == [anatomy.warnings[0]]
 
 
 def test_translation_channels_that_move_warn():

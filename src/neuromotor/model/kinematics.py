@@ -28,7 +28,7 @@ from jaxtyping import Array, Float
 from scipy.interpolate import CubicSpline
 
 from neuromotor import compiler
-from neuromotor.model.bvh import BvhClip
+from neuromotor.model.bvh import BvhClip, BvhError
 from neuromotor.model.skeleton import Model
 from neuromotor.rotations import euler_to_matrix, matrix_to_euler, matrix_to_quat, mm, mmt, mv, quat_to_matrix, vee
 
@@ -145,7 +145,12 @@ def trajectory_from_clip(model: Model, clip: BvhClip) -> Trajectory:
     q = mocap_coordinates(model, clip)
     times = np.arange(q.shape[0]) * clip.frame_time
     if q.shape[0] < 4:
-        raise ValueError(f"{clip.path}: need at least 4 frames for a cubic spline, got {q.shape[0]}")
+        # A user's file (a single pose, a stub): a one-line error, not a traceback.
+        raise BvhError(
+            str(clip.path),
+            None,
+            f"{q.shape[0]} frame(s): the capture is a cubic spline through its frames, so it needs at least 4",
+        )
     ref = Spline.fit(times, mocap_angles(model, clip))
     return Trajectory(Spline.fit(times, q), ref, jnp.asarray(times[-1]))
 

@@ -286,7 +286,8 @@ def build_character(
         end_site_offset=jnp.asarray(end_off),
         gravity=jnp.asarray(_gravity(anatomy, up_axis, gravity)),
     )
-    warnings = tuple(getattr(clip, "warnings", ())) + tuple(anatomy.warnings)
+    # The anatomy's warnings start with the parser's, which the clip carries too: each once.
+    warnings = tuple(dict.fromkeys(tuple(getattr(clip, "warnings", ())) + tuple(anatomy.warnings)))
     return Character(
         model=model,
         clip=clip,
