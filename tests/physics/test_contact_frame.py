@@ -6,7 +6,7 @@ walk and such a copy the same ground reaction forces of the contact-aware invers
 The friction polygons (the ground LCP's and the inverse's pyramid) used to lie along the world's
 axes, so they turned against the character with the capture: a push's figures differed by up to
 0.4 % between the two copies and the walk's ground forces by 1.5 N. Now their first edge follows
-the character's facing (``anatomy.forward``)."""
+each body's own forward axis (``Ground.axes``), so they also turn with a foot that turns."""
 
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def test_a_push_on_the_ground_does_not_depend_on_the_frame_or_unit(tmp_path):
         runs.append((setup, run(setup)))
     (a, ra), (b, rb) = runs
     assert a.character.anatomy.units != b.character.anatomy.units and b.character.anatomy.up_axis == 2
-    np.testing.assert_allclose(np.asarray(b.ground.heading), TURN @ np.asarray(a.ground.heading), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(b.ground.axes), np.asarray(a.ground.axes), atol=1e-6)  # in each body
     np.testing.assert_allclose(np.asarray(rb.perturbed.states.pos), np.asarray(ra.perturbed.states.pos) @ TURN.T,
                                rtol=0, atol=1e-6)
     assert ra.metrics["sway_range_ap_mm"] > 20.0 and not ra.metrics["fell"]  # the push moves the body

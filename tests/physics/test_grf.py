@@ -22,7 +22,7 @@ from neuromotor.physics import grf
 from neuromotor.physics.dynamics import StepOptions, make_reference
 from neuromotor.rotations import matrix_to_quat
 from neuromotor.studies import residuals as rs
-from neuromotor.studies.ground import facing, foot_bodies
+from neuromotor.studies.ground import foot_bodies, friction_axes
 
 STEPS = 24  # one window length for every case: the programs compile once
 STAND, WALK = 1.0, 4.6  # s: both feet flat; the left foot lifts off at about 4.75 s
@@ -101,19 +101,28 @@ def quat_grid(walk, ref):
 
 
 def test_grfs_lie_in_the_friction_pyramid(walk, stepping):
-    """Every force pushes (normal >= 0) inside the ground's 8-sided pyramid (mu 0.8) and acts
-    only at touching vertices; the left foot leaves the ground in the window."""
-    res, _, _ = stepping
+    """Every force pushes (normal >= 0) inside the ground's 8-sided pyramid (mu 0.8), turned with
+    the foot it acts on as the LCP's is, and acts only at touching vertices; the left foot leaves
+    the ground in the window."""
+    res, ref, _ = stepping
     force, active = res.ground.force, np.asarray(res.contacts.active)
     assert np.all(force[~active] == 0.0)
     normal = force @ res.up
     tangent = force - normal[..., None] * res.up
-    t1, t2 = grf.pyramid_edges(res.up, 1.0, 4, facing(walk[0]))[:2] - res.up  # the LCP's (t1, t2): the facing's
+    # The LCP's (t1, t2) of each contact: its body's forward axis, at this step's pose.
+    rot = np.asarray(grid_poses_jit(walk[0].model, walk[1], ref.time)[1])
+    body = np.asarray(res.contacts.body)
+    forward = np.einsum("sgij,sgj->sgi", rot[np.arange(body.shape[0])[:, None], body],
+                        friction_axes(walk[0], walk[1])[body, 0])
+    t1 = forward - (forward @ res.up)[..., None] * res.up
+    t1 /= np.linalg.norm(t1, axis=-1, keepdims=True)
+    t2 = np.cross(res.up, t1)
     ang = 2 * np.pi * (np.arange(8) + 0.5) / 8  # the octagon's face normals
-    faces = np.cos(ang)[:, None] * t1 + np.sin(ang)[:, None] * t2
+    faces = np.cos(ang)[:, None] * t1[..., None, :] + np.sin(ang)[:, None] * t2[..., None, :]  # (S, G, 8, 3)
     tol = 1e-9 * res.weight
     assert np.all(normal >= -tol)
-    assert np.all(tangent @ faces.T <= grf.FRICTION * np.cos(np.pi / 8) * normal[..., None] + tol)
+    assert np.all(np.einsum("sgfd,sgd->sgf", faces, tangent) <= grf.FRICTION * np.cos(np.pi / 8) * normal[..., None]
+                  + tol)
     assert np.linalg.norm(tangent, axis=-1).max() > 1e-3 * res.weight  # friction is used
     left = np.asarray(res.contacts.body) == foot_bodies(walk[0])[0]
     touching = (active & left).any(1)

@@ -104,28 +104,35 @@ def _start(sim, lift=0.0, vel=(0.0, 0.0, 0.0), turn=(0.0, 0.0, 0.0)):
     )
 
 
-CASES = {  # name -> (start, friction); one compiled, vmapped 10 s rollout
-    "rest": (dict(), 0.8),
-    "slide": (dict(vel=(4.0, 0.0, 0.0)), 0.3),
-    "drop": (dict(lift=0.2), 0.8),
-    "tilted": (dict(lift=0.2, turn=(0.25, 0.1, 0.15)), 0.8),
+YAW = np.pi / 8  # the octagon's half sector: along an edge's normal instead of a vertex
+TURNED = (np.cos(YAW), 0.0, -np.sin(YAW))  # the box's x axis turned by YAW about up
+BOX_AXES = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # the box's forward and left axes (its frame)
+CASES = {  # name -> (start, friction, friction polygon on the box's axes); one compiled, vmapped 10 s rollout
+    "rest": (dict(), 0.8, True),
+    "slide": (dict(vel=(4.0, 0.0, 0.0)), 0.3, True),
+    "drop": (dict(lift=0.2), 0.8, True),
+    "tilted": (dict(lift=0.2, turn=(0.25, 0.1, 0.15)), 0.8, True),
+    # The same slide with the box turned about up: along its own x, then on the world's polygon.
+    "slide_turned": (dict(vel=tuple(4.0 * np.array(TURNED)), turn=(0.0, YAW, 0.0)), 0.3, True),
+    "slide_turned_world": (dict(vel=tuple(4.0 * np.array(TURNED)), turn=(0.0, YAW, 0.0)), 0.3, False),
 }
 
 
 @pytest.fixture(scope="module")
 def runs(box):
     sim, params, shapes, _ = box
-    ground = ct.make_ground(shapes, 0.0, 0.8, 0.0)
-    starts = [_start(sim, **kw) for kw, _ in CASES.values()]
+    ground = ct.make_ground(shapes, 0.0, 0.8, 0.0, axes=BOX_AXES)
+    starts = [_start(sim, **kw) for kw, _, _ in CASES.values()]
     stack = lambda xs: jax.tree_util.tree_map(lambda *a: jnp.stack(a), *xs)
-    frictions = jnp.array([mu for _, mu in CASES.values()])
+    frictions = jnp.array([mu for _, mu, _ in CASES.values()])
+    axes = jnp.stack([ground.axes * float(own) for _, _, own in CASES.values()])  # zero: the world's polygon
 
-    def one(init, mu):
+    def one(init, mu, ax):
         s = eqx.tree_at(lambda s: s.ref.init, sim, init)
-        g = eqx.tree_at(lambda g: g.friction, ground, mu)
+        g = eqx.tree_at(lambda g: (g.friction, g.axes), ground, (mu, ax))
         return ct.simulate_contact(s, params, ct.ContactScene(None, None, ct.ContactSettings(), g))
 
-    out = jax.jit(jax.vmap(one))(stack(starts), frictions)
+    out = jax.jit(jax.vmap(one))(stack(starts), frictions, axes)
     return ground, {name: jax.tree_util.tree_map(lambda x, i=i: x[i], out) for i, name in enumerate(CASES)}
 
 
@@ -171,6 +178,21 @@ def test_sliding_box_decelerates_at_mu_g_and_stops(runs):
     np.testing.assert_allclose(travel, v0**2 / (2 * mu * G) - v0 * H / 2, atol=1e-4)  # the first-order step's
     np.testing.assert_allclose(_weight_ratio(out), 1.0, rtol=1e-9)  # friction does not lift it
     assert np.abs(np.asarray(out.run.states.omega)).max() < 1e-9  # nor tip it
+
+
+def test_friction_turns_with_the_box(runs):
+    """The friction polygon is tied to the box's own axes: the slide turned by 22.5 deg about up
+    (along its own x) is the slide, turned (velocities to 1e-9 m/s), at exactly mu g; on the
+    world's polygon the same turned slide meets an edge instead of a vertex and decelerates at
+    cos(22.5 deg) mu g, 7.6 % less."""
+    mu, turned = 0.3, np.array(TURNED)
+    vel = lambda name: np.asarray(runs[1][name].run.states.vel[:, 0])
+    along = vel("slide_turned") @ turned
+    np.testing.assert_allclose(along, vel("slide")[:, 0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(vel("slide_turned") - along[:, None] * turned, 0.0, atol=1e-9)  # no sideways drift
+    world = vel("slide_turned_world") @ turned
+    sliding = world[1:] > 0.5
+    np.testing.assert_allclose(np.diff(world)[sliding][1:50] / H, -np.cos(YAW) * mu * G, rtol=1e-6)
 
 
 def test_dropped_box_lands_without_penetration_or_bounce(box, runs):

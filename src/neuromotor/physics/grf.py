@@ -161,13 +161,15 @@ def root_wrench_about(model: Model, lam_root: Float[Array, "... 6"], pos, rot, p
     return jnp.concatenate([force, lam_root[..., 3:] + jnp.cross(origin - point, force)], -1)
 
 
-def pyramid_edges(up, mu: float = FRICTION, sides: int = FRICTION_DIRECTIONS, heading=None) -> np.ndarray:
-    """``(sides, 3)``: the friction pyramid's edges ``up + mu d_j`` on the Coulomb cone, with
-    ``d_j = cos(2 pi j / N) t1 + sin(2 pi j / N) t2`` (the ground LCP's polygon: t1 along the
-    character's facing ``heading`` in the plane, :func:`facing_basis`; None: world axes)."""
+def pyramid_edges(up, mu: float = FRICTION, sides: int = FRICTION_DIRECTIONS, references=()) -> np.ndarray:
+    """``(..., sides, 3)``: the friction pyramid's edges ``up + mu d_j`` on the Coulomb cone, with
+    ``d_j = cos(2 pi j / N) t1 + sin(2 pi j / N) t2`` (the ground LCP's polygon: t1 from
+    ``references``, world ``(..., 3)`` each, a body's forward and left axes,
+    :func:`facing_basis`; none: the world axes' tangents)."""
     up = np.asarray(up, np.float64)
-    facing = jnp.zeros(3) if heading is None else jnp.asarray(heading, jnp.float64)
-    t1, t2 = (np.asarray(t) for t in facing_basis(jnp.asarray(up), facing))
+    refs = [jnp.asarray(r, jnp.float64) for r in references] or [jnp.zeros(3)]
+    normal = jnp.broadcast_to(jnp.asarray(up), np.broadcast_shapes(*(r.shape for r in refs)))
+    t1, t2 = (np.asarray(t)[..., None, :] for t in facing_basis(normal, *refs))
     ang = 2.0 * np.pi * np.arange(sides) / sides
     return up + mu * (np.cos(ang)[:, None] * t1 + np.sin(ang)[:, None] * t2)
 
@@ -182,11 +184,11 @@ class GroundReaction:
 
 
 def _wrench_matrix(points, com, edges, length):
-    """(6, P * N): the wrench over (W, W L) of unit edge coefficients at each point."""
+    """(6, P * N): the wrench over (W, W L) of unit edge coefficients at each point (``edges``
+    (P, N, 3): each point's pyramid)."""
     lever = (points - com)[:, None, :]
-    moment = np.cross(lever, edges[None]) / length
-    force = np.broadcast_to(edges[None], moment.shape)
-    return np.concatenate([force, moment], -1).reshape(-1, 6).T
+    moment = np.cross(lever, edges) / length
+    return np.concatenate([edges, moment], -1).reshape(-1, 6).T
 
 
 def solve_grf(
@@ -200,15 +202,17 @@ def solve_grf(
     sides: int = FRICTION_DIRECTIONS,
     regularization: float = REGULARIZATION,
     smoothing: float = SMOOTHING,
-    heading=None,
+    axes=None,
 ) -> GroundReaction:
     """The ground reaction forces of every step (module docstring, item 3): one NNLS per step,
     in time order (each step leans on the previous one's forces at the same vertices);
-    ``heading``: the character's facing, which orients the pyramid (:func:`pyramid_edges`)."""
+    ``axes`` (S, G, 2, 3): the world forward and left axes of each candidate's body, which
+    orient its pyramid (:func:`pyramid_edges`; None: the world axes)."""
     required, com = np.asarray(required, np.float64), np.asarray(com, np.float64)
     point, active = np.asarray(contacts.point), np.asarray(contacts.active)
     key = np.asarray(contacts.body) * (1 << 20) + np.asarray(contacts.vertex)
-    edges = pyramid_edges(up, mu, sides, heading)
+    refs = () if axes is None else (np.asarray(axes)[..., 0, :], np.asarray(axes)[..., 1, :])
+    edges = np.broadcast_to(pyramid_edges(up, mu, sides, refs), point.shape[:2] + (sides, 3))  # (S, G, N, 3)
     scale = np.array([weight] * 3 + [weight * length] * 3)
     force = np.zeros(point.shape)
     previous: dict[int, np.ndarray] = {}
@@ -217,14 +221,14 @@ def solve_grf(
         if idx.size == 0:
             previous = {}
             continue
-        a = _wrench_matrix(point[k, idx], com[k], edges, length)
+        a = _wrench_matrix(point[k, idx], com[k], edges[k, idx], length)
         prior = np.concatenate([previous.get(int(key[k, i]), np.zeros(sides)) for i in idx])
         # REGULARIZATION |c|^2 + SMOOTHING |c - prior|^2 = damping |c - target|^2 + a constant
         damping = regularization + smoothing
         lhs = np.concatenate([a, np.sqrt(damping) * np.eye(a.shape[1])])
         rhs = np.concatenate([required[k] / scale, np.sqrt(damping) * (smoothing / damping) * prior])
         coef = nnls(lhs, rhs, maxiter=50 * a.shape[1])[0].reshape(-1, sides)
-        force[k, idx] = weight * coef @ edges
+        force[k, idx] = weight * np.einsum("pn,pnd->pd", coef, edges[k, idx])
         previous = {int(key[k, i]): coef[j] for j, i in enumerate(idx)}
     produced = point_wrench(force, point, com[:, None])
     return GroundReaction(force, produced, required - produced)

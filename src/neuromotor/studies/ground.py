@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from neuromotor import compiler
-from neuromotor.model.kinematics import Trajectory, grid_poses
+from neuromotor.model.kinematics import Trajectory, grid_poses, grid_poses_jit
 from neuromotor.model.skeleton import Character, Model
 from neuromotor.physics.contact import (
     ContactRollout,
@@ -28,6 +28,7 @@ from neuromotor.physics.contact import (
     make_ground,
     simulate_contact_jit,
 )
+from neuromotor.physics.contact.detection import up_direction
 from neuromotor.physics.contact.ground import DEFAULT_PGS_ITERATIONS
 from neuromotor.physics.dynamics import Params
 
@@ -68,15 +69,25 @@ def ground_setup(spec, character: Character, traj: Trajectory) -> Ground:
         spec.contacts_per_body,
         spec.max_contacts,
         pgs_iterations=sweeps,
-        heading=facing(character),
+        axes=friction_axes(character, traj),
     )
 
 
-def facing(character: Character) -> np.ndarray | None:
-    """The character's facing (``anatomy.forward``), which orients the friction polygons of the
-    ground and of the capture's ground reaction forces; None without an anatomy (world axes)."""
+def friction_axes(character: Character, traj: Trajectory) -> np.ndarray | None:
+    """Each body's forward and left axes in its own frame, ``(B, 2, 3)``: the character's facing
+    (``anatomy.forward``) and ``up x forward`` in its most upright pose (``anatomy.reference_frame``),
+    carried into every body's frame there. They orient the friction polygon of each body's
+    contacts, on the ground and in the capture's ground reaction forces, so the polygon turns
+    with the body; None without an anatomy (world axes)."""
     anatomy = character.anatomy
-    return None if anatomy is None else np.asarray(anatomy.forward, np.float64)
+    if anatomy is None:
+        return None
+    model = character.model
+    forward = np.asarray(anatomy.forward, np.float64)
+    left = np.cross(np.asarray(up_direction(model)), forward)
+    time = jnp.asarray([anatomy.reference_frame * character.clip.frame_time], jnp.float64)
+    rot = np.asarray(grid_poses_jit(model, traj, time)[1][0])  # (B, 3, 3): body to world
+    return np.einsum("bji,aj->bai", rot, np.stack([forward, left]))
 
 
 def ground_scene(ground: Ground, settings: ContactSettings | None = None) -> ContactScene:

@@ -330,7 +330,8 @@ def _ground_record(setup: Setup) -> dict | None:
         "contacts_per_body": int(g.per_body),
         "max_contacts": int(g.max_contacts),
         "pgs_iterations": int(g.pgs_iterations),
-        "friction_heading": [float(x) for x in np.asarray(g.heading)],
+        # Each body's forward and left axes in its own frame: its friction polygon's orientation.
+        "friction_axes": np.asarray(g.axes, np.float64).tolist(),
     }
 
 

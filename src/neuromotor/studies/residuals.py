@@ -30,7 +30,7 @@ from neuromotor.physics import grf
 from neuromotor.physics.contact.detection import up_direction
 from neuromotor.physics.dynamics import Reference, StepOptions
 from neuromotor.rotations import matrix_to_quat
-from neuromotor.studies.ground import capture_floor, facing  # one floor rule, one set of feet, one facing
+from neuromotor.studies.ground import capture_floor, friction_axes  # one floor rule, one set of feet, one polygon rule
 
 FOOT = "foot"  # the mass model's segment of the feet (Character.body_segment)
 GRAVITY_FALLBACK = 9.81  # m/s^2: the body weight's g on a rig without gravity
@@ -88,7 +88,14 @@ def capture_residuals(
     up = np.asarray(up_direction(model))
     g = float(np.linalg.norm(np.asarray(model.gravity))) or GRAVITY_FALLBACK
     weight, stature = float(np.sum(model.mass)) * g, body_height(character, pos, rot, verts, valid)
-    ground = grf.solve_grf(required, contacts, com, up, weight, stature, mu, heading=facing(character))
+    local = friction_axes(character, traj)  # each body's axes, turned with it at every step
+    steps = np.arange(contacts.body.shape[0])[:, None]
+    axes = (
+        None
+        if local is None
+        else np.einsum("sgij,sgaj->sgai", np.asarray(rot)[steps, contacts.body], local[contacts.body])
+    )
+    ground = grf.solve_grf(required, contacts, com, up, weight, stature, mu, axes=axes)
     flight = ~np.any(contacts.height < grf.CONTACT_HEIGHT, axis=1)
     return Residuals(
         np.asarray(ref.time[:-1]),

@@ -16,10 +16,11 @@ resting on it. The defaults (8 per body, 16 in all) hold a whole sole (the mass 
 a hull of two rings of 8 vertices) of each foot.
 
 A contact's + side is the body (at the vertex), its - side the static world; the normal is
-``up``, and the friction polygon's first tangent is ``heading`` (the character's facing) in the
-plane, so the polygon turns with the character, not with the capture's axes. Every parameter of
-:class:`Ground` except the static counts is an array leaf (jit, vmap, grad over height,
-friction, restitution and heading).
+``up``, and the friction polygon's first tangent is the body's own facing axis in the plane
+(``Ground.axes``: each body's forward axis, and its left axis where the forward one stands near
+up, fixed in the body): the polygon turns with the foot that stands on it, not with the capture's
+axes or the character's first pose. Every parameter of :class:`Ground` except the static counts
+is an array leaf (jit, vmap, grad over height, friction, restitution and axes).
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ class Ground(eqx.Module):
     restitution: Float[Array, ""]  # Newton's coefficient e (0: no bounce)
     vertices: Float[Array, "B V 3"]  # each body's polyhedron vertices (body frame, from the joint origin), padded
     valid: Bool[Array, "B V"]  # False on padding
-    heading: Float[Array, " 3"]  # the friction polygon's first tangent, in the plane (zero: world axes)
+    axes: Float[Array, "B 2 3"]  # each body's forward and left axes (body frame; zero: world axes)
     per_body: int = eqx.field(static=True, default=DEFAULT_PER_BODY)  # nearest vertices per body (slots)
     max_contacts: int = eqx.field(static=True, default=DEFAULT_MAX_CONTACTS)  # slots kept per step (nearest)
     margin: float = eqx.field(static=True, default=DEFAULT_MARGIN)  # m: a contact this close is touching
@@ -82,11 +83,12 @@ def make_ground(
     max_contacts: int = DEFAULT_MAX_CONTACTS,
     margin: float = DEFAULT_MARGIN,
     pgs_iterations: int = DEFAULT_PGS_ITERATIONS,
-    heading=None,
+    axes=None,
 ) -> Ground:
     """A :class:`Ground` for bodies of the given shapes (one polyhedron, or an (N, 3) array of
-    points, per body; body frame); ``heading``: the character's facing (None: the friction
-    polygon on the world axes' tangents, :func:`~neuromotor.physics.contact.detection.tangent_basis`)."""
+    points, per body; body frame); ``axes`` (B, 2, 3): each body's forward and left axes in its
+    frame, which orient its contacts' friction polygons (None: the world axes' tangents,
+    :func:`~neuromotor.physics.contact.detection.tangent_basis`)."""
     verts = [np.asarray(getattr(s, "vertices", s), np.float64).reshape(-1, 3) for s in shapes]
     if not verts or min(len(v) for v in verts) < 1:
         raise ValueError("make_ground needs at least one point per body")
@@ -108,12 +110,20 @@ def make_ground(
         f(restitution),
         f(padded),
         jnp.asarray(valid),
-        f(np.zeros(3) if heading is None else heading),
+        f(np.zeros((len(verts), 2, 3)) if axes is None else np.broadcast_to(axes, (len(verts), 2, 3))),
         min(per_body, n),
         max_contacts,
         margin,
         pgs_iterations,
     )
+
+
+def friction_references(ground: Ground, body, rot) -> tuple[Float[Array, "K 3"], Float[Array, "K 3"]]:
+    """World forward and left axes of the bodies ``body`` (K,) at orientations ``rot`` (B, 3, 3):
+    the references of their contacts' friction polygons
+    (:func:`~neuromotor.physics.contact.detection.facing_basis`, in this order)."""
+    ref = jnp.einsum("kij,kaj->kai", rot[body], ground.axes[body])
+    return ref[:, 0], ref[:, 1]
 
 
 def vertex_heights(model: Model, ground: Ground, pos, rot):

@@ -84,7 +84,7 @@ from neuromotor.physics.contact.detection import (
     single_gap,
     up_direction,
 )
-from neuromotor.physics.contact.ground import Ground, ground_slots, vertex_gap
+from neuromotor.physics.contact.ground import Ground, friction_references, ground_slots, vertex_gap
 from neuromotor.physics.contact.lcp import lcp_residual, solve_gap_projection, solve_lcp_pgs
 from neuromotor.physics.contact.shapes import Capsules
 from neuromotor.physics.dynamics import Eq2, Params, SimModel, StepInfo, badness, equations_of_motion, hold, integrate
@@ -336,7 +336,7 @@ def _ground_frame(model: Model, ground: Ground, state: State, v_free, h: float, 
     _, sel = jax.lax.top_k(-slots.reach, n_keep)
     body = ground.slot_body[sel]
     nrm = jnp.broadcast_to(up_direction(model), (n_keep, 3))
-    t1, t2 = facing_basis(nrm, ground.heading)
+    t1, t2 = facing_basis(nrm, *friction_references(ground, body, state.rot))
     dirs = jnp.stack([nrm, t1, t2], 1)
     lever = slots.point[sel] - state.pos[body]
     col = jnp.concatenate([dirs, jnp.cross(lever[:, None, :], dirs)], -1)  # (K, 3, 6)
