@@ -349,6 +349,11 @@ def test_run_of_a_free_root_records_the_ground(flight):
     assert arrays["ground_body"].shape == (g,) and float(arrays["ground_height"]) == -50.0
     np.testing.assert_allclose(arrays["ground_gap"][0].min(), np.asarray(out.contact.gap)[0].min())
     assert provenance(setup)["root"] == "free" and provenance(setup)["ground"]["height"] == -50.0
+    # Each body's friction axes (forward, left) in its frame: recorded as used, orthonormal.
+    axes = np.array(provenance(setup)["ground"]["friction_axes"])
+    np.testing.assert_array_equal(axes, np.asarray(setup.ground.axes))
+    np.testing.assert_allclose(axes @ np.swapaxes(axes, 1, 2), np.broadcast_to(np.eye(2), (g // setup.ground.per_body, 2, 2)),
+                               atol=1e-12)
 
 
 def test_floor_is_the_lowest_foot_point_of_the_capture(flight):
