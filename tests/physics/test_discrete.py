@@ -178,3 +178,24 @@ def test_push_response_does_not_depend_on_the_euler_order(tmp_path):
     assert np.abs(a - b).max() < 1e-6 * peak, np.abs(a - b).max() / peak
     e_a, e_b = curves["euler", str(default_clip_path())], curves["euler", other]
     assert np.abs(e_a - e_b).max() > 1e-3 * e_a.max()
+
+
+def test_a_pushed_run_converges_at_first_order_in_h():
+    """Eq. 2's linearly implicit step is first order: a push's peak deviation approaches its
+    h -> 0 value with an error that halves with h (successive differences over h = 1/120, 1/240,
+    1/480 s in a ratio near 2), from below (the step's numerical damping shrinks the response).
+    docs/discrete.md, "The time step's error", states the default step's error from this law."""
+    from neuromotor.config import simulation_config
+    from neuromotor.studies.simulate import run
+
+    push = {"kind": "force", "body": "chest", "point": [0.0, 0.1, 0.0], "direction": [0.0, 0.0, 1.0],
+            "magnitude": 400.0, "start": 0.1, "duration": 0.1, "shape": "half_sine"}
+    peaks = []
+    for n in (120, 240, 480):
+        cfg = simulation_config({"sim": {"h": 1.0 / n, "duration": 0.4}, "perturbation": [push]}, "<test>")
+        peaks.append(run(prepare(cfg)).metrics["peak_deviation_deg"])
+    assert peaks[0] < peaks[1] < peaks[2]
+    ratio = (peaks[1] - peaks[0]) / (peaks[2] - peaks[1])
+    assert 1.6 < ratio < 2.4, (peaks, ratio)
+    limit = 2.0 * peaks[2] - peaks[1]  # Richardson
+    assert 0.10 < (limit - peaks[0]) / limit < 0.25, (peaks, limit)  # the default step: about 16 % low

@@ -11,7 +11,7 @@ Simulation config (every table and key optional)::
     simulate_extremities = false   # fingers, toes, face joints as simulated bodies
 
     [sim]
-    h = 0.008333333333333333       # time step (s)
+    h = 0.008333333333333333       # time step (s); amplitudes carry a first-order error (docs/discrete.md)
     start = 0.0                    # clip time of the first step (s)
     duration = 3.0                 # simulated seconds (default: to the clip's end; with still,
                                    # the clip's duration, and any duration is allowed)
