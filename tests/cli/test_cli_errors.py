@@ -140,3 +140,28 @@ def test_a_clip_too_short_for_the_spline_is_a_one_line_error(frames, tmp_path, c
         assert err.count("\n") == 0 and str(short) in err and f"{frames} frame(s)" in err, err
         assert "at least 4" in err and "Traceback" not in err and not out.exists()
     assert main(["inspect", str(clip(4))]) == 0
+
+
+def test_a_push_point_far_outside_its_body_is_warned_about():
+    """A pulse's point is metres in the body's frame: one written in cm (10 for 10 cm) is a 10 m
+    lever that turns the body hard with no error. It is warned about, naming the field, the body
+    and the distance; the shipped configs' points (up to 0.15 m on the trunk) and a point near a
+    small body (a hand) are not."""
+    from neuromotor.config import simulation_config
+    from neuromotor.model.load import load_character
+    from neuromotor.studies.simulate import body_lookup, point_warnings
+
+    character, _ = load_character()
+    index = body_lookup(character.model, "c.toml", character)
+
+    def warned(body, point):
+        push = {"kind": "force", "body": body, "point": point, "direction": [0.0, 0.0, 1.0], "magnitude": 10.0,
+                "start": 0.5, "duration": 0.1}
+        cfg = simulation_config({"perturbation": [push]}, "c.toml")
+        return point_warnings(cfg.perturbations, character, index, "c.toml")
+
+    (line,) = warned("chest", [0.0, 10.0, 0.0])
+    assert line.startswith("c.toml: perturbation[0].point is 10 m from Chest2's joint") and "reach" in line
+    assert warned("chest", [0.0, 0.15, 0.0]) == () and warned("chest", [0.0, 0.1, 0.0]) == ()
+    assert warned("LeftWrist", [0.0, -0.08, 0.0]) == ()  # on the hand
+    assert len(warned("LeftWrist", [0.0, -0.8, 0.0])) == 1  # a forearm's length beyond it

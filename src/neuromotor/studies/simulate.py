@@ -115,6 +115,30 @@ def step_warnings(ref: Reference, h: float, feedforward: Feedforward | str = Fee
     )
 
 
+def point_warnings(perturbations, character: Character, index, source: str = "config") -> tuple[str, ...]:
+    """A warning for each pulse applied at a point far outside its body (more than twice the
+    body's own reach from its joint, its polyhedron's farthest vertex, and 0.1 m beyond it): the
+    point is metres in the body's frame, and a point given in another unit makes a lever that
+    turns the body hard without any error."""
+    out = []
+    for i, p in enumerate(perturbations):
+        if p.point is None or p.body is None:
+            continue
+        b = index(p.body)
+        shape = character.shapes[b] if b < len(character.shapes) else None
+        if shape is None:
+            continue
+        reach = float(np.max(np.linalg.norm(np.asarray(shape.vertices, np.float64).reshape(-1, 3), axis=-1)))
+        dist = float(np.linalg.norm(np.asarray(p.point, np.float64)))
+        if dist > max(2.0 * reach, reach + 0.1):
+            name = character.model.body_names[b]
+            out.append(
+                f"{source}: perturbation[{i}].point is {dist:.3g} m from {name}'s joint, {dist / reach:.0f}x the "
+                f"body's reach ({reach:.2f} m): the push acts on a lever that long (metres, body frame)"
+            )
+    return tuple(out)
+
+
 def body_lookup(model: Model, source: str = "config", character: Character | None = None):
     """Name -> body index: a body (joint) name, or a segment keyword such as ``chest``."""
 
@@ -256,6 +280,7 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     gains = gains_for(template, config.gains, reflex=None if config.reflex is None else config.reflex.build(config.h))
     ball = ball_setup(config.ball, character, traj, index, config.source, still) if config.ball else None
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
+    warnings += point_warnings(config.perturbations, character, index, config.source)
     directions = direction_lookup(character, config.source, still)
     pulses = build_pulses(config.perturbations, model, config.h, index, directions, ref.time)
     ground = ground_setup(config.ground, character, capture) if config.ground_on else None
