@@ -39,6 +39,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=2.0)
     ap.add_argument("--h", type=float, default=1.0 / 120.0)
     ap.add_argument("--max-contacts", type=int, default=None, help="[ground] max_contacts (default 16)")
+    ap.add_argument("--pgs-iterations", type=int, default=None, help="[ground] pgs_iterations (default 40)")
     args = ap.parse_args()
     n = int(round(args.seconds / args.h))
     sim_jit = compiler.jit(simulate)
@@ -46,7 +47,8 @@ def main() -> None:
     driven = standing_setup(args.seconds, args.h, {"enabled": False}, root="driven")
     rows.append(("driven root, no contact (paper)", best(lambda: sim_jit(driven.sim_model, driven.params))))
     for label, bal in (("free root + ground + balance", None), ("free root + ground, no balance", {"enabled": False})):
-        ground = None if args.max_contacts is None else {"max_contacts": args.max_contacts}
+        ground = {"max_contacts": args.max_contacts, "pgs_iterations": args.pgs_iterations}
+        ground = {key: v for key, v in ground.items() if v is not None} or None
         s = standing_setup(args.seconds, args.h, bal, ground=ground)
         scene = ground_scene(s.ground)
         rows.append((label, best(lambda s=s, scene=scene: simulate_contact_jit(s.sim_model, s.params, scene))))

@@ -148,7 +148,7 @@ def test_keyword_direction_is_the_characters_backward(sled):
         (dict(SLED, magnitude=None), "field 'perturbation[0].magnitude' is required for a base pulse"),
         (dict(kind="force", body="chest", magnitude=1.0, unit="g"), "'perturbation[0].unit' does not apply to a force"),
         (dict(kind="force", body="chest", magnitude=1.0, file="a.csv"), "'perturbation[0].file' does not apply"),
-        (dict(SLED, tilt=5.0), "field 'perturbation[0].tilt' is not supported: a base motion translates"),
+        (dict(SLED, tilt=5.0), "field 'perturbation[0].tilt' is not read by a base motion, which translates"),
     ],
 )
 def test_config_errors_name_the_field(table, message):

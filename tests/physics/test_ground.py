@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+import re
 
 import equinox as eqx
 import jax
@@ -439,3 +440,149 @@ def test_platform_above_mu_g_drags_the_box_by_coulomb_friction(platform_runs):
     np.testing.assert_allclose(acc, -(0.6 - PLATFORM_MU) * G, rtol=0.01)  # a - mu g, backwards
     np.testing.assert_allclose(np.diff(vx) / H, PLATFORM_MU * G, rtol=0.01)  # friction's mu g forwards
     np.testing.assert_allclose(_weight_ratio(fast), 1.0, rtol=1e-9)
+
+
+# A tilt (issue 38): the platform turns about a pivot under the box (about z: +x goes up). Below
+# the friction angle (tan 10 deg = 0.18 < mu = 0.3) the box turns with it and stays put on it;
+# above (tan 30 deg = 0.58) it slides down the slope at g (sin a - mu cos a) once the tilt is held.
+TILT_STEPS, TILT_MU, TILT_START, TILT_TIME = 120, 0.3, 0.1, 0.4
+TILTS = (0.0, 10.0, 30.0)  # deg
+
+
+@pytest.fixture(scope="module")
+def tilt_runs(box):
+    from neuromotor.physics.perturbation import tilt_motion
+
+    sim, params, shapes, _ = box
+    sim = eqx.tree_at(lambda s: s.options, sim, dataclasses.replace(sim.options, n_steps=TILT_STEPS))
+    ground = ct.make_ground(shapes, 0.0, TILT_MU, 0.0, axes=BOX_AXES)
+    scene = ct.ContactScene(None, None, ct.ContactSettings(), ground)
+    still = jax.jit(ct.simulate_contact)(sim, params, scene)
+    times = np.asarray(sim.ref.time[: TILT_STEPS + 1])
+    t0 = float(times[0])
+    motions = [
+        tilt_motion([dict(direction=[0.0, 0.0, 1.0], magnitude=a, start=t0 + TILT_START, duration=TILT_TIME,
+                          shape="half_sine")], times, H, pivot=np.zeros(3))
+        for a in TILTS
+    ]
+    turn, spin = (jnp.asarray(np.stack([m[i] for m in motions])) for i in (0, 1))
+
+    def one(q, w):
+        zero = jnp.zeros((TILT_STEPS + 1, 3))
+        pulses = dataclasses.replace(params.pulses, base_velocity=zero, base_offset=zero, base_turn=q, base_spin=w,
+                                     base_pivot=jnp.zeros(3))
+        return ct.simulate_contact(sim, dataclasses.replace(params, pulses=pulses), scene)
+
+    out = jax.jit(jax.vmap(one))(turn, spin)
+    return still, [jax.tree_util.tree_map(lambda x, i=i: x[i], out) for i in range(len(TILTS))], sim, ground
+
+
+def _turned(deg):
+    a = np.deg2rad(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_a_level_tilt_is_the_still_ground(tilt_runs):
+    """A zero tilt (the program with the tilt's terms) gives the still ground's run to round-off."""
+    still, (zero, *_), _, _ = tilt_runs
+    for a, b in zip(jax.tree_util.tree_leaves(still), jax.tree_util.tree_leaves(zero)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
+
+
+def test_a_tilt_below_the_friction_angle_carries_the_box(tilt_runs):
+    _, (_, small, _), sim, ground = tilt_runs
+    r = _turned(TILTS[1])
+    states = small.run.states
+    rot = np.asarray(quat_to_matrix(states.quat[-1, 0]))
+    assert np.abs(rot - r).max() < 1e-6  # turned with the platform, not slid or rocked
+    np.testing.assert_allclose(np.asarray(states.pos[-1, 0]), r @ np.array([0.0, HALF[1], 0.0]), atol=1e-6)
+    # Held on the tilted plane: the ground's impulses / h carry the weight, straight up.
+    k = int(round((TILT_START + TILT_TIME + 0.1) / H))
+    force = np.einsum("tcj->tj", np.asarray(small.contact.impulse[k:])) / H
+    np.testing.assert_allclose(force, np.broadcast_to([0.0, MASS * G, 0.0], force.shape), rtol=0, atol=1e-6)
+    # On the plane, never below it by more than 1e-9 m (its normal turned: the gap along it).
+    gaps = np.asarray(small.contact.gap)
+    assert gaps.min() > -1e-9
+
+
+def test_a_tilt_beyond_the_friction_angle_slides_the_box_at_the_coulomb_rate(tilt_runs):
+    _, (_, _, steep), _, _ = tilt_runs
+    a = np.deg2rad(TILTS[2])
+    down = -_turned(TILTS[2])[:, 0]  # down the slope: -R x
+    k = int(round((TILT_START + TILT_TIME + 0.1) / H))
+    v = np.asarray(steep.run.states.vel[k:, 0]) @ down
+    np.testing.assert_allclose(np.diff(v) / H, G * (np.sin(a) - TILT_MU * np.cos(a)), rtol=0.01)
+    normal = np.asarray(steep.contact.normal_impulse[k + 1 :]).sum(-1) / H
+    np.testing.assert_allclose(normal, MASS * G * np.cos(a), rtol=1e-6)
+
+
+def test_tilt_config_is_checked():
+    """A tilt needs a free root on the ground; a base motion names kind = "tilt" for a tilt's fields."""
+    tilt = {"kind": "tilt", "direction": "right", "magnitude": 4.0}
+    bad = [
+        ({"perturbation": [tilt]}, "perturbation[0].kind"),  # the driven root stands on nothing
+        ({"sim": {"root": "free"}, "ground": {"enabled": False}, "perturbation": [tilt]}, "perturbation[0].kind"),
+        ({"sim": {"root": "free"}, "perturbation": [{**tilt, "unit": "g"}]}, "perturbation[0].unit"),
+        ({"sim": {"root": "free"}, "perturbation": [{**tilt, "pivot": [0.0, 1.0]}]}, "perturbation[0].pivot"),
+        ({"sim": {"root": "free"}, "perturbation": [{"kind": "tilt", "magnitude": 4.0}]}, "perturbation[0].direction"),
+        # One platform: one pivot for all its tilts; the ball's ground does not tilt.
+        ({"sim": {"root": "free"}, "perturbation": [tilt, {**tilt, "pivot": [0.0, 0.0, 0.1]}]}, "perturbation[1].pivot"),
+        ({"sim": {"root": "free"}, "perturbation": [tilt], "ball": {"radius": 0.1, "mass": 1.0, "speed": 5.0,
+                                                                    "position": [0.0, 1.0, 2.0], "target": "chest"}},
+         "perturbation[0].kind"),
+        ({"sim": {"root": "free"}, "perturbation": [{"kind": "base", "unit": "g", "magnitude": 0.1, "tilt": 4.0}]},
+         "perturbation[0].tilt"),
+    ]
+    for data, field in bad:
+        with pytest.raises(ConfigError, match=rf"field '{re.escape(field)}'"):
+            simulation_config(data, "x.toml")
+    with pytest.raises(ConfigError, match='kind = "tilt"'):
+        simulation_config(bad[-1][0], "x.toml")
+
+
+def test_a_toes_up_tilt_turns_the_standing_feet_with_the_ground():
+    """The embedded clip's standing pose on a free root, the ground turned 4 deg toes-up about the
+    point under the COM: the feet turn with it and stay on it, the body does not fall, and the
+    run's file holds the ground's orientation and pivot as used (the viewer and the pictures
+    draw the ground from them)."""
+    from neuromotor.io.runfile import check_run
+    from neuromotor.rotations import quat_log
+    from neuromotor.studies.standing import standing_pose
+
+    path, character, traj, still = standing_pose()
+    tilt = {"kind": "tilt", "direction": "right", "magnitude": 4.0, "duration": 0.25, "start": 0.3}
+    data = {"clip": path, "sim": {"root": "free", "still": still, "duration": 1.2}, "perturbation": [tilt]}
+    setup = prepare(simulation_config(data, "tilt.toml"), character, traj)
+    result = run(setup)
+    assert not result.metrics["fell"] and not result.metrics["diverged"]
+    arrays = run_arrays(setup, result)
+    check_run("tilt.npz", arrays)
+    pivot, turn = arrays["ground_pivot"], arrays["ground_turn"]
+    np.testing.assert_allclose(pivot, setup.tilt_pivot, rtol=0, atol=0)
+    up = -np.asarray(setup.model.gravity) / np.linalg.norm(np.asarray(setup.model.gravity))
+    assert pivot @ up == pytest.approx(float(setup.ground.height), abs=1e-12)  # on the ground
+    right = -np.cross(up, np.asarray(character.anatomy.forward, float))
+    right /= np.linalg.norm(right)
+    np.testing.assert_allclose(np.asarray(quat_log(jnp.asarray(turn[-1]))), np.deg2rad(4.0) * right, atol=1e-12)
+    record = provenance(setup)["perturbations"][0]
+    assert record["pivot"] == pytest.approx(list(pivot)) and not record["pivot_given"]
+    # Each foot pitched with the ground: against the unperturbed run's at the end, its turn about
+    # the right axis is the tilt's 4 deg to 1 deg (measured 4.0 and 4.7: the second foot stands on
+    # part of its sole and rolls a little, as it does in the unperturbed run).
+    pert, still_run = (np.asarray(r.states.quat) for r in (result.perturbed, result.unperturbed))
+    for b in foot_bodies(character):
+        rel = quat_mul(jnp.asarray(pert[-1, b]), jnp.asarray(still_run[-1, b]) * jnp.array([1.0, -1.0, -1.0, -1.0]))
+        assert np.degrees(np.asarray(quat_log(rel)) @ right) == pytest.approx(4.0, abs=1.0)
+    assert np.asarray(result.ground.contact.gap)[1:].min() > -1e-3  # never more than 1 mm into the turned plane
+    # The pictures draw that plane: the perturbed figure's ground turned about the pivot (the
+    # original's level), the viewer's with the same quaternions in its own axes.
+    from neuromotor.viz.html import viewer_data
+    from neuromotor.viz.scene import Scene
+
+    scene = Scene(arrays)
+    assert scene.ground == float(setup.ground.height)
+    normal = np.asarray(quat_to_matrix(jnp.asarray(turn[-1]))) @ up
+    for k, n in ((None, up), (len(turn) - 1, normal)):
+        pts = np.asarray(scene.ground_mesh(pivot, 1.0, k).points)
+        np.testing.assert_allclose((pts - pivot) @ n, 0.0, atol=1e-5)  # float32 points
+    assert viewer_data(arrays)["tilt"]["pivot"] == pytest.approx(list(pivot[[0, 1, 2]]))  # Y up: the same axes

@@ -287,14 +287,16 @@ GROUND_FIGURES = ("ground_peak_force_N", "ground_contact_fraction", "sway_rms_mm
 
 def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):
     """A free root standing on the ground (the postural loop and the assist on) on a moving
-    platform (a base motion moves the ground): each row of a 2-row sweep, and experiment's run and its one-row
-    sweep, equal ``neuromotor simulate`` (d(t) to 1e-10 deg, the ground and balance metrics to
-    1e-9); a fit, whose forward model has no contact, refuses it naming the field."""
+    platform that tilts (the sweep varies the tilt's angle) and translates (a base motion moves
+    the ground): each row of a 2-row sweep, and experiment's run and its one-row sweep, equal
+    ``neuromotor simulate`` (d(t) to 1e-10 deg, the ground and balance metrics to 1e-9); a fit,
+    whose forward model has no contact, refuses it naming the field."""
     from neuromotor.config.parse import fit_spec
 
+    tilt = dict(kind="tilt", direction="right", magnitude=2.0, shape="half_sine", duration=0.15, start=0.8)
     platform = dict(kind="base", direction="backward", unit="m/s^2", magnitude=2.0, shape="half_sine",
                     duration=0.15, start=0.85)
-    data = config_data([platform], options={"root": "free", "still": 12.567, "duration": 0.3})
+    data = config_data([tilt, platform], options={"root": "free", "still": 12.567, "duration": 0.3})
     data["balance"] = {"assist": 20.0}  # its target rides on each row's own platform
     data["ground"] = {"pgs_iterations": 30}  # the sweep's program solves with the config's sweep count
     cfg = simulation_config(data, "platform.toml")
@@ -302,7 +304,9 @@ def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):
     grid = sw.simulate_grid(cfg, spec, prepare(cfg, *character), progress=False, keep_curves=True)
     assert len(grid.rows) == 2
     for m, row, curve in zip(spec.magnitudes, grid.rows, grid.curves):
-        single = dataclasses.replace(cfg, perturbations=[dataclasses.replace(cfg.perturbations[0], magnitude=m)])
+        single = dataclasses.replace(
+            cfg, perturbations=[dataclasses.replace(cfg.perturbations[0], magnitude=m), cfg.perturbations[1]]
+        )
         setup = prepare(single, *character)
         result = run(setup)
         metrics = result.metrics

@@ -94,7 +94,7 @@ def parse_perturbation(table, where: str, source: str, base_dir=None) -> Perturb
             if name in table:
                 f.fail(
                     name,
-                    "is not supported: a base motion translates (along direction); platform tilts are not modelled",
+                    'is not read by a base motion, which translates (along direction): a tilt is kind = "tilt"',
                 )
         if values["file"] is None:
             for name in ("time_unit",):

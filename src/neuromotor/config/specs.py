@@ -131,14 +131,15 @@ class PerturbationSpec(_KeyView):
     which fields a kind requires is :data:`REQUIRED`."""
 
     # Keys absent while None (a base motion has no body; a pulse no file), as in the TOML table.
-    _optional: ClassVar[tuple[str, ...]] = ("body", "magnitude", "file", "unit", "record")
+    _optional: ClassVar[tuple[str, ...]] = ("body", "magnitude", "file", "unit", "record", "pivot")
 
     kind: str = dataclasses.field(default="force", metadata=_rule("choice", choices=_perturbation.KINDS))
     # A body (joint) name, or a segment keyword (chest); required by the kinds that push a body.
     body: str | None = dataclasses.field(default=None, metadata=_rule("body"))
     # Body frame, m, from the joint origin; None: the body's COM.
     point: list[float] | None = dataclasses.field(default=None, metadata=_rule("vector"))
-    # World, or a keyword of the character's frame at ``start`` (forward, backward, left, right, up, down).
+    # World, or a keyword of the character's frame at ``start`` (forward, backward, left, right, up,
+    # down); a tilt's axis (right-hand rule: right tilts the toes up).
     direction: list[float] | str = dataclasses.field(
         default_factory=lambda: [1.0, 0.0, 0.0], metadata=_rule("direction")
     )
@@ -148,6 +149,9 @@ class PerturbationSpec(_KeyView):
     start: float = dataclasses.field(default=1.0, metadata=_rule("nonneg"))  # s, clip time
     duration: float = dataclasses.field(default=0.1, metadata=_rule("positive"))  # s
     shape: str = dataclasses.field(default="half_sine", metadata=_rule("choice", choices=_perturbation.SHAPES))
+    # A tilt: the point it turns the ground about (world, m); None: the ground point under the
+    # whole-body COM of the run's first pose.
+    pivot: list[float] | None = dataclasses.field(default=None, metadata=_rule("vector"))
     # A base motion: a CSV of time and acceleration (instead of magnitude, shape and duration), the
     # acceleration's unit (g or m/s^2, required) and the file's time unit. The file's time 0 sits
     # at ``start``.
@@ -199,12 +203,14 @@ class PerturbationSpec(_KeyView):
         what = f"{self.shape} pulse" if self.reads(self.kind, "shape") else self.kind
         if self.kind == "base":
             what = f"{self.shape} base pulse"
+        if self.kind == "tilt":
+            what = f"{self.shape} tilt"
         return f"{m:g} {self.magnitude_unit} {what}"
 
     @property
     def place(self) -> str:
-        """Where it acts, for titles: "on Chest2", or "on the base" (a base motion)."""
-        return "on the base" if self.kind == "base" else f"on {self.body}"
+        """Where it acts, for titles: "on Chest2", "on the base" (a base motion), "of the ground"."""
+        return {"base": "on the base", "tilt": "of the ground"}.get(self.kind, f"on {self.body}")
 
     @property
     def span(self) -> float:
@@ -226,7 +232,12 @@ class PerturbationSpec(_KeyView):
 
 
 # The fields a kind cannot go without (a base pulse also needs magnitude; a recorded one a file).
-REQUIRED = {"force": ("body", "magnitude"), "impulse": ("body", "magnitude"), "base": ("unit",)}
+REQUIRED = {
+    "force": ("body", "magnitude"),
+    "impulse": ("body", "magnitude"),
+    "base": ("unit",),
+    "tilt": ("direction", "magnitude"),
+}
 
 
 def onset(perturbations, ball=None, default: float | None = None) -> float:
@@ -460,6 +471,28 @@ class SimulationConfig:
         object.__setattr__(self, "ball", BallSpec.of(self.ball))
         if self.root not in ROOT_MODES:
             raise ConfigError(f"{self.source}: field 'sim.root' must be one of {list(ROOT_MODES)}, got {self.root!r}")
+        self._check_tilts()
+
+    def _check_tilts(self) -> None:
+        """A tilt turns the ground under a free root: one platform (one pivot), no ball (whose
+        ground does not tilt)."""
+        tilts = [(i, p) for i, p in enumerate(self.perturbations) if p.kind == "tilt"]
+        for i, _ in tilts:
+            where = f"{self.source}: field 'perturbation[{i}].kind'"
+            if not (self.root == "free" and self.ground_on):
+                raise ConfigError(
+                    f'{where}: a tilt turns the ground under the feet, which needs [sim] root = "free" '
+                    "with the ground on (a driven root stands on nothing)"
+                )
+            if self.ball is not None:
+                raise ConfigError(f"{where}: a tilt with a [ball] is not modelled (the ball's ground does not tilt)")
+        pivots = {None if p.pivot is None else tuple(float(x) for x in p.pivot) for _, p in tilts}
+        if len(pivots) > 1:
+            i = tilts[-1][0]
+            raise ConfigError(
+                f"{self.source}: field 'perturbation[{i}].pivot': the tilts of a run turn one platform: "
+                "give every tilt the same pivot, or none (the default)"
+            )
 
     @property
     def ground_on(self) -> bool:

@@ -17,7 +17,10 @@ The file is a plain NumPy ``.npz`` (no pickles). Its fields, by group:
   and ``ball_radius`` (scalar > 0), which come together, ``contact_force`` (T, C, 3) and
   ``body_names`` (B,), ``deviation`` (T,) the deviation d(t) in degrees that the metrics were
   computed from, ``base_offset`` (T, 3) the base motion's displacement of the driven root
-  (with a free root on a ground: of the ground, a platform) (world, m), and
+  (with a free root on a ground: of the ground, a platform) (world, m), ``ground_height``
+  (scalar, m) a ground's level height along up, ``ground_turn`` (T, 4) and ``ground_pivot`` (3,)
+  a tilted ground's orientation (unit quaternions w, x, y, z, world) and the point it turns about
+  (world, m), which come with ``ground_height``, and
   ``deviation_metric`` its definition (a string: ``geodesic`` or ``euler``, see
   :mod:`neuromotor.studies.metrics`; files without them are drawn with the Euler form),
   ``clip_still`` (scalar, s) the clip time of the pose a ``[sim] still`` run holds (absent: the
@@ -77,6 +80,9 @@ OPTIONAL_FIELDS = (
     "deviation",
     "deviation_metric",
     "base_offset",
+    "ground_turn",
+    "ground_pivot",
+    "ground_height",
     "clip_still",
     "assist_force",
     "assist_point",
@@ -353,6 +359,20 @@ class _Checker:
         if "base_offset" in d:
             self.shape("base_offset", (T, 3))
             self.finite("base_offset")
+        if "ground_height" in d:
+            self.shape("ground_height", ())
+            self.finite("ground_height")
+        if "ground_turn" in d or "ground_pivot" in d:
+            for name in ("ground_turn", "ground_pivot", "ground_height"):
+                if name not in d:
+                    fail(name, "is missing: ground_turn, ground_pivot and ground_height come together")
+            self.shape("ground_turn", (T, 4))
+            self.shape("ground_pivot", (3,))
+            self.finite("ground_turn")
+            self.finite("ground_pivot")
+            norm = np.linalg.norm(np.asarray(d["ground_turn"], float), axis=-1)
+            if np.abs(norm - 1.0).max() > 1e-6:
+                fail("ground_turn", "must hold unit quaternions")
         if any(f in d for f in RESIDUAL_FIELDS):
             self.residuals(T)
         if "assist_force" in d or "assist_point" in d:

@@ -16,7 +16,15 @@ does not anticipate the jolt). On the grid t_k it is the root's added velocity V
 own position update, so a base-motion run equals the unperturbed frame's run under the inertial
 forces -m_b (V_k+1 - V_k) / h on every body to round-off (tests/physics/test_base_motion.py).
 Under a free root on a ground the same V_k and D_k move the ground instead (a platform:
-:class:`neuromotor.physics.contact.step.GroundMotion`), translation only.
+:class:`neuromotor.physics.contact.step.GroundMotion`).
+
+A tilt (kind ``tilt``, a free root only) turns that ground about an axis through ``pivot`` (world,
+m; default the ground point under the whole-body COM of the run's first pose): ``magnitude``
+degrees about ``direction`` (right-hand rule: about ``right``, toes up), reached over
+``duration`` with the angular velocity's ``shape``, then held. Several tilts add their rotation
+vectors. On the grid the platform's orientation R_k is exact (``base_turn``, unit quaternions) and
+its angular velocity over step k is the secant ``Omega_k+1 = log(R_k+1 R_k^T) / h``
+(``base_spin``), so R_k+1 = exp(h Omega_k+1) R_k: the step's own update, as for D_k.
 
 Every field is an array leaf with a leading axis P (several pulses per run; the shape too, as an
 index into :data:`SHAPES`), so a batch of magnitudes, directions, bodies, start times or shapes is
@@ -45,8 +53,10 @@ KIND_FIELDS = {
     "force": ("body", "point", "direction", "magnitude", "start", "duration", "shape"),
     "impulse": ("body", "point", "direction", "magnitude", "start"),
     "base": ("direction", "magnitude", "start", "duration", "shape", "file", "unit", "time_unit"),
+    "tilt": ("direction", "magnitude", "start", "duration", "shape", "pivot"),
 }
-UNITS = {"force": "N", "impulse": "N s", "base": "m/s^2"}
+UNITS = {"force": "N", "impulse": "N s", "base": "m/s^2", "tilt": "deg"}
+PLATFORM_KINDS = ("base", "tilt")  # kinds that move what the character stands on, not a body
 KINDS = tuple(KIND_FIELDS)
 STANDARD_GRAVITY = 9.80665  # m/s^2 per g (the unit of accelerations, not the model's gravity)
 ACCELERATION_UNITS = {"g": STANDARD_GRAVITY, "m/s^2": 1.0}  # SI per unit
@@ -75,6 +85,12 @@ class ForcePulses(eqx.Module):
     # V_k and displacement D_k; None: no base motion.
     base_velocity: Float[Array, "S1 3"] | None = None
     base_offset: Float[Array, "S1 3"] | None = None
+    # A tilt of the ground (free root): its orientation R_k (unit quaternions), its angular
+    # velocity Omega_k over the step ending at t_k (world, rad/s; Omega_0 = 0) and the point it
+    # turns about (world, m); None: no tilt. A tilt comes with a (possibly zero) base motion.
+    base_turn: Float[Array, "S1 4"] | None = None
+    base_spin: Float[Array, "S1 3"] | None = None
+    base_pivot: Float[Array, " 3"] | None = None
 
     @property
     def count(self) -> int:
@@ -100,7 +116,9 @@ def vector_direction(value, time: float) -> np.ndarray:
     return direction / norm
 
 
-def build_pulses(specs, model, h: float, body_index, direction_of=vector_direction, times=None) -> ForcePulses:
+def build_pulses(
+    specs, model, h: float, body_index, direction_of=vector_direction, times=None, pivot=None
+) -> ForcePulses:
     """The one way from the user's perturbations to the arrays the step consumes.
 
     ``specs``: mappings with every field of :class:`neuromotor.config.specs.PerturbationSpec`
@@ -109,16 +127,25 @@ def build_pulses(specs, model, h: float, body_index, direction_of=vector_directi
     square pulse of one step ``h`` and magnitude / h newtons. ``body_index`` maps a name to an
     index; ``direction_of(value, start)`` a direction (3 numbers or a keyword of the character's
     frame, taken at the perturbation's start) to a world unit vector. Base motions need the grid
-    ``times`` (t_0..t_S, s; :func:`base_motion`).
+    ``times`` (t_0..t_S, s; :func:`base_motion`); a tilt without its own ``pivot`` turns about
+    ``pivot`` (world, m: the setup's default).
     """
     bases = [s for s in specs if s["kind"] == "base"]
-    pulses = _force_pulses([s for s in specs if s["kind"] != "base"], model, h, body_index, direction_of)
-    if not bases:
+    tilts = [s for s in specs if s["kind"] == "tilt"]
+    pulses = _force_pulses([s for s in specs if s["kind"] not in PLATFORM_KINDS], model, h, body_index, direction_of)
+    if not bases and not tilts:
         return pulses
     if times is None:
-        raise ValueError("a base motion needs the simulation grid (times)")
-    velocity, offset = base_motion(bases, np.asarray(times, np.float64), h, direction_of)
-    return dataclasses.replace(pulses, base_velocity=jnp.asarray(velocity), base_offset=jnp.asarray(offset))
+        raise ValueError("a base motion or a tilt needs the simulation grid (times)")
+    times = np.asarray(times, np.float64)
+    velocity, offset = base_motion(bases, times, h, direction_of)
+    pulses = dataclasses.replace(pulses, base_velocity=jnp.asarray(velocity), base_offset=jnp.asarray(offset))
+    if not tilts:
+        return pulses
+    turn, spin, centre = tilt_motion(tilts, times, h, direction_of, pivot)
+    return dataclasses.replace(
+        pulses, base_turn=jnp.asarray(turn), base_spin=jnp.asarray(spin), base_pivot=jnp.asarray(centre)
+    )
 
 
 def _force_pulses(specs, model, h: float, body_index, direction_of) -> ForcePulses:
@@ -196,12 +223,57 @@ def base_motion(specs, times: np.ndarray, h: float, direction_of=vector_directio
     return velocity, offset
 
 
+def _quat_exp(r: np.ndarray) -> np.ndarray:
+    angle = np.linalg.norm(r, axis=-1, keepdims=True)
+    axis = np.divide(r, angle, out=np.zeros_like(r), where=angle > 0)
+    return np.concatenate([np.cos(0.5 * angle), np.sin(0.5 * angle) * axis], -1)
+
+
+def _quat_log(q: np.ndarray) -> np.ndarray:
+    q = np.where(q[..., :1] < 0, -q, q)
+    s = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, q[..., :1])
+    return np.divide(angle * q[..., 1:], s, out=np.zeros_like(q[..., 1:]), where=s > 0)
+
+
+def _quat_mul_conj(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """p q^-1 for unit quaternions (w, x, y, z)."""
+    w1, v1, w2, v2 = p[..., :1], p[..., 1:], q[..., :1], -q[..., 1:]
+    return np.concatenate([w1 * w2 - np.sum(v1 * v2, -1, keepdims=True), w1 * v2 + w2 * v1 + np.cross(v1, v2)], -1)
+
+
+def tilt_motion(specs, times: np.ndarray, h: float, direction_of=vector_direction, pivot=None):
+    """The tilts ``specs`` on the grid ``times`` (S+1,) (module docstring): the platform's
+    orientation R_k as unit quaternions (S+1, 4), its secant angular velocity Omega_k (S+1, 3;
+    Omega_0 = 0) and the pivot (3,). All tilts of a run share one pivot (one platform)."""
+    rotvec = np.zeros((times.shape[0], 3))
+    centres: list[np.ndarray | None] = []
+    for s in specs:
+        axis = direction_of(s["direction"], float(s["start"]))
+        duration = float(s["duration"])
+        fraction = profile_integral(s["shape"], (times - float(s["start"])) / duration)
+        fraction = fraction / profile_integral(s["shape"], 1.0)  # 0 before, 1 from start + duration on
+        rotvec += np.deg2rad(float(s["magnitude"])) * fraction[:, None] * axis
+        c = s.get("pivot") if s.get("pivot") is not None else pivot
+        centres.append(None if c is None else np.asarray(c, np.float64))
+    given = [c for c in centres if c is not None]
+    if len(given) < len(centres):
+        raise ValueError("a tilt needs a pivot (give pivot, or build it with the setup's default)")
+    if any(np.abs(c - given[0]).max() > 1e-12 for c in given):
+        raise ValueError("the tilts of a run turn one platform: give them one pivot")
+    turn = _quat_exp(rotvec)
+    spin = np.zeros_like(rotvec)
+    spin[1:] = _quat_log(_quat_mul_conj(turn[1:], turn[:-1])) / h
+    return turn, spin, given[0]
+
+
 def stack_runs(runs) -> ForcePulses:
     """Runs' perturbations stacked along a new leading axis: runs with fewer pulses are padded
     with zero-magnitude ones (no force), runs without a base motion get a zero one when another
     has one, so cases of any kinds share one program."""
     n = max(r.count for r in runs)
     grid = next((r.base_velocity.shape for r in runs if r.base_velocity is not None), None)
+    tilted = next((r for r in runs if r.base_turn is not None), None)
     padded = []
     for r in runs:
         extra = n - r.count
@@ -218,6 +290,9 @@ def stack_runs(runs) -> ForcePulses:
             r = dataclasses.replace(r, **{f: jnp.concatenate([getattr(r, f), getattr(pad, f)]) for f in POINT_FIELDS})
         if grid is not None and r.base_velocity is None:
             r = dataclasses.replace(r, base_velocity=jnp.zeros(grid), base_offset=jnp.zeros(grid))
+        if tilted is not None and r.base_turn is None:  # level and still, about the same pivot
+            still = jnp.zeros((grid[0], 4)).at[:, 0].set(1.0)  # type: ignore[index]
+            r = dataclasses.replace(r, base_turn=still, base_spin=jnp.zeros(grid), base_pivot=tilted.base_pivot)
         padded.append(r)
     return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *padded)
 
@@ -226,13 +301,16 @@ POINT_FIELDS = ("body", "point", "direction", "magnitude", "start", "duration", 
 
 
 def unperturbed(p: ForcePulses) -> ForcePulses:
-    """The unperturbed twin: the same pulses at zero magnitude and a zero base motion (same
-    shapes, one program)."""
+    """The unperturbed twin: the same pulses at zero magnitude, a zero base motion and a level,
+    still platform (same shapes, one program)."""
     if p.base_velocity is None or p.base_offset is None:
         return dataclasses.replace(p, magnitude=p.magnitude * 0)
-    return dataclasses.replace(
+    p = dataclasses.replace(
         p, magnitude=p.magnitude * 0, base_velocity=p.base_velocity * 0, base_offset=p.base_offset * 0
     )
+    if p.base_turn is None or p.base_spin is None:
+        return p
+    return dataclasses.replace(p, base_turn=jnp.zeros_like(p.base_turn).at[..., 0].set(1.0), base_spin=p.base_spin * 0)
 
 
 def pulse_profile(shape, s):

@@ -137,6 +137,17 @@ def lcp_figures(step_residual, touching) -> dict:
     return {"max_lcp_residual_mps": float(r.max()), "lcp_residual_p95_mps": float(np.percentile(r, 95))}
 
 
+def tilt_pivot(model, ref, ground: Ground | None) -> np.ndarray | None:
+    """Where a tilt turns the ground unless its ``pivot`` says otherwise: the ground point under
+    the whole-body COM of the run's first pose (world, m; None without a ground)."""
+    if ground is None:
+        return None
+    mass = np.asarray(model.mass, np.float64)
+    com = mass @ np.asarray(ref.init.pos, np.float64) / mass.sum()
+    up = -np.asarray(model.gravity, np.float64) / np.linalg.norm(np.asarray(model.gravity))
+    return com - (com @ up - float(ground.height)) * up
+
+
 def moves_ground(setup) -> bool:
     """Whether a base motion moves the ground (a platform): a free root, a ground, a base motion."""
     return setup.options.free_root and setup.ground is not None and setup.pulses.base_offset is not None

@@ -228,6 +228,9 @@ def run_arrays(setup: Setup, result: RunResult, residuals: bool | None = None) -
     )
     if setup.pulses.base_offset is not None:  # the driven root's added path (world, m): the sled's
         arrays["base_offset"] = np.asarray(setup.pulses.base_offset)[: arrays["time"].shape[0]]
+    if setup.pulses.base_turn is not None:  # a tilted ground: its orientation per sample, its pivot
+        arrays["ground_turn"] = np.asarray(setup.pulses.base_turn)[: arrays["time"].shape[0]]
+        arrays["ground_pivot"] = np.asarray(setup.pulses.base_pivot)
     if getattr(result, "ball", None) is not None:
         from neuromotor.studies.ball_hit import ball_arrays
 
@@ -295,6 +298,19 @@ def _perturbation_records(setup: Setup) -> list[dict]:
             "duration": float(spec.span),  # an impulse: 0 (it acts within one step)
             "shape": spec.shape if spec.reads(spec.kind, "shape") and not spec.recorded else None,
         }
+        if spec.kind == "tilt":  # the axis as used, the pivot as used
+            axis = direction_of(spec.direction, float(spec.start))
+            assert p.base_pivot is not None
+            perts.append(
+                {
+                    **common,
+                    "direction": _floats(axis),
+                    "direction_given": spec.direction,
+                    "pivot": _floats(np.asarray(p.base_pivot)),
+                    "pivot_given": spec.pivot is not None,
+                }
+            )
+            continue
         if spec.kind == "base":
             direction = direction_of(spec.direction, float(spec.start))
             acting = spec.acting(setup.options.h)

@@ -50,7 +50,14 @@ from neuromotor.studies import metrics as mx
 from neuromotor.studies.balance import balance_for, balance_metrics, fold_support
 from neuromotor.studies.ball_hit import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies.gains import gains_for
-from neuromotor.studies.ground import ground_metrics, ground_rollouts, ground_setup, lcp_figures, platform_offset
+from neuromotor.studies.ground import (
+    ground_metrics,
+    ground_rollouts,
+    ground_setup,
+    lcp_figures,
+    platform_offset,
+    tilt_pivot,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,6 +93,11 @@ class Setup:
         """(direction, clip time) -> world unit vector for this setup's character (a held pose:
         its frame): the one lookup every command builds its perturbations with."""
         return direction_lookup(self.character, self.config.source, self.config.still)
+
+    @property
+    def tilt_pivot(self) -> np.ndarray | None:
+        """Where a tilt without its own ``pivot`` turns this setup's ground (every command's)."""
+        return tilt_pivot(self.model, self.ref, self.ground)
 
     @property
     def params(self) -> Params:
@@ -282,8 +294,9 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
     warnings += point_warnings(config.perturbations, character, index, config.source)
     directions = direction_lookup(character, config.source, still)
-    pulses = build_pulses(config.perturbations, model, config.h, index, directions, ref.time)
     ground = ground_setup(config.ground, character, capture) if config.ground_on else None
+    pivot = tilt_pivot(model, ref, ground)
+    pulses = build_pulses(config.perturbations, model, config.h, index, directions, ref.time, pivot)
     if config.balance_on:  # the postural loop of the held (first) pose: neuromotor.physics.balance
         bal = balance_for(character, ref.init, config.h, **config.balance.values())
         ref, bal = fold_support(model, ref, bal)  # the legs carry the trunk: part of the feedforward

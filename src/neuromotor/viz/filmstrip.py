@@ -106,7 +106,8 @@ def render_filmstrip(scene: Scene, out_tmp, frames: int, ghost: bool = True):
             for row, which in enumerate(("original", "perturbed")):
                 pl.subplot(row, col)
                 pl.set_background("white")
-                add_ground(pl, scene.ground_mesh(c, 3.0 * scale * aspect + 1.0))
+                # A tilted ground tilts under the perturbed figure; the original stood on it level.
+                add_ground(pl, scene.ground_mesh(c, 3.0 * scale * aspect + 1.0, k if which == "perturbed" else None))
                 _draw_panel(pl, scene, k, which, col, ghost)
                 set_camera(pl, scene, c, scale)
         img = pl.screenshot(return_img=True).copy()

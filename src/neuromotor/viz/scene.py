@@ -48,7 +48,8 @@ class Scene:
         self._init_shapes()
         self.pad = 1.25 * float(self.capsule_radii.max()) if len(self.capsule_radii) else 0.0
         self._init_camera()
-        self.ground = self._lowest_point()
+        self._init_tilt()
+        self.ground = self._lowest_point() if self.ground_turn is None else float(d["ground_height"])
         self.has_ball = "ball_pos" in d
         self._init_assist()
         self._init_hit()
@@ -93,6 +94,32 @@ class Scene:
         self.right = unit(np.cross(self.up, self.view), np.roll(self.up, 2))
         self.screen_up = np.cross(self.view, self.right)
         self.screen_up /= np.linalg.norm(self.screen_up)
+
+    def _init_tilt(self):
+        """A tilted ground (RUN.npz ``ground_turn``, ``ground_pivot``): its rotation per sample
+        (T, 3, 3) and pivot; None: level. Its plane is the run's ``ground_height`` turned about
+        the pivot, drawn so: the lowest point of a tilted run is not the ground."""
+        d = self.d
+        self.ground_turn, self.ground_pivot = None, None
+        if "ground_turn" in d:
+            q = np.asarray(d["ground_turn"], float)
+            w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+            self.ground_turn = np.stack(
+                [
+                    np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                    np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                    np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+                ],
+                -2,
+            )
+            self.ground_pivot = np.asarray(d["ground_pivot"], float)
+
+    def tilted(self, pts, k):
+        """Points of the level ground where the tilted ground has them at sample ``k`` (unchanged
+        on a level ground or with ``k`` None)."""
+        if self.ground_turn is None or k is None:
+            return pts
+        return self.ground_pivot + (np.asarray(pts, float) - self.ground_pivot) @ self.ground_turn[k].T
 
     def _lowest_point(self) -> float:
         """Height of the ground: touching the lowest surface of either figure (or the ball) over
@@ -148,7 +175,7 @@ class Scene:
         sampled value at k (a half-sine's samples are below its peak)."""
         t = float(self.time[k])
         for p in (self.provenance or {}).get("perturbations", []):
-            if p.get("kind") == "base":  # moves the driven root: no force is drawn for it
+            if p.get("kind") in ("base", "tilt"):  # moves what it stands on: no force is drawn for it
                 continue
             try:
                 start, dur, mag = float(p["start"]), float(p["duration"]), float(p["magnitude"])
@@ -312,8 +339,9 @@ class Scene:
         proj = np.asarray(pts, float) @ axes.T
         return 0.5 * (proj.min(axis=0) + proj.max(axis=0)) @ axes
 
-    def ground_mesh(self, center, half_size):
-        """A checkered ground plane (world-anchored tiles) around ``center``."""
+    def ground_mesh(self, center, half_size, k=None):
+        """A checkered ground plane (world-anchored tiles) around ``center``; a tilted ground as
+        it is at sample ``k``."""
         import pyvista as pv
 
         n = int(np.ceil(half_size / GROUND_TILE_M))
@@ -331,7 +359,9 @@ class Scene:
         m = 2 * n + 3
         vid = np.arange(m * m).reshape(m, m)
         quads = np.stack([vid[:-1, :-1], vid[1:, :-1], vid[1:, 1:], vid[:-1, 1:]], -1).reshape(-1, 4)
-        mesh = pv.PolyData(grid_pts.reshape(-1, 3), np.hstack([np.full((len(quads), 1), 4), quads]).ravel())
+        mesh = pv.PolyData(
+            self.tilted(grid_pts.reshape(-1, 3), k), np.hstack([np.full((len(quads), 1), 4), quads]).ravel()
+        )
         parity = ((ia[:-1, :-1] + ib[:-1, :-1]).astype(int) % 2).ravel()
         colors = np.where(parity[:, None] == 0, GROUND_COLORS[0], GROUND_COLORS[1])
         mesh.cell_data["rgb"] = (np.asarray(colors) * 255).astype(np.uint8)

@@ -239,11 +239,15 @@ def render_video(scene: Scene, out_tmp, ext, progress=True, ghost=True):
     try:
         pl.set_background("white")
         travel = np.ptp(focals @ scene.right) + np.ptp(focals @ np.cross(scene.up, scene.right))
-        add_ground(pl, scene.ground_mesh(focals.mean(axis=0), 3.0 * scale * aspect + travel + 1.0))
+        ground = scene.ground_mesh(focals.mean(axis=0), 3.0 * scale * aspect + travel + 1.0)
+        level = np.array(ground.points)
+        add_ground(pl, ground)
         actors = _add_actors(pl, scene, ghost)
         writer = _mp4_writer(out_tmp, fps) if ext == ".mp4" else None
         for i, k in enumerate(tqdm(ks, desc=f"rendering {ext[1:]}", unit="frame", disable=not progress)):
             _pose_frame(actors, scene, k, shift)
+            if scene.ground_turn is not None:  # a tilted ground turns with the run
+                ground.points = scene.tilted(level, k)
             set_camera(pl, scene, focals[i], scale)
             pl.render()  # screenshot() only renders by itself the first time
             img = pl.screenshot(return_img=True)

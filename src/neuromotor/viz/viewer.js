@@ -217,7 +217,15 @@ const ground = new THREE.Mesh(new THREE.PlaneGeometry(G.size, G.size),
                               new THREE.MeshBasicMaterial({ color: 0xe6e6e1, polygonOffset: true, polygonOffsetFactor: 1, polygonOffsetUnits: 1 }));
 ground.rotation.x = -Math.PI / 2;
 ground.position.fromArray(G.center);
-layers.grid.add(ground, grid);
+// A tilted ground turns about its pivot with the run: ground and grid in a group at the pivot.
+const groundGroup = new THREE.Group();
+const tilt = D.tilt ? { pivot: new THREE.Vector3().fromArray(D.tilt.pivot), quat: unpack(D.tilt.quat) } : null;
+if (tilt) {
+  groundGroup.position.copy(tilt.pivot);
+  for (const m of [ground, grid]) m.position.sub(tilt.pivot);
+}
+groundGroup.add(ground, grid);
+layers.grid.add(groundGroup);
 
 // ---------------------------------------------------------------------------------------------
 // Deviation curve (2-D canvas)
@@ -297,6 +305,7 @@ function showIndex(k) {
   for (const fig of figures) poseFigure(fig, k);
   poseArrow(k);
   if (ball) ball.position.fromArray(ballPos, 3 * k);
+  if (tilt) groundGroup.quaternion.fromArray(tilt.quat, 4 * k);
   slider.value = String(k);
   $('nm-time').textContent = 't = ' + time[k].toFixed(3) + ' s';
   $('nm-status').setAttribute('data-index', String(k));

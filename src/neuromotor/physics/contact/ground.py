@@ -1,8 +1,9 @@
 """The ground plane and the bodies' contact points on it (issue 38).
 
 The ground is the plane ``up . x = height`` with ``up = -gravity / |gravity|`` (the capture's
-up axis). Its contact candidates are the vertices of each body's mass-model polyhedron (body
-frame, relative to the joint origin), by one rule:
+up axis; a tilted platform's turned normal instead, ``Ground.normal``). Its contact candidates
+are the vertices of each body's mass-model polyhedron (body frame, relative to the joint
+origin), by one rule:
 
 * each step, per body, its ``per_body`` nearest vertices are that body's contact slots, ordered
   by vertex index (so a slot keeps its vertex, and its warm start, while the set stays the same);
@@ -58,6 +59,8 @@ class Ground(eqx.Module):
     vertices: Float[Array, "B V 3"]  # each body's polyhedron vertices (body frame, from the joint origin), padded
     valid: Bool[Array, "B V"]  # False on padding
     axes: Float[Array, "B 2 3"]  # each body's forward and left axes (body frame; zero: world axes)
+    # The plane's unit normal (world); None: up. A tilted platform sets it step by step.
+    normal: Float[Array, " 3"] | None = None
     per_body: int = eqx.field(static=True, default=DEFAULT_PER_BODY)  # nearest vertices per body (slots)
     max_contacts: int = eqx.field(static=True, default=DEFAULT_MAX_CONTACTS)  # slots kept per step (nearest)
     margin: float = eqx.field(static=True, default=DEFAULT_MARGIN)  # m: a contact this close is touching
@@ -111,11 +114,16 @@ def make_ground(
         f(padded),
         jnp.asarray(valid),
         f(np.zeros((len(verts), 2, 3)) if axes is None else np.broadcast_to(axes, (len(verts), 2, 3))),
-        min(per_body, n),
-        max_contacts,
-        margin,
-        pgs_iterations,
+        per_body=min(per_body, n),
+        max_contacts=max_contacts,
+        margin=margin,
+        pgs_iterations=pgs_iterations,
     )
+
+
+def ground_normal(model: Model, ground: Ground) -> Float[Array, " 3"]:
+    """The plane's unit normal: ``up``, or a tilted platform's."""
+    return up_direction(model) if ground.normal is None else ground.normal
 
 
 def friction_references(ground: Ground, body, rot) -> tuple[Float[Array, "K 3"], Float[Array, "K 3"]]:
@@ -130,7 +138,7 @@ def vertex_heights(model: Model, ground: Ground, pos, rot):
     """World vertices (B, V, 3) and their heights above the plane (B, V; FAR on padding)."""
     local = ground.vertices - model.com[:, None, :]
     world = pos[:, None, :] + jnp.einsum("bij,bvj->bvi", rot, local)
-    height = world @ up_direction(model) - ground.height
+    height = world @ ground_normal(model, ground) - ground.height
     return world, jnp.where(ground.valid, height, FAR)
 
 
@@ -150,7 +158,7 @@ def ground_slots(model: Model, ground: Ground, pos, rot, velocity=None, h: float
     key = height
     if velocity is not None:
         lever = world - pos[:, None, :]
-        u = (velocity[:, None, :3] + jnp.cross(velocity[:, None, 3:], lever)) @ up_direction(model)
+        u = (velocity[:, None, :3] + jnp.cross(velocity[:, None, 3:], lever)) @ ground_normal(model, ground)
         key = height + h * jnp.minimum(u, 0.0)
     idx = jnp.sort(smallest(key, ground.per_body), -1)  # (B, k): the nearest, by vertex index
     take = lambda a: jnp.take_along_axis(a, idx, 1).reshape(-1)
@@ -174,7 +182,7 @@ def smallest(key: Float[Array, "... n"], k: int) -> Int[Array, "... k"]:
 def vertex_gap(model: Model, ground: Ground, body, vertex, pos_b, quat_b):
     """Height above the plane of one vertex of ``body`` with the body at (pos_b, quat_b)."""
     p = pos_b + quat_to_matrix(quat_b) @ (ground.vertices[body, vertex] - model.com[body])
-    return jnp.dot(p, up_direction(model)) - ground.height
+    return jnp.dot(p, ground_normal(model, ground)) - ground.height
 
 
 def lowest_points(model: Model, ground: Ground, pos, rot, bodies: Sequence[int] | None = None):

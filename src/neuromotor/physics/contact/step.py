@@ -59,7 +59,11 @@ A moving ground (a platform)
     ``height + up . D_k`` and moves with V_k+1 (the base motion's own position update,
     D_k+1 = D_k + h V_k+1). The ground's contacts then see the body's velocity relative to the
     plane, ``Jc v - d . V``, in the ranking of the slots, the activity, the restitution target
-    and the LCP, so friction drags the feet along. Translation only: the plane keeps its normal.
+    and the LCP, so friction drags the feet along. A tilt (``ForcePulses.base_turn``/``base_spin``
+    /``base_pivot``) turns the plane as well: over the step from t_k its normal is ``n_k = R_k up``,
+    it passes through the pivot's moved image, and a point x of it moves with
+    ``V_k+1 + Omega_k+1 x (x - c_k)`` (c_k = pivot + D_k); the contacts take n_k as their normal
+    and that point velocity at their vertex as the ground's.
 """
 
 from __future__ import annotations
@@ -84,13 +88,13 @@ from neuromotor.physics.contact.detection import (
     single_gap,
     up_direction,
 )
-from neuromotor.physics.contact.ground import Ground, friction_references, ground_slots, vertex_gap
+from neuromotor.physics.contact.ground import Ground, friction_references, ground_normal, ground_slots, vertex_gap
 from neuromotor.physics.contact.lcp import lcp_residual, solve_gap_projection, solve_lcp_pgs
 from neuromotor.physics.contact.shapes import Capsules
 from neuromotor.physics.dynamics import Eq2, Params, SimModel, StepInfo, badness, equations_of_motion, hold, integrate
 from neuromotor.physics.reflex import History
 from neuromotor.physics.system import State
-from neuromotor.rotations import quat_turn
+from neuromotor.rotations import quat_rotate, quat_turn
 
 _TINY = 1e-12
 
@@ -153,29 +157,70 @@ def scene_gaps(model: Model, scene: ContactScene, ball_pos, pos, rot) -> Float[A
 
 
 class GroundMotion(eqx.Module):
-    """The ground's motion over one step (a platform: a base motion under a free root)."""
+    """The ground's motion over one step (a platform: a base motion under a free root, and its
+    tilt, if any)."""
 
     offset: Float[Array, ""]  # up . D_k: how far the plane has risen at the step start (m)
     vel: Float[Array, " 3"]  # V_k+1: its velocity over the step (world, m/s)
     vel_pre: Float[Array, " 3"]  # V_k: its velocity at the step start
+    # A tilt (None: the plane keeps its normal): n_k = R_k up, the pivot's place c_k = pivot + D_k,
+    # the plane's height along n_k, Omega_k+1 and Omega_k (world, rad/s).
+    normal: Float[Array, " 3"] | None = None
+    pivot: Float[Array, " 3"] | None = None
+    height: Float[Array, ""] | None = None
+    spin: Float[Array, " 3"] | None = None
+    spin_pre: Float[Array, " 3"] | None = None
+
+    def point_velocity(self, x: Float[Array, "K 3"], before: bool = False) -> Float[Array, "K 3"]:
+        """The plane's velocity at world points ``x`` over the step (``before``: at its start)."""
+        vel, spin = (self.vel_pre, self.spin_pre) if before else (self.vel, self.spin)
+        if spin is None:
+            return jnp.broadcast_to(vel, x.shape)
+        assert self.pivot is not None
+        return vel + jnp.cross(spin, x - self.pivot)
+
+    def relative_twist(self, pos: Float[Array, "B 3"], v6: Float[Array, "B 6"]) -> Float[Array, "B 6"]:
+        """Bodies' twists ([linear at the COM, angular]) relative to the plane's motion."""
+        ang = v6[:, 3:] if self.spin is None else v6[:, 3:] - self.spin
+        return jnp.concatenate([v6[:, :3] - self.point_velocity(pos), ang], -1)
 
 
 def ground_motion(sim: SimModel, params: Params, scene: ContactScene, k) -> GroundMotion | None:
-    """The ground's motion in step k: the base motion's when the root is free and there is a
-    ground, else None (a still ground: the step's program is the one without a base motion)."""
+    """The ground's motion in step k: the base motion's (and tilt's) when the root is free and
+    there is a ground, else None (a still ground: the step's program is the one without a base
+    motion)."""
     pulses = params.pulses
     if scene.ground is None or not sim.options.free_root or pulses.base_velocity is None:
         return None
     assert pulses.base_offset is not None
     up = up_direction(sim.model)
-    return GroundMotion(pulses.base_offset[k] @ up, pulses.base_velocity[k + 1], pulses.base_velocity[k])
+    motion = GroundMotion(pulses.base_offset[k] @ up, pulses.base_velocity[k + 1], pulses.base_velocity[k])
+    if pulses.base_turn is None:
+        return motion
+    assert pulses.base_spin is not None and pulses.base_pivot is not None
+    normal = quat_rotate(pulses.base_turn[k], up)
+    lift = pulses.base_pivot @ up - scene.ground.height  # the pivot's height above the level plane
+    centre = pulses.base_pivot + pulses.base_offset[k]
+    return dataclasses.replace(
+        motion,
+        normal=normal,
+        pivot=centre,
+        height=centre @ normal - lift,
+        spin=pulses.base_spin[k + 1],
+        spin_pre=pulses.base_spin[k],
+    )
 
 
 def _moved(scene: ContactScene, gm: GroundMotion | None) -> ContactScene:
-    """The scene with its ground at the step start's height (``gm`` None: unchanged)."""
+    """The scene with its ground where it is at the step start (``gm`` None: unchanged)."""
     if gm is None or scene.ground is None:
         return scene
-    return dataclasses.replace(scene, ground=dataclasses.replace(scene.ground, height=scene.ground.height + gm.offset))
+    if gm.normal is None:
+        ground = dataclasses.replace(scene.ground, height=scene.ground.height + gm.offset)
+    else:
+        assert gm.height is not None
+        ground = dataclasses.replace(scene.ground, height=gm.height, normal=gm.normal)
+    return dataclasses.replace(scene, ground=ground)
 
 
 class ContactInfo(eqx.Module):
@@ -293,6 +338,7 @@ class ContactFrame(eqx.Module):
     jc_char: Float[Array, "3K 6B"]
     jc_ball: Float[Array, "3K 6"]  # (3K, 0) without a ball
     vertex: Int[Array, " Kg"]  # the ground contacts' vertices (within their bodies)
+    point: Float[Array, "Kg 3"]  # the ground contacts' vertices (world, at the step start)
     n_ball: int = eqx.field(static=True)  # the first n_ball contacts are the ball's
 
     @property
@@ -335,7 +381,7 @@ def _ground_frame(model: Model, ground: Ground, state: State, v_free, h: float, 
     n_keep = min(ground.max_contacts, ground.n_slots)
     _, sel = jax.lax.top_k(-slots.reach, n_keep)
     body = ground.slot_body[sel]
-    nrm = jnp.broadcast_to(up_direction(model), (n_keep, 3))
+    nrm = jnp.broadcast_to(ground_normal(model, ground), (n_keep, 3))
     t1, t2 = facing_basis(nrm, *friction_references(ground, body, state.rot))
     dirs = jnp.stack([nrm, t1, t2], 1)
     lever = slots.point[sel] - state.pos[body]
@@ -343,7 +389,7 @@ def _ground_frame(model: Model, ground: Ground, state: State, v_free, h: float, 
     onehot = jax.nn.one_hot(body, n, dtype=dtype)
     jc_char = jnp.einsum("kb,kdj->kdbj", onehot, col).reshape(3 * n_keep, 6 * n)
     jc_ball = jnp.zeros((3 * n_keep, ball_columns), dtype)
-    return sel, slots.gap, dirs, body, jc_char, jc_ball, slots.vertex[sel]
+    return sel, slots.gap, dirs, body, jc_char, jc_ball, slots.vertex[sel], slots.point[sel]
 
 
 def contact_frame(
@@ -351,13 +397,13 @@ def contact_frame(
 ) -> ContactFrame:
     """Detect, keep each source's nearest candidates and build their Jacobian rows (``v_free``:
     the character's contact-free velocity of the step, which ranks the ground's candidates)."""
-    parts, vertex = [], jnp.zeros((0,), jnp.int32)
+    parts, vertex, point = [], jnp.zeros((0,), jnp.int32), jnp.zeros((0, 3), state.pos.dtype)
     if scene.ball is not None:
         assert bstate is not None
         parts.append(_ball_frame(model, scene, state, bstate))
     n_ball = parts[0][0].shape[0] if parts else 0
     if scene.ground is not None:
-        *part, vertex = _ground_frame(model, scene.ground, state, v_free, h, 0 if scene.ball is None else 6)
+        *part, vertex, point = _ground_frame(model, scene.ground, state, v_free, h, 0 if scene.ball is None else 6)
         part[0] = part[0] + scene.n_ball_candidates  # the ground's slots follow the ball's candidates
         parts.append(tuple(part))
     if not parts:
@@ -365,7 +411,7 @@ def contact_frame(
     sel, gap_all, dirs, body, jc_char, jc_ball = (
         parts[0] if len(parts) == 1 else tuple(jnp.concatenate(xs) for xs in zip(*parts))
     )
-    return ContactFrame(sel, gap_all, dirs, body, jc_char, jc_ball, vertex, n_ball)
+    return ContactFrame(sel, gap_all, dirs, body, jc_char, jc_ball, vertex, point, n_ball)
 
 
 class Responses(eqx.Module):
@@ -438,14 +484,18 @@ def responses(
 
 
 def relative_to_ground(frame: ContactFrame, resp: Responses, gm: GroundMotion | None) -> Responses:
-    """The ground's contacts' velocities relative to a moving ground, ``Jc v - d . V`` (``gm``
-    None: unchanged)."""
+    """The ground's contacts' velocities relative to a moving ground, ``Jc v - d . V_g`` with V_g
+    the plane's velocity at the contact (``gm`` None: unchanged)."""
     if gm is None:
         return resp
     nb = frame.n_ball
     dirs = frame.dirs[nb:]
-    u_free = resp.u_free.at[nb:].add(-dirs @ gm.vel)
-    u_pre = resp.u_pre.at[nb:].add(-dirs[:, 0] @ gm.vel_pre)
+    if gm.spin is None:  # a translation: one velocity for the whole plane
+        u_free = resp.u_free.at[nb:].add(-dirs @ gm.vel)
+        u_pre = resp.u_pre.at[nb:].add(-dirs[:, 0] @ gm.vel_pre)
+    else:
+        u_free = resp.u_free.at[nb:].add(-jnp.einsum("kdj,kj->kd", dirs, gm.point_velocity(frame.point)))
+        u_pre = resp.u_pre.at[nb:].add(-jnp.einsum("kj,kj->k", dirs[:, 0], gm.point_velocity(frame.point, True)))
     return dataclasses.replace(resp, u_free=u_free, u_pre=u_pre)
 
 
@@ -597,8 +647,10 @@ def _gaps_at_impact(model: Model, scene: ContactScene, h: float, data: ContactDa
         gaps = jax.vmap(lambda b, v, p_, q_: vertex_gap(model, ground, b, v, p_, q_))(
             bidx[nb:], frame.vertex, pb[nb:], qb[nb:]
         )
-        if gm is not None:
+        if gm is not None and gm.spin is None:
             gaps = gaps - sh[nb:] * (gm.vel @ up_direction(model))
+        elif gm is not None:
+            gaps = gaps - sh[nb:] * jnp.einsum("kj,j->k", gm.point_velocity(frame.point), ground_normal(model, ground))
         parts.append(gaps)
     return jnp.concatenate(parts) if len(parts) > 1 else parts[0]
 
@@ -652,7 +704,12 @@ def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: Conta
     gm = ground_motion(sim, params, scene, k)
     scene = _moved(scene, gm)
     # The slots rank by the vertices' velocities relative to the ground.
-    rank = fs.v_free if gm is None else fs.v_free.reshape(-1, 6).at[:, :3].add(-gm.vel).reshape(fs.v_free.shape)
+    if gm is None:
+        rank = fs.v_free
+    elif gm.spin is None:
+        rank = fs.v_free.reshape(-1, 6).at[:, :3].add(-gm.vel).reshape(fs.v_free.shape)
+    else:
+        rank = gm.relative_twist(state.pos, fs.v_free.reshape(-1, 6)).reshape(fs.v_free.shape)
     frame = contact_frame(model, scene, state, data.ball, rank, h)
     resp = relative_to_ground(frame, responses(solver, eq, fs, frame, scene.ball, free, state.v), gm)
     imp = impact(frame, resp, scene, h, True if free is None else free.flying)

@@ -161,8 +161,9 @@ def simulate_grid(
         )
     index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'", setup.character)  # names or segment keywords
     hit = cfg.perturbations[0]
-    if hit.kind == "base" and spec.bodies:
-        raise ConfigError(f"{cfg.source}: field 'sweep.bodies': perturbation[0] is a base motion, which pushes no body")
+    if hit.kind in ("base", "tilt") and spec.bodies:
+        what = "a base motion" if hit.kind == "base" else "a tilt"
+        raise ConfigError(f"{cfg.source}: field 'sweep.bodies': perturbation[0] is {what}, which pushes no body")
     for i, b in enumerate(spec.bodies or []):  # every row of the grid can act (the rule of prepare)
         index(b)
         setup.window.check(dataclasses.replace(hit, body=b), f"sweep.bodies[{i}]", "perturbation[0].start")
@@ -185,6 +186,7 @@ def simulate_grid(
         progress=progress,
         direction_of=setup.direction_of,
         extra=extra,
+        pivot=setup.tilt_pivot,
     )
 
 

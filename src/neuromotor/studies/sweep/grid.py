@@ -128,13 +128,14 @@ def build_batch(
     model,
     direction_of=vector_direction,
     times=None,
+    pivot=None,
 ) -> RunBatch:
     """Batched gains and perturbations for ``runs`` (:meth:`~neuromotor.config.specs.SweepSpec.runs`):
     each run's ``perturbations`` (its varied ``perturbation`` with the grid's axes applied, then
     the config's others) through the one builder,
     :func:`~neuromotor.physics.perturbation.build_pulses` at step ``h`` on ``model`` and the
-    grid ``times`` (a base motion needs them); the reflex, for runs that carry one, is built
-    at step ``h``."""
+    grid ``times`` (a base motion needs them) and a tilt's default ``pivot``; the reflex, for
+    runs that carry one, is built at step ``h``."""
     if template_pulses.count == 0 and template_pulses.base_velocity is None:
         raise ConfigError("a sweep needs at least one [[perturbation]] to vary")
     settings = {}
@@ -143,7 +144,7 @@ def build_batch(
         if key not in settings:
             settings[key] = run_controller(template_gains, r, h)
     gains = _stack([settings[(r["gain"], r.get("reflex"))] for r in runs])
-    rows = [build_pulses(r["perturbations"], model, h, body_index, direction_of, times) for r in runs]
+    rows = [build_pulses(r["perturbations"], model, h, body_index, direction_of, times, pivot) for r in runs]
     return RunBatch(gains, stack_runs(rows))
 
 

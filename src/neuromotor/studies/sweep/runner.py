@@ -200,14 +200,16 @@ def run_sweep(
     progress: bool = True,
     direction_of=vector_direction,
     extra=None,
+    pivot=None,
 ) -> SweepResult:
     """Simulate every run of ``runs`` (from :meth:`SweepSpec.runs`) and measure its recovery;
     ``direction_of`` resolves a direction keyword (:func:`~neuromotor.studies.simulate.direction_lookup`);
-    ``extra(batch, i, outputs)``: more of run i's row (a sweep on the ground: its metrics)."""
+    ``extra(batch, i, outputs)``: more of run i's row (a sweep on the ground: its metrics);
+    ``pivot``: where a tilt without its own turns the ground (the setup's ``tilt_pivot``)."""
     from tqdm.auto import tqdm
 
     times = sweeper.times
-    batch = build_batch(gains, pulses, runs, body_index, sweeper.options.h, sweeper.model, direction_of, times)
+    batch = build_batch(gains, pulses, runs, body_index, sweeper.options.h, sweeper.model, direction_of, times, pivot)
     directions = [run_direction(r, direction_of) for r in runs]  # the world vectors the runs used
     first, slot = gain_keys(batch)
     # Baselines: the distinct gain settings without any pulse, simulated with the same program.
