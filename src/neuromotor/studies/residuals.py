@@ -28,6 +28,7 @@ from neuromotor.model.kinematics import Trajectory, grid_poses_jit
 from neuromotor.model.skeleton import Character
 from neuromotor.physics import grf
 from neuromotor.physics.contact.detection import up_direction
+from neuromotor.physics.contact.ground import world_axes
 from neuromotor.physics.dynamics import Reference, StepOptions
 from neuromotor.rotations import matrix_to_quat
 from neuromotor.studies.ground import capture_floor, friction_axes  # one floor rule, one set of feet, one polygon rule
@@ -91,9 +92,7 @@ def capture_residuals(
     local = friction_axes(character, traj)  # each body's axes, turned with it at every step
     steps = np.arange(contacts.body.shape[0])[:, None]
     axes = (
-        None
-        if local is None
-        else np.einsum("sgij,sgaj->sgai", np.asarray(rot)[steps, contacts.body], local[contacts.body])
+        None if local is None else np.asarray(world_axes(local[contacts.body], np.asarray(rot)[steps, contacts.body]))
     )
     ground = grf.solve_grf(required, contacts, com, up, weight, stature, mu, axes=axes)
     flight = ~np.any(contacts.height < grf.CONTACT_HEIGHT, axis=1)

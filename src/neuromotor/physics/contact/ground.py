@@ -130,8 +130,15 @@ def friction_references(ground: Ground, body, rot) -> tuple[Float[Array, "K 3"],
     """World forward and left axes of the bodies ``body`` (K,) at orientations ``rot`` (B, 3, 3):
     the references of their contacts' friction polygons
     (:func:`~neuromotor.physics.contact.detection.facing_basis`, in this order)."""
-    ref = jnp.einsum("kij,kaj->kai", rot[body], ground.axes[body])
+    ref = world_axes(ground.axes[body], rot[body])
     return ref[:, 0], ref[:, 1]
+
+
+def world_axes(axes: Float[Array, "... 2 3"], rot: Float[Array, "... 3 3"]) -> Float[Array, "... 2 3"]:
+    """Bodies' friction axes (forward, left; each body's frame) in the world at orientations
+    ``rot`` (body to world): the one rule for the ground's contacts and the capture's ground
+    reaction forces."""
+    return jnp.einsum("...ij,...aj->...ai", rot, axes)
 
 
 def vertex_heights(model: Model, ground: Ground, pos, rot):
