@@ -78,3 +78,23 @@ def test_wrap_and_rotation_angle():
     r = rotations_np.euler_to_matrix(angles, "ZXY")
     want = np.linalg.norm(Rotation.from_matrix(r).as_rotvec(), axis=1)
     np.testing.assert_allclose(rotations_np.rotation_angle(r), want, rtol=0, atol=1e-7)
+
+
+def test_quaternion_twins_equal_jax():
+    """quat_mul, quat_conj, quat_exp and quat_log (a tilted ground's orientation on the host)
+    give the JAX functions' numbers, small and near-pi angles included."""
+    for name in ("quat_mul", "quat_conj", "quat_exp", "quat_log"):
+        twin, jax_fn = getattr(rotations_np, name), getattr(rotations, name)
+        assert list(inspect.signature(twin).parameters) == list(inspect.signature(jax_fn).parameters), name
+    rng = np.random.default_rng(4)
+    w = rng.normal(size=(300, 3)) * np.concatenate([np.full(100, 1e-7), np.full(100, 1.0), np.full(100, 3.1)])[:, None]
+    q = rotations_np.quat_exp(w)
+    np.testing.assert_allclose(q, np.asarray(rotations.quat_exp(jnp.asarray(w))), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(rotations_np.quat_log(q), np.asarray(rotations.quat_log(jnp.asarray(q))), rtol=0,
+                               atol=1e-12)
+    short = np.linalg.norm(w, axis=-1) < np.pi - 1e-3  # beyond pi the log is the shorter turn
+    np.testing.assert_allclose(rotations_np.quat_log(q)[short], w[short], rtol=0, atol=1e-9)
+    p = q[::-1]
+    np.testing.assert_allclose(rotations_np.quat_mul(p, rotations_np.quat_conj(q)),
+                               np.asarray(rotations.quat_mul(jnp.asarray(p), rotations.quat_conj(jnp.asarray(q)))),
+                               rtol=0, atol=1e-12)

@@ -12,7 +12,17 @@ import numpy as np
 
 from neuromotor.rotations import AXIS, order_parity
 
-__all__ = ["axis_rotation", "euler_to_matrix", "matrix_to_euler", "rotation_angle", "wrap_angle"]
+__all__ = [
+    "axis_rotation",
+    "euler_to_matrix",
+    "matrix_to_euler",
+    "quat_conj",
+    "quat_exp",
+    "quat_log",
+    "quat_mul",
+    "rotation_angle",
+    "wrap_angle",
+]
 
 
 def axis_rotation(axis: int, angle) -> np.ndarray:
@@ -89,3 +99,32 @@ def _unrotate(axis: int, c, s, v: list) -> list:
 def rotation_angle(r) -> np.ndarray:
     """Angle (rad, in [0, pi]) of rotation matrices (..., 3, 3)."""
     return np.arccos(np.clip((np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0))
+
+
+def quat_mul(p, q) -> np.ndarray:
+    """Hamilton product of quaternions (..., 4), w x y z."""
+    p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
+    w1, v1, w2, v2 = p[..., :1], p[..., 1:], q[..., :1], q[..., 1:]
+    return np.concatenate([w1 * w2 - np.sum(v1 * v2, -1, keepdims=True), w1 * v2 + w2 * v1 + np.cross(v1, v2)], -1)
+
+
+def quat_conj(q) -> np.ndarray:
+    q = np.asarray(q, np.float64)
+    return np.concatenate([q[..., :1], -q[..., 1:]], -1)
+
+
+def quat_exp(w) -> np.ndarray:
+    """Unit quaternion of the rotation vector w (angle |w| about w / |w|)."""
+    w = np.asarray(w, np.float64)
+    angle = np.linalg.norm(w, axis=-1, keepdims=True)
+    axis = np.divide(w, angle, out=np.zeros_like(w), where=angle > 0)
+    return np.concatenate([np.cos(0.5 * angle), np.sin(0.5 * angle) * axis], -1)
+
+
+def quat_log(q) -> np.ndarray:
+    """Rotation vector of a unit quaternion (shortest rotation: q and -q give the same)."""
+    q = np.asarray(q, np.float64)
+    q = np.where(q[..., :1] < 0, -q, q)
+    s = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, q[..., :1])
+    return np.divide(angle * q[..., 1:], s, out=np.zeros_like(q[..., 1:]), where=s > 0)

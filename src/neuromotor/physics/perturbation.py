@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from neuromotor import rotations_np as rnp
 from neuromotor.rotations import mv
 
 SHAPES = ("square", "half_sine", "triangle")
@@ -223,25 +224,6 @@ def base_motion(specs, times: np.ndarray, h: float, direction_of=vector_directio
     return velocity, offset
 
 
-def _quat_exp(r: np.ndarray) -> np.ndarray:
-    angle = np.linalg.norm(r, axis=-1, keepdims=True)
-    axis = np.divide(r, angle, out=np.zeros_like(r), where=angle > 0)
-    return np.concatenate([np.cos(0.5 * angle), np.sin(0.5 * angle) * axis], -1)
-
-
-def _quat_log(q: np.ndarray) -> np.ndarray:
-    q = np.where(q[..., :1] < 0, -q, q)
-    s = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(s, q[..., :1])
-    return np.divide(angle * q[..., 1:], s, out=np.zeros_like(q[..., 1:]), where=s > 0)
-
-
-def _quat_mul_conj(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """p q^-1 for unit quaternions (w, x, y, z)."""
-    w1, v1, w2, v2 = p[..., :1], p[..., 1:], q[..., :1], -q[..., 1:]
-    return np.concatenate([w1 * w2 - np.sum(v1 * v2, -1, keepdims=True), w1 * v2 + w2 * v1 + np.cross(v1, v2)], -1)
-
-
 def tilt_motion(specs, times: np.ndarray, h: float, direction_of=vector_direction, pivot=None):
     """The tilts ``specs`` on the grid ``times`` (S+1,) (module docstring): the platform's
     orientation R_k as unit quaternions (S+1, 4), its secant angular velocity Omega_k (S+1, 3;
@@ -261,9 +243,9 @@ def tilt_motion(specs, times: np.ndarray, h: float, direction_of=vector_directio
         raise ValueError("a tilt needs a pivot (give pivot, or build it with the setup's default)")
     if any(np.abs(c - given[0]).max() > 1e-12 for c in given):
         raise ValueError("the tilts of a run turn one platform: give them one pivot")
-    turn = _quat_exp(rotvec)
+    turn = rnp.quat_exp(rotvec)
     spin = np.zeros_like(rotvec)
-    spin[1:] = _quat_log(_quat_mul_conj(turn[1:], turn[:-1])) / h
+    spin[1:] = rnp.quat_log(rnp.quat_mul(turn[1:], rnp.quat_conj(turn[:-1]))) / h
     return turn, spin, given[0]
 
 

@@ -102,16 +102,7 @@ class Scene:
         d = self.d
         self.ground_turn, self.ground_pivot = None, None
         if "ground_turn" in d:
-            q = np.asarray(d["ground_turn"], float)
-            w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-            self.ground_turn = np.stack(
-                [
-                    np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                    np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                    np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-                ],
-                -2,
-            )
+            self.ground_turn = quat_matrices(d["ground_turn"])
             self.ground_pivot = np.asarray(d["ground_pivot"], float)
 
     def tilted(self, pts, k):
