@@ -84,5 +84,5 @@ def test_delassus_from_the_contacts_bodies_equals_the_dense_product():
     jc = jnp.asarray(jc.reshape(3 * k, 6 * n))
     x = jnp.asarray(rng.normal(size=(6 * n, 3 * k)))
     z = jnp.zeros(k)
-    frame = ContactFrame(jnp.arange(k), z, jnp.zeros((k, 3, 3)), body, jc, jnp.zeros((3 * k, 0)), jnp.zeros(0, jnp.int32), 0)
+    frame = ContactFrame(jnp.arange(k), z, jnp.zeros((k, 3, 3)), body, jc, jnp.zeros((3 * k, 0)), jnp.zeros(0, jnp.int32), jnp.zeros((0, 3)), 0)
     np.testing.assert_allclose(_delassus(frame, x), jc @ x, rtol=1e-13, atol=1e-13)
