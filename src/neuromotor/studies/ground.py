@@ -18,6 +18,7 @@ import numpy as np
 from neuromotor import compiler
 from neuromotor.model.kinematics import Trajectory, grid_poses, grid_poses_jit
 from neuromotor.model.skeleton import Character, Model
+from neuromotor.physics.balance import whole_com
 from neuromotor.physics.contact import (
     ContactRollout,
     ContactScene,
@@ -142,9 +143,7 @@ def tilt_pivot(model, ref, ground: Ground | None) -> np.ndarray | None:
     the whole-body COM of the run's first pose (world, m; None without a ground)."""
     if ground is None:
         return None
-    mass = np.asarray(model.mass, np.float64)
-    com = mass @ np.asarray(ref.init.pos, np.float64) / mass.sum()
-    up = -np.asarray(model.gravity, np.float64) / np.linalg.norm(np.asarray(model.gravity))
+    com, up = np.asarray(whole_com(model, ref.init.pos)), np.asarray(up_direction(model))
     return com - (com @ up - float(ground.height)) * up
 
 

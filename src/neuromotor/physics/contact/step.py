@@ -490,12 +490,8 @@ def relative_to_ground(frame: ContactFrame, resp: Responses, gm: GroundMotion | 
         return resp
     nb = frame.n_ball
     dirs = frame.dirs[nb:]
-    if gm.spin is None:  # a translation: one velocity for the whole plane
-        u_free = resp.u_free.at[nb:].add(-dirs @ gm.vel)
-        u_pre = resp.u_pre.at[nb:].add(-dirs[:, 0] @ gm.vel_pre)
-    else:
-        u_free = resp.u_free.at[nb:].add(-jnp.einsum("kdj,kj->kd", dirs, gm.point_velocity(frame.point)))
-        u_pre = resp.u_pre.at[nb:].add(-jnp.einsum("kj,kj->k", dirs[:, 0], gm.point_velocity(frame.point, True)))
+    u_free = resp.u_free.at[nb:].add(-jnp.einsum("kdj,kj->kd", dirs, gm.point_velocity(frame.point)))
+    u_pre = resp.u_pre.at[nb:].add(-jnp.einsum("kj,kj->k", dirs[:, 0], gm.point_velocity(frame.point, True)))
     return dataclasses.replace(resp, u_free=u_free, u_pre=u_pre)
 
 
@@ -647,9 +643,7 @@ def _gaps_at_impact(model: Model, scene: ContactScene, h: float, data: ContactDa
         gaps = jax.vmap(lambda b, v, p_, q_: vertex_gap(model, ground, b, v, p_, q_))(
             bidx[nb:], frame.vertex, pb[nb:], qb[nb:]
         )
-        if gm is not None and gm.spin is None:
-            gaps = gaps - sh[nb:] * (gm.vel @ up_direction(model))
-        elif gm is not None:
+        if gm is not None:
             gaps = gaps - sh[nb:] * jnp.einsum("kj,j->k", gm.point_velocity(frame.point), ground_normal(model, ground))
         parts.append(gaps)
     return jnp.concatenate(parts) if len(parts) > 1 else parts[0]
@@ -704,12 +698,7 @@ def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: Conta
     gm = ground_motion(sim, params, scene, k)
     scene = _moved(scene, gm)
     # The slots rank by the vertices' velocities relative to the ground.
-    if gm is None:
-        rank = fs.v_free
-    elif gm.spin is None:
-        rank = fs.v_free.reshape(-1, 6).at[:, :3].add(-gm.vel).reshape(fs.v_free.shape)
-    else:
-        rank = gm.relative_twist(state.pos, fs.v_free.reshape(-1, 6)).reshape(fs.v_free.shape)
+    rank = fs.v_free if gm is None else gm.relative_twist(state.pos, fs.v_free.reshape(-1, 6)).reshape(fs.v_free.shape)
     frame = contact_frame(model, scene, state, data.ball, rank, h)
     resp = relative_to_ground(frame, responses(solver, eq, fs, frame, scene.ball, free, state.v), gm)
     imp = impact(frame, resp, scene, h, True if free is None else free.flying)
