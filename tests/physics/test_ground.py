@@ -29,6 +29,7 @@ box of 6.5 kg.
 from __future__ import annotations
 
 import dataclasses
+import json
 import pathlib
 import re
 
@@ -377,6 +378,28 @@ def test_floor_is_the_lowest_foot_point_of_the_capture(flight):
     assert float(setup.ground.height) == -50.0
 
 
+def test_a_held_pose_stands_on_its_floor():
+    """A still run holds one frame: its floor is that frame's lowest foot point, so the pose
+    stands on the ground from the first step. The embedded clip's upright frame has its soles
+    17.6 mm above the whole clip's floor; on that floor the body used to fall onto its feet in
+    the first 0.07 s and the ground's peak force was 4.7 times the body weight."""
+    from neuromotor.model.kinematics import body_poses, still_trajectory
+    from neuromotor.studies.standing import standing_pose
+
+    path, character, traj, still = standing_pose()
+    data = {"clip": path, "sim": {"root": "free", "still": still, "duration": 0.1}}
+    setup = prepare(simulation_config(data, "<test>"), character, traj)
+    probe = ct.make_ground(character.shapes, 0.0)
+    pos, rot = body_poses(character.model, traj.q(jnp.asarray(still)))
+    held = float(jnp.min(ct.lowest_points(character.model, probe, pos[None], rot[None], foot_bodies(character))))
+    assert float(setup.ground.height) == pytest.approx(held, abs=1e-12)
+    assert held - capture_floor(character, traj) > 0.01  # the clip's floor is elsewhere: the rule matters
+    assert capture_floor(character, still_trajectory(traj, still)) == pytest.approx(held, abs=1e-12)
+    # An explicit height still wins.
+    data["ground"] = {"height": 0.0}
+    assert float(prepare(simulation_config(data, "<test>"), character, traj).ground.height) == 0.0
+
+
 # A platform (issue 38): a base motion under a free root moves the ground. Constant acceleration
 # a along x from t_0, for 1 s: below mu g the box is carried, above it slides (Coulomb).
 PLATFORM_STEPS, PLATFORM_MU = 120, 0.3
@@ -574,6 +597,12 @@ def test_a_toes_up_tilt_turns_the_standing_feet_with_the_ground():
         rel = quat_mul(jnp.asarray(pert[-1, b]), jnp.asarray(still_run[-1, b]) * jnp.array([1.0, -1.0, -1.0, -1.0]))
         assert np.degrees(np.asarray(quat_log(rel)) @ right) == pytest.approx(4.0, abs=1.0)
     assert np.asarray(result.ground.contact.gap)[1:].min() > -1e-3  # never more than 1 mm into the turned plane
+    # The held pose starts on its ground (no drop), and the file has one floor: the ground's is
+    # the capture's inverse's (residuals_json).
+    assert np.asarray(result.ground.contact.gap)[0].min() == pytest.approx(0.0, abs=1e-9)
+    weight = float(np.sum(setup.model.mass)) * float(np.linalg.norm(np.asarray(setup.model.gravity)))
+    assert result.metrics["ground_peak_force_N"] < 1.5 * weight
+    assert json.loads(str(arrays["residuals_json"]))["floor_m"] == float(arrays["ground_height"])
     # The pictures draw that plane: the perturbed figure's ground turned about the pivot (the
     # original's level), the viewer's with the same quaternions in its own axes.
     from neuromotor.viz.html import viewer_data

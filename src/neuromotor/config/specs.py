@@ -317,7 +317,7 @@ class GroundSpec:
     ``[sim] root = "free"``, off with the driven root (the paper)."""
 
     enabled: bool | None = None  # None: on with root = "free", off with the driven root
-    height: float | None = None  # m along the up axis; None: the capture's floor (lowest foot point)
+    height: float | None = None  # m along the up axis; None: the floor of the motion run (capture_floor)
     friction: float = _ground.DEFAULT_FRICTION  # Coulomb coefficient
     restitution: float = 0.0  # Newton's coefficient, 0..1
     contacts_per_body: int = _ground.DEFAULT_PER_BODY  # each body's lowest vertices that may touch

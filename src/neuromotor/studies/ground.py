@@ -1,6 +1,6 @@
 """The ground under the character in a run (issue 38): the ``[ground]`` table made into a
-:class:`~neuromotor.physics.contact.Ground` (its default height the capture's floor), the
-contact rollouts of a run whose bodies touch it, and its part of RUN.npz.
+:class:`~neuromotor.physics.contact.Ground` (its default height the floor of the motion the run
+follows), the contact rollouts of a run whose bodies touch it, and its part of RUN.npz.
 
 The physics (the plane, the contact points, the LCP rows) is
 :mod:`neuromotor.physics.contact.ground` and :mod:`neuromotor.physics.contact.step`;
@@ -49,8 +49,9 @@ def _lowest_over(model: Model, traj: Trajectory, ground: Ground, times, bodies):
 
 
 def capture_floor(character: Character, traj: Trajectory) -> float:
-    """The floor of the capture: the height along the up axis (``-gravity``) of the lowest
-    vertex of the feet's polyhedra over every frame of the clip."""
+    """The floor of a motion: the height along the up axis (``-gravity``) of the lowest vertex
+    of the feet's polyhedra over every frame of the clip, posed by ``traj``. A still run passes
+    its held frame's trajectory, so its pose stands on the ground from the first step."""
     clip = character.clip
     probe = make_ground(character.shapes, 0.0)
     times = jnp.arange(clip.n_frames, dtype=jnp.float64) * clip.frame_time
@@ -59,7 +60,8 @@ def capture_floor(character: Character, traj: Trajectory) -> float:
 
 def ground_setup(spec, character: Character, traj: Trajectory) -> Ground:
     """The :class:`Ground` of a parsed ``[ground]`` table (:class:`~neuromotor.config.specs.GroundSpec`):
-    at ``height``, or at the capture's floor (:func:`capture_floor`) when the table gives none."""
+    at ``height``, or at the floor of ``traj`` (:func:`capture_floor`; the run's trajectory: the
+    held frame's for a still run) when the table gives none."""
     height = capture_floor(character, traj) if spec.height is None else spec.height
     sweeps = DEFAULT_PGS_ITERATIONS if spec.pgs_iterations is None else spec.pgs_iterations
     return make_ground(

@@ -6,7 +6,8 @@ the body weight (moments: % of body weight x stature). The physics is
 
 The floor is the ground's rule (:func:`neuromotor.studies.ground.capture_floor`): the height
 along up of the feet's lowest polyhedron vertex over every frame of the clip (every body's
-when the rig has no labelled feet).
+when the rig has no labelled feet; the held frame of a still run). A run with a ground passes
+that ground's height, so RUN.npz has one floor.
 
 A flight step is one with no candidate vertex within ``CONTACT_HEIGHT`` of the floor (height
 alone: a foot leaving or striking the ground fast is not in flight); there the ground explains

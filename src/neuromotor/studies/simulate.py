@@ -294,7 +294,7 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
     warnings += point_warnings(config.perturbations, character, index, config.source)
     directions = direction_lookup(character, config.source, still)
-    ground = ground_setup(config.ground, character, capture) if config.ground_on else None
+    ground = ground_setup(config.ground, character, traj) if config.ground_on else None
     pivot = tilt_pivot(model, ref, ground)
     pulses = build_pulses(config.perturbations, model, config.h, index, directions, ref.time, pivot)
     if config.balance_on:  # the postural loop of the held (first) pose: neuromotor.physics.balance

@@ -93,6 +93,7 @@ from neuromotor.config.specs import CONTROLLERS, GainSetting, SweepSpec
 from neuromotor.errors import ConfigError
 from neuromotor.io import tables
 from neuromotor.io.tables import read_csv
+from neuromotor.physics.perturbation import PLATFORM_KINDS
 from neuromotor.studies.gains import gains_for
 from neuromotor.studies.sweep.ball_speed import BallBatch, BallRunOut, BallSweeper, run_ball_sweep
 from neuromotor.studies.sweep.grid import (
@@ -161,7 +162,7 @@ def simulate_grid(
         )
     index = body_lookup(model, f"{cfg.source}: field 'sweep.bodies'", setup.character)  # names or segment keywords
     hit = cfg.perturbations[0]
-    if hit.kind in ("base", "tilt") and spec.bodies:
+    if hit.kind in PLATFORM_KINDS and spec.bodies:
         what = "a base motion" if hit.kind == "base" else "a tilt"
         raise ConfigError(f"{cfg.source}: field 'sweep.bodies': perturbation[0] is {what}, which pushes no body")
     for i, b in enumerate(spec.bodies or []):  # every row of the grid can act (the rule of prepare)
