@@ -198,3 +198,62 @@ def test_assist_on_a_platform_is_the_force_the_file_and_the_viewer_show():
     order = yup_order(int(arrays["up_axis"]))  # the page's frame is Y up
     np.testing.assert_allclose(tip - tail, force[:, order] / 500.0, atol=1e-5)
     np.testing.assert_allclose(tail, arrays["assist_point"][:, order], atol=1e-5)
+
+
+def test_com_response_is_the_push_and_not_the_settling():
+    """``com_response_*`` is the horizontal distance between the pushed run's COM and its
+    unperturbed twin's: recomputed here from the two runs' body positions, and exactly 0 for a
+    push of 0 N s, whose sway still counts the held pose's settling (the right sole rolling flat
+    moves the COM about 2 cm sideways in the first second)."""
+    from neuromotor.studies.simulate import prepare, run
+    from neuromotor.studies.standing import standing_pose
+
+    path, character, traj, still = standing_pose()
+    push = {"kind": "impulse", "body": "pelvis", "direction": "left", "start": 0.6}
+    figures = {}
+    for j in (0.0, 8.0):
+        data = {"clip": path, "sim": {"root": "free", "still": still, "duration": 1.5},
+                "perturbation": [push | {"magnitude": j}]}
+        setup = prepare(simulation_config(data, "<test>"), character, traj)
+        result = run(setup)
+        m = result.metrics
+        mass = np.asarray(setup.model.mass) / float(np.sum(setup.model.mass))
+        d = np.einsum("b,tbi->ti", mass, np.asarray(result.perturbed.states.pos) - np.asarray(result.unperturbed.states.pos))
+        up = -np.asarray(setup.model.gravity) / np.linalg.norm(np.asarray(setup.model.gravity))
+        dist = 1000 * np.linalg.norm(d - np.outer(d @ up, up), axis=1)
+        assert m["com_response_peak_mm"] == pytest.approx(dist.max(), rel=1e-12, abs=1e-12)
+        assert m["com_response_final_mm"] == pytest.approx(dist[-1], rel=1e-12, abs=1e-12)
+        assert m["com_response_time_s"] == pytest.approx(float(np.asarray(result.perturbed.time)[dist.argmax()]))
+        figures[j] = m
+    assert figures[0.0]["com_response_peak_mm"] == 0.0 and figures[0.0]["sway_range_ml_mm"] > 10.0
+    pushed = figures[8.0]
+    # An 8 N s sideways push moves the COM 9.3 mm off its twin's path, inside the 19.8 mm that the
+    # settling already spans sideways: the sway's ML range does not see it.
+    assert pushed["com_response_peak_mm"] > 5.0
+    assert pushed["sway_range_ml_mm"] == pytest.approx(figures[0.0]["sway_range_ml_mm"], abs=0.5)
+    assert pushed["com_response_time_s"] > 0.6  # after the onset
+
+
+def test_a_ball_on_a_standing_character_reports_falls_sway_and_response():
+    """A ball thrown at a free-standing character: the run's metrics have the falls, sway and COM
+    response that a push on the ground reports (they were missing with a ball), the response
+    against the twin whose ball is never launched."""
+    from neuromotor.studies.simulate import prepare, run
+    from neuromotor.studies.standing import standing_pose
+
+    path, character, traj, still = standing_pose()
+    ball = {"radius": 0.11, "mass": 1.0, "position": [-0.45, 1.45, 4.5], "speed": 14.0, "target": "Chest2",
+            "launch": 0.3, "restitution": 0.6, "friction": 0.5}
+    data = {"clip": path, "sim": {"root": "free", "still": still, "duration": 1.0}, "ball": ball}
+    setup = prepare(simulation_config(data, "<test>"), character, traj)
+    result = run(setup)
+    m = result.metrics
+    assert m["ball_peak_impulse_Ns"] > 1.0 and not m["fell"] and m["fall_time_s"] is None
+    for key in ("sway_rms_mm", "sway_range_ap_mm", "sway_range_ml_mm", "sway_rms_late_mm", "diverged_s"):
+        assert key in m, key
+    mass = np.asarray(setup.model.mass) / float(np.sum(setup.model.mass))
+    d = np.einsum("b,tbi->ti", mass, np.asarray(result.perturbed.states.pos) - np.asarray(result.unperturbed.states.pos))
+    up = -np.asarray(setup.model.gravity) / np.linalg.norm(np.asarray(setup.model.gravity))
+    dist = 1000 * np.linalg.norm(d - np.outer(d @ up, up), axis=1)
+    assert m["com_response_peak_mm"] == pytest.approx(dist.max(), rel=1e-12) and dist.max() > 1.0
+    assert m["com_response_time_s"] > 0.3  # after the launch

@@ -282,7 +282,8 @@ def test_a_ball_gives_the_same_answer_through_every_command(character, tmp_path)
 
 
 GROUND_FIGURES = ("ground_peak_force_N", "ground_contact_fraction", "sway_rms_mm", "sway_range_ap_mm",
-                  "sway_range_ml_mm", "sway_rms_late_mm", "max_lcp_residual_mps", "lcp_residual_p95_mps")
+                  "sway_range_ml_mm", "sway_rms_late_mm", "max_lcp_residual_mps", "lcp_residual_p95_mps",
+                  "com_response_peak_mm", "com_response_time_s", "com_response_final_mm")
 
 
 def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):
@@ -318,6 +319,7 @@ def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):
         assert (row["fell"], row["fall_time_s"], row["fall_body"]) == (metrics["fell"], metrics["fall_time_s"],
                                                                        metrics["fall_body"])
         assert metrics["sway_range_ap_mm"] > 0.1 and not metrics["diverged"]  # the platform moves the body
+        assert metrics["com_response_peak_mm"] > 0.1  # the twin on a still level ground is another run
     # The experiment's run, and its sweep (the same two magnitudes: the sweep's program again).
     exp = ExperimentSpec(kind="contrast", output=tmp_path, controllers=(GainSetting(400.0, 20.0),),
                          magnitudes=tuple(spec.magnitudes))

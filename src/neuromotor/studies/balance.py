@@ -1,6 +1,7 @@
 """Balance in a run (issue 38): the ``[balance]`` table made into a
 :class:`~neuromotor.physics.balance.Balance` (the feet and hips found by the anatomy's labels,
-the standing feedforward of the initial pose), falls, COM sway and the assist's impulse.
+the standing feedforward of the initial pose), falls, COM sway, the COM's response to the
+perturbation and the assist's impulse.
 
 The physics is :mod:`neuromotor.physics.balance`.
 """
@@ -180,6 +181,24 @@ def sway(setup, out: ContactRollout | StandingTrace) -> dict:
     }
 
 
+def com_response(setup, out: ContactRollout | StandingTrace, base_com) -> dict:
+    """The perturbation's own effect on the COM: the horizontal distance between the run's COM
+    (relative to a moving ground) and its unperturbed twin's ``base_com`` (T, 3), at its largest
+    (mm), when (s, the run's clock) and at the end (mm). Both runs settle alike from a held pose
+    that is not an exact equilibrium, so unlike the sway (about the run's own mean) this does not
+    count the settling; before the onset both runs are the same."""
+    trace = _trace(setup, out)
+    up, _, _ = facing_axes(setup)
+    d = trace.com - np.asarray(base_com)[: trace.com.shape[0]]
+    dist = 1000 * np.linalg.norm(d - np.outer(d @ up, up), axis=1)
+    k = int(np.argmax(dist))
+    return {
+        "com_response_peak_mm": float(dist[k]),
+        "com_response_time_s": float(trace.time[k]),
+        "com_response_final_mm": float(dist[-1]),
+    }
+
+
 def assist_forces(setup, root_pos, root_vel, base_offset=None, base_velocity=None) -> np.ndarray | None:
     """The assist's force on the pelvis per sample (T, 3, N, world) from the pelvis's COM
     position and velocity (T, 3), by the step's own law and target
@@ -206,11 +225,14 @@ def assist_impulse(setup, out: ContactRollout | StandingTrace) -> dict:
     return {"assist_impulse_Ns": impulse, "assist_impulse_pct": 100 * impulse / (weight * h * (n - 1))}
 
 
-def balance_metrics(setup, out: ContactRollout | StandingTrace, platform=None) -> dict:
-    """Falls, sway and (when on) the assist's impulse; ``diverged_s``: when the rollout blew up
-    (None: it did not; the states after it are held, so the other figures cover the time before).
-    The COM is taken relative to ``platform`` (the ground's displacement, (T, 3); None: still)."""
+def balance_metrics(setup, out: ContactRollout | StandingTrace, platform=None, base=None) -> dict:
+    """Falls, sway, the COM's response against the unperturbed twin (``base``: its COM (T, 3);
+    None: not measured) and (when on) the assist's impulse; ``diverged_s``: when the rollout blew
+    up (None: it did not; the states after it are held, so the other figures cover the time
+    before). The COM is taken relative to ``platform`` (the ground's displacement, (T, 3); None:
+    still)."""
     trace = out if isinstance(out, StandingTrace) else standing_trace(setup, out, platform)
     bad = trace.diverged_step
     when = None if bad < 0 else float(trace.time[bad + 1] - trace.time[0])
-    return falls(setup, trace) | sway(setup, trace) | assist_impulse(setup, trace) | {"diverged_s": when}
+    response = {} if base is None else com_response(setup, trace, base)
+    return falls(setup, trace) | sway(setup, trace) | response | assist_impulse(setup, trace) | {"diverged_s": when}

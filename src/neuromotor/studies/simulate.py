@@ -47,7 +47,7 @@ from neuromotor.physics.dynamics import (
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, unperturbed
 from neuromotor.physics.precision import Precision
 from neuromotor.studies import metrics as mx
-from neuromotor.studies.balance import balance_for, balance_metrics, fold_support
+from neuromotor.studies.balance import balance_for, balance_metrics, com_path, fold_support
 from neuromotor.studies.ball_hit import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies.gains import gains_for
 from neuromotor.studies.ground import (
@@ -415,14 +415,15 @@ def run(setup: Setup, check: bool = True) -> RunResult:
         pert, base = ball_rollouts(setup, _zero(setup.pulses), check)
         n_ball = setup.ball.n_candidates
         metrics = run_metrics(setup, pert.run, base.run) | ball_metrics(pert, n_ball)
-        if setup.ground is not None:
+        if setup.ground is not None:  # the bodies' ground: falls, sway and response as without a ball
             metrics |= ground_metrics(pert, n_ball)
+            metrics |= balance_metrics(setup, pert, platform_offset(setup), com_path(setup.model, base.run.states.pos))
         metrics |= lcp_figures(pert.contact.step_residual, pert.contact.touching)
         return RunResult(pert.run, base.run, metrics, pert)
     if setup.ground is not None:
         pert, base = ground_rollouts(setup, _zero(setup.pulses), check)
         extra = ground_metrics(pert, 0) | lcp_figures(pert.contact.step_residual, pert.contact.touching)
-        extra |= balance_metrics(setup, pert, platform_offset(setup))
+        extra |= balance_metrics(setup, pert, platform_offset(setup), com_path(setup.model, base.run.states.pos))
         return RunResult(pert.run, base.run, run_metrics(setup, pert.run, base.run) | extra, ground=pert)
     model, sim = setup.model, setup.sim_model
     pert = simulate_jit(sim, setup.params)

@@ -37,6 +37,9 @@ GROUND_METRICS = (
     "sway_range_ap_mm",
     "sway_range_ml_mm",
     "sway_rms_late_mm",
+    "com_response_peak_mm",
+    "com_response_time_s",
+    "com_response_final_mm",
     "diverged_s",
 )
 
@@ -143,4 +146,4 @@ def ground_row_metrics(setup, batch: RunBatch, i: int, out: dict) -> dict:
         base_vel,
     )
     lcp = lcp_figures(out["lcp_residual"], out["touching"])
-    return ground_figures(out["total"], setup.options.h) | lcp | balance_metrics(setup, trace)
+    return ground_figures(out["total"], setup.options.h) | lcp | balance_metrics(setup, trace, base=out["base_com"])

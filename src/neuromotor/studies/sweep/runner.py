@@ -177,15 +177,18 @@ class SweepResult:
 
 
 def _simulate_baselines(sweeper, base_batch, n_base: int, bar):
-    """Unperturbed twin runs (one per gain setting), in chunks: their pose and diverged step."""
-    theta, bad = [], []
+    """Unperturbed twin runs (one per gain setting), in chunks: their pose, diverged step and,
+    where the runs record it (on the ground), their whole-body COM (else None)."""
+    theta, bad, com = [], [], []
     for lo in range(0, n_base, sweeper.chunk):
         hi = min(lo + sweeper.chunk, n_base)
         out = sweeper.simulate_chunk(sweeper.pad(base_batch, lo, hi))
         theta.append(np.asarray(out.pose)[: hi - lo])
         bad.append(np.asarray(out.diverged_step)[: hi - lo])
+        if hasattr(out, "com"):
+            com.append(np.asarray(out.com)[: hi - lo])
         bar.update(hi - lo)
-    return jnp.asarray(np.concatenate(theta)), np.concatenate(bad)
+    return jnp.asarray(np.concatenate(theta)), np.concatenate(bad), np.concatenate(com) if com else None
 
 
 def run_sweep(
@@ -271,12 +274,13 @@ def flag_divergence(row: dict, step: int, base_step: int, time, body) -> dict:
 
 def _simulate_share(sweeper: Sweeper, batch, base_batch, slot, lo: int, hi: int, bar) -> dict[str, np.ndarray]:
     """Runs lo:hi of ``batch`` and the twins they need: per run, the deviation curve ``dev``,
-    the outputs but the pose, and ``base_step`` (the twin's diverged step)."""
+    the outputs but the pose, ``base_step`` (the twin's diverged step) and, on the ground,
+    ``base_com`` (the twin's COM)."""
     c = sweeper.chunk
     need, local_slot = np.unique(slot[lo:hi], return_inverse=True)
     base = jax.tree_util.tree_map(lambda x: np.asarray(x)[need], base_batch)
     bar.reset(total=len(need) + hi - lo)
-    base_theta, base_step = _simulate_baselines(sweeper, base, len(need), bar)
+    base_theta, base_step, base_com = _simulate_baselines(sweeper, base, len(need), bar)
     parts = []
     for a in range(lo, hi, c):
         b = min(a + c, hi)
@@ -285,6 +289,8 @@ def _simulate_share(sweeper: Sweeper, batch, base_batch, slot, lo: int, hi: int,
         part = {f.name: np.asarray(getattr(out, f.name))[: b - a] for f in dataclasses.fields(out) if f.name != "pose"}
         part["dev"] = np.asarray(_chunk_deviation(out.pose, base_theta, jnp.asarray(slot_c)))[: b - a]
         part["base_step"] = base_step[slot_c[: b - a]]
+        if base_com is not None:
+            part["base_com"] = base_com[slot_c[: b - a]]
         parts.append(part)
         bar.update(b - a)
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
