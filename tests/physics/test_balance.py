@@ -200,6 +200,15 @@ def test_assist_on_a_platform_is_the_force_the_file_and_the_viewer_show():
     np.testing.assert_allclose(tail, arrays["assist_point"][:, order], atol=1e-5)
 
 
+def _com_distance_mm(setup, result) -> np.ndarray:
+    """The horizontal distance (mm) between the perturbed and unperturbed runs' whole-body COM at
+    every sample, from their body positions."""
+    mass = np.asarray(setup.model.mass) / float(np.sum(setup.model.mass))
+    d = np.einsum("b,tbi->ti", mass, np.asarray(result.perturbed.states.pos) - np.asarray(result.unperturbed.states.pos))
+    up = -np.asarray(setup.model.gravity) / np.linalg.norm(np.asarray(setup.model.gravity))
+    return 1000 * np.linalg.norm(d - np.outer(d @ up, up), axis=1)
+
+
 def test_com_response_is_the_push_and_not_the_settling():
     """``com_response_*`` is the horizontal distance between the pushed run's COM and its
     unperturbed twin's: recomputed here from the two runs' body positions, and exactly 0 for a
@@ -217,10 +226,7 @@ def test_com_response_is_the_push_and_not_the_settling():
         setup = prepare(simulation_config(data, "<test>"), character, traj)
         result = run(setup)
         m = result.metrics
-        mass = np.asarray(setup.model.mass) / float(np.sum(setup.model.mass))
-        d = np.einsum("b,tbi->ti", mass, np.asarray(result.perturbed.states.pos) - np.asarray(result.unperturbed.states.pos))
-        up = -np.asarray(setup.model.gravity) / np.linalg.norm(np.asarray(setup.model.gravity))
-        dist = 1000 * np.linalg.norm(d - np.outer(d @ up, up), axis=1)
+        dist = _com_distance_mm(setup, result)
         assert m["com_response_peak_mm"] == pytest.approx(dist.max(), rel=1e-12, abs=1e-12)
         assert m["com_response_final_mm"] == pytest.approx(dist[-1], rel=1e-12, abs=1e-12)
         assert m["com_response_time_s"] == pytest.approx(float(np.asarray(result.perturbed.time)[dist.argmax()]))
@@ -251,9 +257,6 @@ def test_a_ball_on_a_standing_character_reports_falls_sway_and_response():
     assert m["ball_peak_impulse_Ns"] > 1.0 and not m["fell"] and m["fall_time_s"] is None
     for key in ("sway_rms_mm", "sway_range_ap_mm", "sway_range_ml_mm", "sway_rms_late_mm", "diverged_s"):
         assert key in m, key
-    mass = np.asarray(setup.model.mass) / float(np.sum(setup.model.mass))
-    d = np.einsum("b,tbi->ti", mass, np.asarray(result.perturbed.states.pos) - np.asarray(result.unperturbed.states.pos))
-    up = -np.asarray(setup.model.gravity) / np.linalg.norm(np.asarray(setup.model.gravity))
-    dist = 1000 * np.linalg.norm(d - np.outer(d @ up, up), axis=1)
+    dist = _com_distance_mm(setup, result)
     assert m["com_response_peak_mm"] == pytest.approx(dist.max(), rel=1e-12) and dist.max() > 1.0
     assert m["com_response_time_s"] > 0.3  # after the launch
