@@ -143,3 +143,22 @@ def test_unmatched_names_and_groups_are_one_line_errors_naming_the_index(tmp_pat
         msg = str(e.value)
         assert msg.startswith(f"cfg.toml: field 'sim.driven_joints[{i}]' = {group!r} matches no body on this rig")
         assert "\n" not in msg
+
+
+def test_an_unknown_body_lists_only_the_keywords_this_rig_resolves(tmp_path):
+    """A push's body that is no body and no resolvable keyword: the one-line error offers the
+    bodies and only the segment keywords this rig's labels find (a chain has none, the shipped
+    clip all fifteen), and says when the name is a keyword this rig does not find."""
+    from neuromotor.model.skeleton import BODY_KEYWORDS
+    from neuromotor.studies.simulate import body_lookup
+
+    character, _ = load_character(ALL_CLIPS["mocapbank_19joint"])
+    with pytest.raises(ConfigError) as e:
+        body_lookup(character.model, "cfg.toml", character)("tail")
+    assert str(e.value) == (f"cfg.toml: unknown body 'tail'; bodies are {', '.join(character.model.body_names)} "
+                            f"(or one of {', '.join(BODY_KEYWORDS)})")
+    chain, _ = load_character(_chain(tmp_path))
+    with pytest.raises(ConfigError) as e:
+        body_lookup(chain.model, "cfg.toml", chain)("pelvis")
+    assert str(e.value) == (f"cfg.toml: 'pelvis' is a segment keyword this rig's labels do not find; bodies are "
+                            f"{', '.join(chain.model.body_names)} (its labels find no segment keyword)")

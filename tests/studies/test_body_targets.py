@@ -424,7 +424,7 @@ def test_unknown_body_is_named(tmp_path, bank):
     write_targets(tmp_path, np.zeros((2, grid.size, 2)), grid)
     data = config()
     data["fit"]["target"][1]["relative_to"] = "Skull"
-    with pytest.raises(ConfigError, match=r"^b\.toml: field 'fit\.target\[1\]\.relative_to' is an unknown body "
+    with pytest.raises(ConfigError, match=r"^b\.toml: field 'fit\.target\[1\]\.relative_to': unknown body "
                                           r"'Skull'; bodies are Hips, "):
         F.calibration_from_dict(data, "b.toml", tmp_path, character=bank[0], traj=bank[1])
 

@@ -338,6 +338,19 @@ def keyword_body(character: Character, keyword: str) -> int | None:
     return model.joint_body[found[0]] if found else None
 
 
+def unknown_body(model: Model, character: Character | None, name: str) -> str:
+    """What an error says of a body ``name`` that is neither a body of ``model`` nor a keyword
+    this rig resolves: the bodies, and only the segment keywords its labels find."""
+    found = [k for k in BODY_KEYWORDS if character is not None and keyword_body(character, k) is not None]
+    what = (
+        f"{name!r} is a segment keyword this rig's labels do not find"
+        if name in BODY_KEYWORDS
+        else f"unknown body {name!r}"
+    )
+    keywords = f" (or one of {', '.join(found)})" if found else " (its labels find no segment keyword)"
+    return f"{what}; bodies are {', '.join(model.body_names)}{keywords}"
+
+
 # Group keywords of a restraint (``[sim] driven_joints``): the anatomy's segment labels each
 # takes (what ``neuromotor inspect`` prints per joint); ``pelvis`` is the one body of
 # :func:`keyword_body`.

@@ -23,13 +23,13 @@ from neuromotor.model.facing import resolve_direction
 from neuromotor.model.kinematics import Trajectory, still_trajectory
 from neuromotor.model.load import DEFAULT_CLIP_NAME, default_clip_path, load_character  # noqa: F401  (re-exported)
 from neuromotor.model.skeleton import (
-    BODY_KEYWORDS,
     GROUP_KEYWORDS,
     RESTRAINT_KEYWORDS,
     Character,
     Model,
     keyword_bodies,
     keyword_body,
+    unknown_body,
 )
 from neuromotor.physics.contact import ContactRollout, Ground
 from neuromotor.physics.control import Gains, make_gains
@@ -159,10 +159,7 @@ def body_lookup(model: Model, source: str = "config", character: Character | Non
             return model.body_names.index(name)
         b = keyword_body(character, name) if character is not None else None
         if b is None:
-            raise ConfigError(
-                f"{source}: unknown body {name!r}; bodies are {', '.join(model.body_names)}"
-                f" (or one of {', '.join(BODY_KEYWORDS)})"
-            )
+            raise ConfigError(f"{source}: {unknown_body(model, character, name)}")
         return b
 
     return index

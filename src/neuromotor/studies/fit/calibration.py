@@ -261,17 +261,14 @@ def trajectory_calibration(
 
 def _body_index(setup, name: str, field: str) -> int:
     """A body of the model by name or segment keyword; unknown: a ConfigError naming the field."""
-    from neuromotor.model.skeleton import BODY_KEYWORDS, keyword_body
+    from neuromotor.model.skeleton import keyword_body, unknown_body
 
     model = setup.model
     if name in model.body_names:
         return model.body_names.index(name)
     b = keyword_body(setup.character, name) if setup.character is not None else None
     if b is None:
-        raise ConfigError(
-            f"{setup.config.source}: field '{field}' is an unknown body {name!r}; bodies are "
-            f"{', '.join(model.body_names)} (or one of {', '.join(BODY_KEYWORDS)})"
-        )
+        raise ConfigError(f"{setup.config.source}: field '{field}': {unknown_body(model, setup.character, name)}")
     return int(b)
 
 
