@@ -13,7 +13,6 @@ import numpy as np
 
 from neuromotor.io.runfile import json_field
 from neuromotor.model.facing import facing_direction, horizontal, unit
-from neuromotor.physics.perturbation import PLATFORM_KINDS
 from neuromotor.viz.camera import camera_view
 from neuromotor.viz.geometry import quat_matrices
 from neuromotor.viz.style import (
@@ -167,7 +166,8 @@ class Scene:
         sampled value at k (a half-sine's samples are below its peak)."""
         t = float(self.time[k])
         for p in (self.provenance or {}).get("perturbations", []):
-            if p.get("kind") in PLATFORM_KINDS:  # moves what it stands on: no force is drawn for it
+            # physics.perturbation.PLATFORM_KINDS (viz reads files, not the physics): no force drawn
+            if p.get("kind") in ("base", "tilt"):
                 continue
             try:
                 start, dur, mag = float(p["start"]), float(p["duration"]), float(p["magnitude"])
