@@ -615,3 +615,21 @@ def test_a_toes_up_tilt_turns_the_standing_feet_with_the_ground():
         pts = np.asarray(scene.ground_mesh(pivot, 1.0, k).points)
         np.testing.assert_allclose((pts - pivot) @ n, 0.0, atol=1e-5)  # float32 points
     assert viewer_data(arrays)["tilt"]["pivot"] == pytest.approx(list(pivot[[0, 1, 2]]))  # Y up: the same axes
+
+
+def test_a_rig_without_feet_on_the_ground_is_warned(tmp_path):
+    """Every body stands in for a foot on a rig whose labels find none; the run says so (a rig
+    with feet does not get the warning)."""
+    from synthetic_rigs import chain_text
+
+    chain = tmp_path / "chain.bvh"
+    chain.write_text(chain_text())
+    data = {"clip": str(chain), "sim": {"root": "free", "duration": 0.1}}
+    setup = prepare(simulation_config(data, "chain.toml"))
+    assert foot_bodies(setup.character) == tuple(range(setup.model.n_bodies))
+    assert [w for w in setup.warnings if "no labelled feet" in w] == [
+        "chain.toml: the rig has no labelled feet (see neuromotor inspect): every body counts as a foot for the "
+        "ground's floor, the fall rule and the standing support, so falls are found only by the COM's height"
+    ]
+    with_feet = prepare(simulation_config({"sim": {"root": "free", "duration": 0.1}}, "<test>"))
+    assert not any("no labelled feet" in w for w in with_feet.warnings)

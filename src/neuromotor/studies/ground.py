@@ -42,6 +42,18 @@ def foot_bodies(character: Character) -> tuple[int, ...]:
     return feet or tuple(range(character.model.n_bodies))
 
 
+def feet_warnings(character: Character, source: str) -> tuple[str, ...]:
+    """A warning for a run on the ground of a rig without labelled feet (every body then stands
+    in for a foot: the floor, the fall rule and the postural loop's support); none with feet."""
+    if any(seg == FOOT for seg in character.body_segment):
+        return ()
+    return (
+        f"{source}: the rig has no labelled feet (see neuromotor inspect): every body counts as a "
+        "foot for the ground's floor, the fall rule and the standing support, so falls are found "
+        "only by the COM's height",
+    )
+
+
 @functools.partial(compiler.jit, static_argnames=("bodies",))
 def _lowest_over(model: Model, traj: Trajectory, ground: Ground, times, bodies):
     poses = grid_poses(model, traj, times)

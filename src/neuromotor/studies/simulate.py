@@ -51,6 +51,7 @@ from neuromotor.studies.balance import balance_for, balance_metrics, com_path, f
 from neuromotor.studies.ball_hit import BallSetup, ball_metrics, ball_rollouts, ball_setup
 from neuromotor.studies.gains import gains_for
 from neuromotor.studies.ground import (
+    feet_warnings,
     ground_metrics,
     ground_rollouts,
     ground_setup,
@@ -290,6 +291,8 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     ball = ball_setup(config.ball, character, traj, index, config.source, still) if config.ball else None
     warnings = tuple(character.warnings) + step_warnings(ref, config.h, config.feedforward)
     warnings += point_warnings(config.perturbations, character, index, config.source)
+    if config.ground_on:
+        warnings += feet_warnings(character, config.source)
     directions = direction_lookup(character, config.source, still)
     ground = ground_setup(config.ground, character, traj) if config.ground_on else None
     pivot = tilt_pivot(model, ref, ground)
