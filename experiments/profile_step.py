@@ -70,6 +70,7 @@ def main(argv=None) -> int:
     ap.add_argument("--solver", default=None, help="default: nullspace for one trajectory, branch for a batch")
     ap.add_argument("--top", type=int, default=30)
     ap.add_argument("--lines", action="store_true", help="group by source line, not by function")
+    ap.add_argument("--free", action="store_true", help="the free root standing on the ground (issue 38), 2 s")
     args = ap.parse_args(argv)
     import jax
     import jax.numpy as jnp
@@ -80,20 +81,30 @@ def main(argv=None) -> int:
     from neuromotor.studies import bench
 
     size, solver = args.batch, args.solver or ("nullspace" if args.batch == 1 else "branch")
-    setup = bench._setup(None, 1.0 if size == 1 else 0.25, solver)
-    m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
-    mags = jnp.linspace(0.5, 1.5, size)[:, None] * p.magnitude[None]
+    if args.free:
+        from neuromotor.physics.contact import simulate_contact
+        from neuromotor.studies.ground import ground_scene
+        from neuromotor.studies.standing import standing_setup
 
-    def many(mags, g, ref):
-        one = lambda mag: dy.rollout(m, g, dataclasses.replace(p, magnitude=mag), ref, cfg).theta
-        return jax.vmap(one)(mags) if size > 1 else one(mags[0])
+        s = standing_setup(2.0)
+        args_, cfg = (s.sim_model, s.params, ground_scene(s.ground)), s.sim_model.options
+        compiled = compiler.jit(simulate_contact).lower(*args_).compile()
+    else:
+        setup = bench._setup(None, 1.0 if size == 1 else 0.25, solver)
+        m, g, p, ref, cfg = setup.model, setup.gains, setup.pulses, setup.ref, setup.options
+        mags = jnp.linspace(0.5, 1.5, size)[:, None] * p.magnitude[None]
 
-    compiled = compiler.jit(many).lower(mags, g, ref).compile()
+        def many(mags, g, ref):
+            one = lambda mag: dy.rollout(m, g, dataclasses.replace(p, magnitude=mag), ref, cfg).theta
+            return jax.vmap(one)(mags) if size > 1 else one(mags[0])
+
+        args_ = (mags, g, ref)
+        compiled = compiler.jit(many).lower(*args_).compile()
     source = _sources(compiled.as_text(), args.lines)
-    jax.block_until_ready(compiled(mags, g, ref))
+    jax.block_until_ready(compiled(*args_))
     with tempfile.TemporaryDirectory() as tmp:
         with jax.profiler.trace(tmp, create_perfetto_trace=True):
-            jax.block_until_ready(compiled(mags, g, ref))
+            jax.block_until_ready(compiled(*args_))
         trace = glob.glob(f"{tmp}/**/*.trace.json.gz", recursive=True)[0]
         events = [e for e in json.load(gzip.open(trace))["traceEvents"] if e.get("ph") == "X"]
     time_of, count, shape = collections.Counter(), collections.Counter(), {}

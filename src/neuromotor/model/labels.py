@@ -31,6 +31,7 @@ import numpy as np
 
 from neuromotor.model.bvh import BvhClip
 from neuromotor.model.clip_edit import forward_kinematics
+from neuromotor.model.facing import horizontal
 from neuromotor.rotations_np import rotation_angle
 
 __all__ = ["SEGMENTS", "DETAIL_SEGMENTS", "JointLabels", "label_joints"]
@@ -393,10 +394,6 @@ def _head_chain(tree: _Tree, pos, ends, arm_branch: int, limb_members: set, pair
         head_chain.append(max(upward, key=lambda c: (tree.L[c] + tree.reach[c], -c)))
 
 
-def _horizontal(v, up):
-    return v - np.outer(v @ up, up)
-
-
 def _facing_per_frame(tree: _Tree, pos, ends, legs, up, n_rows: int):
     """Facing per frame, unnormalised, from the feet (ankle to toe), else the knees; and which
     ("feet", "knees" or "" when neither tells)."""
@@ -408,7 +405,7 @@ def _facing_per_frame(tree: _Tree, pos, ends, legs, up, n_rows: int):
             last = foot_chain[-1]
             toe = ends[:, last] if tree.end_len[last] > tree.tiny else pos[:, last]
             if np.linalg.norm(toe - pos[:, l.hand], axis=1).mean() > 0.05 * leg_len:
-                fwd_t += _horizontal(toe - pos[:, l.hand], up)
+                fwd_t += horizontal(toe - pos[:, l.hand], up)
     if not np.linalg.norm(fwd_t, axis=1).mean() < 0.02 * leg_len:
         return fwd_t, "feet"
     fwd_t = np.zeros((n_rows, 3))
@@ -416,7 +413,7 @@ def _facing_per_frame(tree: _Tree, pos, ends, legs, up, n_rows: int):
         hip = pos[:, l.groups[l.upper][0]]
         knee = pos[:, l.groups[l.upper + 1][0]] if l.groups[l.upper + 1] else hip
         ank = ends[:, l.end_point] if l.end_is_site else pos[:, l.end_point]
-        fwd_t += _horizontal(knee - 0.5 * (hip + ank), up)
+        fwd_t += horizontal(knee - 0.5 * (hip + ank), up)
     return fwd_t, ("" if np.linalg.norm(fwd_t, axis=1).mean() < 0.01 * leg_len else "knees")
 
 
@@ -535,12 +532,12 @@ def _forward_at(ref_i: int, fwd_t, up, tree: _Tree, judge: _SideJudge, chains, w
     if np.linalg.norm(f) < 1e-9 * tree.size:  # no geometric facing: from the legs' sides
         li = chains["leg_left"][0]
         ri = chains["leg_right"][0]
-        lat = _horizontal(judge.mean_points(li) - judge.mean_points(ri), up)[ref_i]
+        lat = horizontal(judge.mean_points(li) - judge.mean_points(ri), up)[ref_i]
         f = np.cross(lat, up)
         if np.linalg.norm(f) < 1e-12:
             f = np.cross(up, np.roll(up, 1))
             warnings.append("facing direction unknown: an arbitrary horizontal axis is used")
-    forward = _horizontal(f[None], up)[0]
+    forward = horizontal(f[None], up)[0]
     return forward / np.linalg.norm(forward)
 
 
@@ -594,9 +591,9 @@ def _standing_forward(tree: _Tree, pos, ends, legs, up, chains) -> np.ndarray | 
     f, facing_from = _facing_per_frame(tree, pos, ends, legs, up, 1)
     f = f[0]
     if not facing_from:
-        lat = _horizontal(pos[:, chains["leg_left"][0]] - pos[:, chains["leg_right"][0]], up)[0]
+        lat = horizontal(pos[:, chains["leg_left"][0]] - pos[:, chains["leg_right"][0]], up)[0]
         f = np.cross(lat, up)
-    f = _horizontal(f[None], up)[0]
+    f = horizontal(f[None], up)[0]
     n = float(np.linalg.norm(f))
     return f / n if n > 1e-9 * tree.size else None
 
@@ -658,7 +655,7 @@ def label_joints(clip: BvhClip) -> JointLabels:
     forward = _forward_at(ref_i, fwd_t, up, tree, judge, labels.chains, warnings)
     shape_forward = _standing_forward(tree, shape_pos, shape_ends, legs, shape_up, labels.chains)
     if shape_forward is None:
-        shape_forward = forward if shape_frame is not None else _horizontal(np.roll(shape_up, 1)[None], shape_up)[0]
+        shape_forward = forward if shape_frame is not None else horizontal(np.roll(shape_up, 1)[None], shape_up)[0]
 
     # Height from the long bones, sides averaged.
     leg = float(np.mean([l.window for l in legs]))

@@ -14,6 +14,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from neuromotor.model.facing import horizontal
 from neuromotor.model.skeleton import Character
 from neuromotor.physics.balance import Balance, assist_force, make_balance
 from neuromotor.physics.contact import ContactRollout
@@ -190,7 +191,7 @@ def com_response(setup, out: ContactRollout | StandingTrace, base_com) -> dict:
     trace = _trace(setup, out)
     up, _, _ = facing_axes(setup)
     d = trace.com - np.asarray(base_com)[: trace.com.shape[0]]
-    dist = 1000 * np.linalg.norm(d - np.outer(d @ up, up), axis=1)
+    dist = 1000 * np.linalg.norm(horizontal(d, up), axis=1)
     k = int(np.argmax(dist))
     return {
         "com_response_peak_mm": float(dist[k]),

@@ -36,16 +36,20 @@ from neuromotor.physics.dynamics import Params
 FOOT = "foot"  # the mass model's segment of the feet (Character.body_segment)
 
 
+def labelled_feet(character: Character) -> tuple[int, ...]:
+    """The bodies the mass model labels ``foot``; empty on a rig without labelled feet."""
+    return tuple(b for b, seg in enumerate(character.body_segment) if seg == FOOT)
+
+
 def foot_bodies(character: Character) -> tuple[int, ...]:
-    """The feet (the mass model's ``foot`` segments); every body on a rig without labelled feet."""
-    feet = tuple(b for b, seg in enumerate(character.body_segment) if seg == FOOT)
-    return feet or tuple(range(character.model.n_bodies))
+    """The feet (:func:`labelled_feet`); every body on a rig without labelled feet."""
+    return labelled_feet(character) or tuple(range(character.model.n_bodies))
 
 
 def feet_warnings(character: Character, source: str) -> tuple[str, ...]:
     """A warning for a run on the ground of a rig without labelled feet (every body then stands
     in for a foot: the floor, the fall rule and the postural loop's support); none with feet."""
-    if any(seg == FOOT for seg in character.body_segment):
+    if labelled_feet(character):
         return ()
     return (
         f"{source}: the rig has no labelled feet (see neuromotor inspect): every body counts as a "
