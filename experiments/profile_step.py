@@ -71,6 +71,7 @@ def main(argv=None) -> int:
     ap.add_argument("--top", type=int, default=30)
     ap.add_argument("--lines", action="store_true", help="group by source line, not by function")
     ap.add_argument("--free", action="store_true", help="the free root standing on the ground (issue 38), 2 s")
+    ap.add_argument("--pgs", type=int, default=None, help="with --free: [ground] pgs_iterations")
     args = ap.parse_args(argv)
     import jax
     import jax.numpy as jnp
@@ -86,7 +87,7 @@ def main(argv=None) -> int:
         from neuromotor.studies.ground import ground_scene
         from neuromotor.studies.standing import standing_setup
 
-        s = standing_setup(2.0)
+        s = standing_setup(2.0, ground={"pgs_iterations": args.pgs} if args.pgs else None)
         args_, cfg = (s.sim_model, s.params, ground_scene(s.ground)), s.sim_model.options
         compiled = compiler.jit(simulate_contact).lower(*args_).compile()
     else:
