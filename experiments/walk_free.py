@@ -56,7 +56,7 @@ def main() -> None:
         out = simulate_contact_jit(setup.sim_model, setup.params, ground_scene(setup.ground))
         f, sw = falls(setup, out), sway(setup, out)
         print(
-            f"{label}: fell {f['fell']} at {f['fall_time_s']} s ({f['fall_body']}), "
+            f"{label}: fell {f['fell']} at clip time {f['fall_time_s']} s ({f['fall_body']}), "
             f"sway RMS {sw['sway_rms_mm']:.0f} mm, diverged step {int(out.run.diverged_step)}"
         )
 

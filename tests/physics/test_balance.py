@@ -18,6 +18,7 @@ from neuromotor.physics.balance import (
     balance_torques as torques_of,
     empty_posture,
     foot_forces,
+    joint_origins,
     posture_signals,
     whole_com,
 )
@@ -87,6 +88,27 @@ def test_loop_opposes_the_lean(standing):
     # its component along up x forward is negative of gravity's (which is + along it for a forward lean).
     on_shanks = -extra[jnp.asarray(bal.ankles)].sum(0)
     assert float(on_shanks @ jnp.cross(up, fwd)) < 0
+
+
+def test_the_loop_measures_the_lean_rate_against_a_moving_platform(standing):
+    """The lean is measured from the ankles, which ride the platform, so its rate is the COM's
+    velocity relative to the ground's: a body carried along at the platform's velocity has none
+    (the loop pushed against the carrying motion itself until 2026-11-29), and one moving
+    relative to it has the relative velocity over H."""
+    setup, _ = standing
+    model, bal, state = setup.model, setup.gains.balance, setup.ref.init
+    fwd = jnp.asarray(setup.character.anatomy.forward, jnp.float64)
+    carried = dataclasses.replace(state, vel=state.vel + 0.37 * fwd)
+    rate = lambda s, support=None: posture_signals(model, bal, s, support=support)[1][0]
+    np.testing.assert_allclose(rate(carried), 0.37 * fwd / bal.height, rtol=1e-12)  # a still ground
+    still = (jnp.zeros(3), None, None)
+    np.testing.assert_allclose(rate(carried, (0.37 * fwd, None, None)), rate(state, still), atol=1e-15)
+    np.testing.assert_allclose(rate(carried, (0.3 * fwd, None, None)), 0.07 * fwd / bal.height, rtol=1e-9)
+    # A tilting ground: the support's velocity is the plane's at the ankles' midpoint.
+    spin, pivot = jnp.asarray([0.0, 0.0, 0.4]), jnp.asarray([0.1, 0.0, 0.2])
+    ankles = jnp.mean(joint_origins(model, state.pos, state.rot)[jnp.asarray(bal.feet)], 0)
+    turned = dataclasses.replace(state, vel=state.vel + jnp.cross(spin, ankles - pivot))
+    np.testing.assert_allclose(rate(turned, (jnp.zeros(3), spin, pivot)), rate(state), atol=1e-15)
 
 
 def test_quiet_standing(standing):

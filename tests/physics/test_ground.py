@@ -335,10 +335,18 @@ def test_root_and_ground_config():
     plain = prepare(simulation_config({"sim": {"root": "free", "duration": 0.1}}, "x"))
     assert ground_scene(plain.ground).settings == ct.ContactSettings()
     cfg = simulation_config({"sim": {"root": "free"}, "perturbation": [{"body": "chest", "magnitude": 1.0}]}, "x")
-    sweep_spec({"sweep": {"magnitudes": [1.0]}}, cfg)  # a sweep runs on the ground; a fit does not
-    fit = {"fit": {"target": {"kind": "features", "case": [{"peak_deviation_deg": 1.0}]}}}
-    with pytest.raises(ConfigError, match="field 'ground.enabled': a fit has no ground contact"):
-        fit_spec(fit, cfg)
+    sweep_spec({"sweep": {"magnitudes": [1.0]}}, cfg)  # a sweep runs on the ground, and so does a fit
+    fit = {"fit": {"target": {"kind": "features", "case": [{"peak_deviation_deg": {"value": 1.0, "sd": 0.5, "source": "illustrative"}}]}}}
+    assert fit_spec(fit, cfg).parameters == ("ks", "kd")
+    # The postural loop's gains are fitted only where the loop runs.
+    loop = {"fit": fit["fit"] | {"parameters": ["ks", "balance_kp", "balance_delay"]}}
+    assert fit_spec(loop, cfg).parameters == ("ks", "balance_kp", "balance_delay")
+    driven = simulation_config({"perturbation": [{"body": "chest", "magnitude": 1.0}]}, "x")
+    off = simulation_config({"sim": {"root": "free"}, "balance": {"enabled": False},
+                             "perturbation": [{"body": "chest", "magnitude": 1.0}]}, "x")
+    for other in (driven, off):
+        with pytest.raises(ConfigError, match=r"field 'fit.parameters\[1\]' = 'balance_kp' needs the postural loop"):
+            fit_spec(loop, other)
 
 
 def test_run_of_a_free_root_records_the_ground(flight):

@@ -36,6 +36,7 @@ from neuromotor.config.parse import simulation_config
 from neuromotor.config.specs import ExperimentSpec, GainSetting, SweepSpec, reflex_grid
 from neuromotor.physics.perturbation import SHAPES
 from neuromotor.studies import experiments, sweep as sw
+from neuromotor.studies.ball_hit import ball_metrics, on_character
 from neuromotor.studies.fit.problem import make_problem
 from neuromotor.studies.simulate import deviation_curve, load_character, prepare, run
 
@@ -248,7 +249,7 @@ def test_every_sweep_row_equals_its_single_run(character, table, axes):
 
 def test_a_ball_gives_the_same_answer_through_every_command(character, tmp_path):
     """A [ball] through simulate, a one-row ball-speed sweep and experiment (contrast with its
-    one-speed sweep); a fit, whose forward model has no contact, refuses it naming the field."""
+    one-speed sweep); a fit, whose forward model has no ball, refuses it naming the field."""
     from neuromotor.config.parse import fit_spec
 
     data = config_data([])
@@ -265,6 +266,20 @@ def test_a_ball_gives_the_same_answer_through_every_command(character, tmp_path)
     assert metrics["max_lcp_residual_mps"] > 0.0  # the contact solve's residual, as the sweep reports it
     for key in ("max_lcp_residual_mps", "lcp_residual_p95_mps"):
         assert grid.rows[0][key] == pytest.approx(metrics[key], rel=1e-9, abs=1e-12), key
+    # The ball's hit: its peak impulse on a body and its first contact with one, as the sweep has them.
+    assert grid.rows[0]["peak_impulse_Ns"] == pytest.approx(metrics["ball_peak_impulse_Ns"], rel=1e-9)
+    assert grid.rows[0]["first_contact_s"] == pytest.approx(metrics["ball_first_contact_s"], rel=1e-12)
+    # A bounce on the ground is not a hit: the same run with an impulse on the ball's ground
+    # candidate from the first step reports the same figures.
+    setup = prepare(cfg, *character)
+    pert = run(setup).ball
+    ground = np.nonzero(~on_character(setup.ball))[0]
+    assert ground.size == 1
+    contact = pert.contact
+    bounce = dataclasses.replace(contact, normal_impulse=contact.normal_impulse.at[:, ground[0]].set(1.0),
+                                 impulse=contact.impulse.at[:, ground[0]].set(100.0))
+    assert ball_metrics(dataclasses.replace(pert, contact=bounce), setup.ball) == {
+        key: metrics[key] for key in ("ball_peak_impulse_Ns", "ball_first_contact_s")}
 
     exp = ExperimentSpec(kind="contrast", output=tmp_path, controllers=(GainSetting(400.0, 20.0),), magnitudes=(10.0,))
     numbers = experiments.contrast(cfg, exp, progress=False)
@@ -290,10 +305,9 @@ def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):
     """A free root standing on the ground (the postural loop and the assist on) on a moving
     platform that tilts (the sweep varies the tilt's angle) and translates (a base motion moves
     the ground): each row of a 2-row sweep, and experiment's run and its one-row sweep, equal
-    ``neuromotor simulate`` (d(t) to 1e-10 deg, the ground and balance metrics to 1e-9); a fit,
-    whose forward model has no contact, refuses it naming the field."""
-    from neuromotor.config.parse import fit_spec
-
+    ``neuromotor simulate`` (d(t) to 1e-10 deg, the ground and balance metrics to 1e-9); and the
+    fit's forward model (one case per perturbation, with the loop's gain among its parameters)
+    gives each case's single run."""
     tilt = dict(kind="tilt", direction="right", magnitude=2.0, shape="half_sine", duration=0.15, start=0.8)
     platform = dict(kind="base", direction="backward", unit="m/s^2", magnitude=2.0, shape="half_sine",
                     duration=0.15, start=0.85)
@@ -328,6 +342,12 @@ def test_a_sweep_on_the_ground_equals_its_single_runs(character, tmp_path):
     table = sw.read_csv(tmp_path / "sweep.csv")
     assert [r["fell"] for r in table] == [r["fell"] for r in grid.rows]
     assert [r["sway_rms_mm"] for r in table] == pytest.approx([r["sway_rms_mm"] for r in grid.rows], rel=1e-9)
-    fit = {"fit": {"target": {"kind": "features", "case": [{"peak_deviation_deg": 1.0}]}}}
-    with pytest.raises(ConfigError, match="field 'ground.enabled': a fit has no ground contact"):
-        fit_spec(fit, cfg)
+    # The fit's forward model: each perturbation one case, on the same ground with the same loop;
+    # the deviation it fits is the single run's (and the loop's gains are its parameters too).
+    problem = make_problem(prepare(cfg, *character), "features", names=("ks", "balance_kp"))
+    curves = np.asarray(problem.outputs(np.log(np.array([400.0, 1.3])))[1])
+    for c, p in enumerate(cfg.perturbations):
+        setup = prepare(dataclasses.replace(cfg, perturbations=[p]), *character)
+        result = run(setup)
+        np.testing.assert_allclose(curves[c, :, 0], deviation_curve(setup, result.perturbed, result.unperturbed),
+                                   rtol=0, atol=CURVE_TOL)

@@ -553,17 +553,6 @@ def _sweep_fitted(f: Fields, base_dir) -> tuple[float, float] | None:
     f.fail("fitted", f"must be a JSON path or [ks, kd], got {fitted!r}")
 
 
-def refuse_ground(cfg: SimulationConfig, what: str) -> None:
-    """ConfigError for a command whose forward model has no ground contact (a fit) on a config
-    whose bodies touch the ground."""
-    if cfg.ground_on:
-        raise ConfigError(
-            f"{cfg.source}: field 'ground.enabled': {what} has no ground contact in its forward model "
-            "(`neuromotor simulate`, sweep and experiment do); set [ground] enabled = false, "
-            'or [sim] root = "driven"'
-        )
-
-
 def sweep_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> SweepSpec:
     """The ``[sweep]`` table of a config (layout in :mod:`neuromotor.studies.sweep`)."""
     f = Fields(data.get("sweep", {}), "sweep", cfg.source)
@@ -802,10 +791,9 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
     source = cfg.source
     if "fit" not in data:
         raise ConfigError(f"{source}: a fit config needs a [fit] table")
-    refuse_ground(cfg, "a fit")
-    if cfg.ball is not None:  # the fit's forward model has no contact: it would leave the ball out
+    if cfg.ball is not None:  # the fit's forward model has the ground's contacts, not a ball's
         raise ConfigError(
-            f"{source}: field 'ball': a fit simulates its [[perturbation]] cases without contact, "
+            f"{source}: field 'ball': a fit simulates its [[perturbation]] cases without a ball, "
             "so it cannot take a [ball] (remove it; a ball-speed sweep maps a ball's effect)"
         )
     f = Fields(data["fit"], "fit", source)
@@ -819,7 +807,10 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
     )
     jacobian = f.choice("jacobian", default(FitSpec, "jacobian"), JACOBIANS)
     names = check_fit_parameters(
-        f.string_list("parameters", list(default(FitSpec, "parameters"))), cfg.reflex is not None, source
+        f.string_list("parameters", list(default(FitSpec, "parameters"))),
+        cfg.reflex is not None,
+        source,
+        has_balance=cfg.balance_on,
     )
     window = _fit_window(f)
     n_cases = len(cfg.perturbations)

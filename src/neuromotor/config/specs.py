@@ -38,7 +38,17 @@ LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}  # metres per unit
 FEATURE_NAMES = ("peak_deviation_deg", "time_to_peak_s", "recovery_time_s", "overshoot_deg", "peak_acceleration_deg_s2")
 EXPERIMENT_KINDS = ("arm", "full_body", "contrast")
 # What a fit may tune (neuromotor.studies.fit.parameters): the muscle feedback pair and the reflex paths.
-FIT_PARAMETERS = ("ks", "kd", "reflex_gain", "reflex_delay", "long_latency_gain", "long_latency_delay")
+# The postural loop's parameters ([balance] kp, kd, hip_kp, hip_kd, delay) fit as balance_<key>.
+BALANCE_PARAMETERS = ("balance_kp", "balance_kd", "balance_hip_kp", "balance_hip_kd", "balance_delay")
+FIT_PARAMETERS = (
+    "ks",
+    "kd",
+    "reflex_gain",
+    "reflex_delay",
+    "long_latency_gain",
+    "long_latency_delay",
+    *BALANCE_PARAMETERS,
+)
 PARAMETER_UNITS = MappingProxyType(
     {
         "ks": "1/s^2",
@@ -47,6 +57,11 @@ PARAMETER_UNITS = MappingProxyType(
         "reflex_delay": "s",
         "long_latency_gain": "1/s^2",
         "long_latency_delay": "s",
+        "balance_kp": "m g H/rad",
+        "balance_kd": "m g H s/rad",
+        "balance_hip_kp": "m g H/rad",
+        "balance_hip_kd": "m g H s/rad",
+        "balance_delay": "s",
     }
 )
 # The recovery metrics (neuromotor.studies.metrics): the deviation's definition ([sim] metric, the first
@@ -59,9 +74,11 @@ RECOVERY_FRACTION = 0.2
 RECOVERY_FLOOR_DEG = 0.5
 
 
-def check_fit_parameters(names, has_reflex: bool, source: str, field: str = "fit.parameters") -> tuple[str, ...]:
-    """The fitted parameters of a config, checked: at least one, known, distinct, and the reflex
-    ones only with a ``[reflex]`` table."""
+def check_fit_parameters(
+    names, has_reflex: bool, source: str, field: str = "fit.parameters", has_balance: bool = False
+) -> tuple[str, ...]:
+    """The fitted parameters of a config, checked: at least one, known, distinct, the reflex
+    ones only with a ``[reflex]`` table and the balance ones only with the postural loop on."""
     from neuromotor.errors import ConfigError
 
     names = tuple(names)
@@ -70,7 +87,13 @@ def check_fit_parameters(names, has_reflex: bool, source: str, field: str = "fit
     for i, n in enumerate(names):
         if n not in FIT_PARAMETERS:
             raise ConfigError(f"{source}: field '{field}[{i}]' is {n!r}; choose from {list(FIT_PARAMETERS)}")
-        if n not in ("ks", "kd") and not has_reflex:
+        if n in BALANCE_PARAMETERS:
+            if not has_balance:
+                raise ConfigError(
+                    f"{source}: field '{field}[{i}]' = {n!r} needs the postural loop: "
+                    '[sim] root = "free" on the ground, with [balance] on'
+                )
+        elif n not in ("ks", "kd") and not has_reflex:
             raise ConfigError(f"{source}: field '{field}[{i}]' = {n!r} needs a [reflex] table in the config")
     if len(set(names)) != len(names):
         raise ConfigError(f"{source}: field '{field}' names a parameter twice: {list(names)}")

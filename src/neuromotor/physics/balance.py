@@ -348,9 +348,12 @@ def empty_posture(balance: Balance, dtype) -> Posture:
     return Posture(history, step)
 
 
-def posture_signals(model: Model, balance: Balance, state: State, origin=None):
+def posture_signals(model: Model, balance: Balance, state: State, origin=None, support=None):
     """``(angle (2, 3), rate (2, 3))``: the lean and the pelvis tilt, and their rates (rad, rad/s);
-    the lean measured from ``origin`` (None: the ankles' midpoint)."""
+    the lean measured from ``origin`` (None: the ankles' midpoint). ``support``: the ground's
+    motion under the feet, ``(V, Omega or None, pivot or None)`` (None: a still ground); the lean
+    rate is then the COM's velocity relative to the ground's at the lean's origin, the rate of
+    the lean itself while the feet ride the platform."""
     up, rot = up_of(model), quat_to_matrix(state.quat)
     if origin is None:
         ankle = jnp.mean(joint_origins(model, state.pos, rot)[jnp.asarray(balance.feet)], 0)
@@ -358,6 +361,9 @@ def posture_signals(model: Model, balance: Balance, state: State, origin=None):
         ankle = origin
     c, v = whole_com(model, state.pos, state.vel)
     lean = horizontal(c - ankle, up) / balance.height - balance.lean0
+    if support is not None:
+        vel, spin, pivot = support
+        v = v - (vel if spin is None else vel + jnp.cross(spin, ankle - pivot))
     lean_rate = horizontal(v, up) / balance.height
     a = mv(rot[0], balance.pelvis_up)
     tilt = jnp.cross(up, a)  # rotation vector taking up to the pelvis's up axis (small angles)
@@ -365,16 +371,16 @@ def posture_signals(model: Model, balance: Balance, state: State, origin=None):
     return jnp.stack([lean, tilt]), jnp.stack([lean_rate, tilt_rate])
 
 
-def balance_torques(model: Model, balance: Balance, state: State, posture: Posture, h: float):
+def balance_torques(model: Model, balance: Balance, state: State, posture: Posture, h: float, support=None):
     """``(joint torques (C, 3) world, on each joint's child, posture)``: the standing
     feedforward, the delayed postural loop and the stepping torques, this step's signals pushed
-    into the history and the state machine advanced."""
+    into the history and the state machine advanced (``support``: see :func:`posture_signals`)."""
     step, sp = posture.step, balance.stepping
     origin = None
     if sp is not None:
         assert step is not None  # empty_posture gives stepping its state
         origin = lean_origin(model, balance, sp, state, step)
-    angle, rate = posture_signals(model, balance, state, origin)
+    angle, rate = posture_signals(model, balance, state, origin, support)
     history = push(posture.history, angle, rate)
     past, past_rate = delayed(history.angle, balance.delay, h), delayed(history.rate, balance.delay, h)
     up = up_of(model)

@@ -455,7 +455,7 @@ def equations_of_motion(sim: SimModel, params: Params, data: Data, solver: solve
     if balance is not None and balance.stepping is not None:
         # Stepping retargets the legs' reference, so the loop runs before the stiff forces.
         assert data.posture is not None  # init_data gives a balance loop its carry
-        stepped = balance_torques(model, balance, state, data.posture, cfg.h)
+        stepped = balance_torques(model, balance, state, data.posture, cfg.h, support_motion(sim, params.pulses, k))
         step_state = stepped[1].step
         assert step_state is not None
         rel_rot, rel_quat, rel_omega = swing_reference(
@@ -499,13 +499,25 @@ def balance_stage(sim: SimModel, balance: Balance, pulses: ForcePulses, k, state
     model, ref = sim.model, sim.ref
     assert posture is not None  # init_data gives a balance loop its history
     if done is None:
-        torque, posture = balance_torques(model, balance, state, posture, sim.options.h)
+        torque, posture = balance_torques(model, balance, state, posture, sim.options.h, support_motion(sim, pulses, k))
     else:
         torque, posture = done
     applied = applied.at[:, 3:].add(body_torques(model, torque))
     target, target_vel = assist_target(model, ref, k, pulses.base_offset, pulses.base_velocity)
     applied = applied.at[0, :3].add(assist_force(model, balance, state.pos[0], state.vel[0], target, target_vel))
     return applied, posture
+
+
+def support_motion(sim: SimModel, pulses: ForcePulses, k):
+    """The ground's motion under a free root at the start of step k, for the postural loop's
+    lean rate: ``(V_k, Omega_k, the pivot's place c_k)`` (Omega and c None without a tilt), or
+    None on a still ground (the program without a platform is unchanged)."""
+    if not sim.options.free_root or pulses.base_velocity is None:
+        return None
+    if pulses.base_spin is None:
+        return pulses.base_velocity[k], None, None
+    assert pulses.base_pivot is not None and pulses.base_offset is not None
+    return pulses.base_velocity[k], pulses.base_spin[k], pulses.base_pivot + pulses.base_offset[k]
 
 
 def assist_target(model: Model, ref: Reference, k, base_offset=None, base_velocity=None):

@@ -14,7 +14,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from neuromotor.model.facing import horizontal
+from neuromotor.model.facing import character_axes, horizontal
 from neuromotor.model.skeleton import Character
 from neuromotor.physics.balance import Balance, assist_force, make_balance
 from neuromotor.physics.contact import ContactRollout
@@ -132,14 +132,14 @@ def _trace(setup, out: ContactRollout | StandingTrace) -> StandingTrace:
 
 
 def falls(setup, out: ContactRollout | StandingTrace) -> dict:
-    """``fell``, ``fall_time_s`` (None: never) and ``fall_body`` (""): the first step where a body
-    other than a foot carries a ground impulse, or the COM drops below ``FALL_FRACTION`` of its
-    initial height above the ground."""
+    """``fell``, ``fall_time_s`` (clip time, the clock of every time in the metrics; None: never)
+    and ``fall_body`` (""): the first step where a body other than a foot carries a ground
+    impulse, or the COM drops below ``FALL_FRACTION`` of its initial height above the ground."""
     trace = _trace(setup, out)
     model, ground = setup.model, setup.ground
     feet = foot_bodies(setup.character)
     other = trace.touch & ~np.isin(np.arange(model.n_bodies), feet)[None]
-    time = trace.time - float(trace.time[0])
+    time = trace.time
     up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
     com = trace.com @ up - float(ground.height)
     low = com < FALL_FRACTION * com[0]
@@ -155,11 +155,13 @@ def falls(setup, out: ContactRollout | StandingTrace) -> dict:
 
 
 def facing_axes(setup) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Up (against gravity), the horizontal facing direction and its left (``up x forward``)."""
-    model = setup.model
+    """Up (against gravity), the horizontal facing direction and its left (``up x forward``): the
+    character's own facing where the run begins (the held pose of a still run), as the
+    perturbations' direction keywords and RUN.npz's ``facing`` have it."""
+    model, config = setup.model, setup.config
     up = -np.asarray(model.gravity) / np.linalg.norm(np.asarray(model.gravity))
-    fwd = np.asarray(setup.character.anatomy.forward, float)
-    fwd = fwd - fwd @ up * up
+    at = config.start if config.still is None else config.still
+    fwd = horizontal(character_axes(setup.character, at)["forward"], up)
     return up, fwd / np.linalg.norm(fwd), np.cross(up, fwd / np.linalg.norm(fwd))
 
 
@@ -229,11 +231,11 @@ def assist_impulse(setup, out: ContactRollout | StandingTrace) -> dict:
 def balance_metrics(setup, out: ContactRollout | StandingTrace, platform=None, base=None) -> dict:
     """Falls, sway, the COM's response against the unperturbed twin (``base``: its COM (T, 3);
     None: not measured) and (when on) the assist's impulse; ``diverged_s``: when the rollout blew
-    up (None: it did not; the states after it are held, so the other figures cover the time
-    before). The COM is taken relative to ``platform`` (the ground's displacement, (T, 3); None:
+    up (clip time; None: it did not; the states after it are held, so the other figures cover
+    the time before). The COM is taken relative to ``platform`` (the ground's displacement, (T, 3); None:
     still)."""
     trace = out if isinstance(out, StandingTrace) else standing_trace(setup, out, platform)
     bad = trace.diverged_step
-    when = None if bad < 0 else float(trace.time[bad + 1] - trace.time[0])
+    when = None if bad < 0 else float(trace.time[bad + 1])
     response = {} if base is None else com_response(setup, trace, base)
     return falls(setup, trace) | sway(setup, trace) | response | assist_impulse(setup, trace) | {"diverged_s": when}

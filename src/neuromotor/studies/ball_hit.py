@@ -203,13 +203,21 @@ def ball_rollouts(setup, base_pulses, check: bool = True) -> tuple[ContactRollou
     return pert, base
 
 
-def ball_metrics(out: ContactRollout, n_ball: int | None = None) -> dict:
-    """The metrics a ball adds to a run's: peak contact impulse and the first contact's time
-    (over the ball's first ``n_ball`` candidates; None: every candidate)."""
-    lam, imp = out.contact.normal_impulse[:, :n_ball], out.contact.impulse[:, :n_ball]
-    hit = np.nonzero(np.asarray(lam).max(-1) > 0)[0]
+def on_character(bs: BallSetup) -> np.ndarray:
+    """(C,) bool over the ball's candidates: a body of the character (not the ground)."""
+    return np.asarray(candidate_bodies(bs.capsules, bs.settings)) >= 0
+
+
+def ball_metrics(out: ContactRollout, bs: BallSetup) -> dict:
+    """The metrics a ball adds to a run's: its peak one-step impulse on a body of the character
+    and the time of its first contact with one (the ball's bounces on the ground left out, as
+    the ball-speed sweep's rows leave them)."""
+    on = on_character(bs)
+    lam = np.asarray(out.contact.normal_impulse[:, : on.shape[0]]) * on
+    imp = np.linalg.norm(np.asarray(out.contact.impulse[:, : on.shape[0]]), axis=-1) * on
+    hit = np.nonzero(lam.max(-1) > 0)[0]
     return {
-        "ball_peak_impulse_Ns": float(jnp.max(jnp.linalg.norm(imp, axis=-1))),
+        "ball_peak_impulse_Ns": float(imp.max()),
         "ball_first_contact_s": float(out.run.time[hit[0]]) if hit.size else None,
     }
 
@@ -255,8 +263,10 @@ def sweep_ball_speed(setup, speeds) -> dict[str, np.ndarray]:
     The batch holds one run per speed plus the unperturbed run (the ball never launched), so a
     single compiled function serves them all. The ball keeps its direction (no re-aiming).
     Returns per speed the peak deviation from the unperturbed run (by ``[sim] metric``: RMS
-    over joints of the geodesic angle, or over Euler DOFs; degrees), its time, and the peak contact impulse."""
+    over joints of the geodesic angle, or over Euler DOFs; degrees), its time, and the peak
+    one-step impulse on a body of the character (ground bounces left out)."""
     bs = setup.ball
+    on = on_character(bs)
     speeds = jnp.asarray(speeds, jnp.float64)
     balls = jax.vmap(lambda s: eqx.tree_at(lambda b: b.speed, bs.ball, s))(speeds)
     balls = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), balls, never_launched(bs.ball))
@@ -271,5 +281,7 @@ def sweep_ball_speed(setup, speeds) -> dict[str, np.ndarray]:
         "speed": np.asarray(speeds),
         "peak_deviation_deg": np.asarray(jnp.max(dev, -1)),
         "time_of_peak_s": np.asarray(batch.run.time[0])[np.asarray(jnp.argmax(dev, -1))],
-        "peak_impulse_Ns": np.asarray(jnp.max(jnp.linalg.norm(batch.contact.impulse[:-1], axis=-1), axis=(1, 2))),
+        "peak_impulse_Ns": np.max(
+            np.linalg.norm(np.asarray(batch.contact.impulse[:-1, :, : on.shape[0]]), axis=-1) * on, axis=(1, 2)
+        ),
     }

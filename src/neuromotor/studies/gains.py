@@ -35,7 +35,9 @@ _REFLEX = MappingProxyType(
         "long_latency_delay": ("long_latency", "delay"),
     }
 )
-assert set(UNITS) == set(PARAMETERS) == {"ks", "kd", *_REFLEX}
+# A named balance parameter's leaf of Gains.balance (neuromotor.physics.balance.Balance).
+_BALANCE = MappingProxyType({f"balance_{k}": k for k in ("kp", "kd", "hip_kp", "hip_kd", "delay")})
+assert set(UNITS) == set(PARAMETERS) == {"ks", "kd", *_REFLEX, *_BALANCE}
 
 
 def gains_for(template: Gains, setting: GainSetting | None = None, *, reflex: Reflex | None = None, **values) -> Gains:
@@ -59,6 +61,12 @@ def gains_for(template: Gains, setting: GainSetting | None = None, *, reflex: Re
         if name in ("ks", "kd"):
             gains = dataclasses.replace(gains, **{name: jnp.asarray(v, dtype)})  # type: ignore[arg-type]  # ks or kd
             continue
+        if name in _BALANCE:
+            if gains.balance is None:
+                raise ValueError(f"{name} needs a controller with the postural loop ([balance] on)")
+            value = {_BALANCE[name]: jnp.asarray(v, dtype)}
+            gains = dataclasses.replace(gains, balance=dataclasses.replace(gains.balance, **value))  # type: ignore[arg-type]  # a gain leaf
+            continue
         if name not in _REFLEX:
             raise ValueError(f"unknown gain parameter {name!r}; choose from {list(PARAMETERS)}")
         path, leaf = _REFLEX[name]
@@ -74,5 +82,7 @@ def gain_value(gains: Gains, name: str):
     """The current value of parameter ``name`` (of :data:`PARAMETERS`) in ``gains``."""
     if name in ("ks", "kd"):
         return getattr(gains, name)
+    if name in _BALANCE:
+        return getattr(gains.balance, _BALANCE[name])
     path, leaf = _REFLEX[name]
     return getattr(getattr(gains.reflex, path), leaf)

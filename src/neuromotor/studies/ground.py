@@ -74,10 +74,11 @@ def capture_floor(character: Character, traj: Trajectory) -> float:
     return float(_lowest_over(character.model, traj, probe, times, foot_bodies(character)))
 
 
-def ground_setup(spec, character: Character, traj: Trajectory) -> Ground:
+def ground_setup(spec, character: Character, traj: Trajectory, capture: Trajectory | None = None) -> Ground:
     """The :class:`Ground` of a parsed ``[ground]`` table (:class:`~neuromotor.config.specs.GroundSpec`):
     at ``height``, or at the floor of ``traj`` (:func:`capture_floor`; the run's trajectory: the
-    held frame's for a still run) when the table gives none."""
+    held frame's for a still run) when the table gives none. The friction axes come from the
+    clip's own trajectory ``capture`` (None: ``traj``), where the anatomy's facing was found."""
     height = capture_floor(character, traj) if spec.height is None else spec.height
     sweeps = DEFAULT_PGS_ITERATIONS if spec.pgs_iterations is None else spec.pgs_iterations
     return make_ground(
@@ -88,7 +89,7 @@ def ground_setup(spec, character: Character, traj: Trajectory) -> Ground:
         spec.contacts_per_body,
         spec.max_contacts,
         pgs_iterations=sweeps,
-        axes=friction_axes(character, traj),
+        axes=friction_axes(character, traj if capture is None else capture),
     )
 
 
@@ -97,7 +98,8 @@ def friction_axes(character: Character, traj: Trajectory) -> np.ndarray | None:
     (``anatomy.forward``) and ``up x forward`` in its most upright pose (``anatomy.reference_frame``),
     carried into every body's frame there. They orient the friction polygon of each body's
     contacts, on the ground and in the capture's ground reaction forces, so the polygon turns
-    with the body; None without an anatomy (world axes)."""
+    with the body; None without an anatomy (world axes). ``traj`` must be the clip's own (not a
+    held pose's): the facing was found in its reference frame."""
     anatomy = character.anatomy
     if anatomy is None:
         return None

@@ -207,7 +207,7 @@ def residual_part(setup: Setup, n_times: int) -> dict[str, np.ndarray]:
     # One floor in the file: the simulated ground's where the run has one.
     ground = getattr(setup, "ground", None)
     floor = None if ground is None else float(ground.height)
-    res = capture_residuals(setup.character, setup.traj, setup.ref, setup.options, floor)
+    res = capture_residuals(setup.character, setup.traj, setup.ref, setup.options, floor, capture=setup.capture)
     return {k: v if v.ndim == 0 or k == "grf_body" else v[:n_times] for k, v in residual_arrays(res).items()}
 
 

@@ -74,9 +74,11 @@ def capture_residuals(
     options: StepOptions,
     floor: float | None = None,
     mu: float = grf.FRICTION,
+    capture: Trajectory | None = None,
 ) -> Residuals:
     """:class:`Residuals` of the reference's grid (the discrete inverse's velocities; ``options``:
-    the step options it was made with; ``floor``: None for :func:`capture_floor`)."""
+    the step options it was made with; ``floor``: None for :func:`capture_floor`; ``capture``:
+    the clip's own trajectory when ``traj`` holds a pose still, for the friction axes)."""
     if ref.velocity is None:
         raise ValueError("contact-aware inverse dynamics needs the discrete feedforward (Reference.velocity)")
     model = character.model
@@ -90,7 +92,7 @@ def capture_residuals(
     up = np.asarray(up_direction(model))
     g = float(np.linalg.norm(np.asarray(model.gravity))) or GRAVITY_FALLBACK
     weight, stature = float(np.sum(model.mass)) * g, body_height(character, pos, rot, verts, valid)
-    local = friction_axes(character, traj)  # each body's axes, turned with it at every step
+    local = friction_axes(character, traj if capture is None else capture)  # turned with each body at every step
     steps = np.arange(contacts.body.shape[0])[:, None]
     axes = (
         None if local is None else np.asarray(world_axes(local[contacts.body], np.asarray(rot)[steps, contacts.body]))

@@ -294,7 +294,7 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     if config.ground_on:
         warnings += feet_warnings(character, config.source)
     directions = direction_lookup(character, config.source, still)
-    ground = ground_setup(config.ground, character, traj) if config.ground_on else None
+    ground = ground_setup(config.ground, character, traj, capture) if config.ground_on else None
     pivot = tilt_pivot(model, ref, ground)
     pulses = build_pulses(config.perturbations, model, config.h, index, directions, ref.time, pivot)
     if config.balance_on:  # the postural loop of the held (first) pose: neuromotor.physics.balance
@@ -414,7 +414,7 @@ def run(setup: Setup, check: bool = True) -> RunResult:
     if setup.ball is not None:
         pert, base = ball_rollouts(setup, _zero(setup.pulses), check)
         n_ball = setup.ball.n_candidates
-        metrics = run_metrics(setup, pert.run, base.run) | ball_metrics(pert, n_ball)
+        metrics = run_metrics(setup, pert.run, base.run) | ball_metrics(pert, setup.ball)
         if setup.ground is not None:  # the bodies' ground: falls, sway and response as without a ball
             metrics |= ground_metrics(pert, n_ball)
             metrics |= balance_metrics(setup, pert, platform_offset(setup), com_path(setup.model, base.run.states.pos))

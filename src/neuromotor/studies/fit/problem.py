@@ -23,6 +23,7 @@ from neuromotor.config.specs import (
 )
 from neuromotor.errors import ConfigError
 from neuromotor.model.skeleton import Model
+from neuromotor.physics.contact import ContactScene, simulate_contact
 from neuromotor.physics.control import Gains
 from neuromotor.physics.dynamics import Params, Reference, Rollout, SimModel, StepOptions, simulate
 from neuromotor.physics.perturbation import ForcePulses, build_pulses, stack_runs, unperturbed
@@ -114,6 +115,9 @@ class FitProblem(eqx.Module):
     # onset sample (the last simulation sample at or before the case's onset).
     axes: Float[Array, "C K 3"] | None = None
     onset_step: Int[Array, " C"] | None = None
+    # The ground under a free root (None: no contact): every case is then the contact rollout
+    # that ``neuromotor simulate`` runs, with the postural loop of ``gains.balance``.
+    scene: ContactScene | None = None
 
     @property
     def n_cases(self) -> int:
@@ -132,6 +136,9 @@ class FitProblem(eqx.Module):
         """Every case's rollout at parameters exp(x), one vmap over the case axis."""
         gains = self.gains_at(x)
         sim = SimModel(self.model, self.ref, self.options)
+        if self.scene is not None:
+            scene = self.scene
+            return jax.vmap(lambda p: simulate_contact(sim, Params(gains, p), scene).run)(self.pulses)
         return jax.vmap(lambda p: simulate(sim, Params(gains, p)))(self.pulses)
 
     def outputs(self, x: Float[Array, " p"]) -> tuple[Float[Array, " m"], Float[Array, "C T c"], Int[Array, " R"]]:
@@ -228,6 +235,7 @@ def make_problem(
     (``kind`` is then the one part's kind or ``"multiple"``); ``axes`` (C, K, 3): the world axis
     of each case's body target ``slot`` k at the case's onset.
     """
+    from neuromotor.studies.ground import ground_scene
     from neuromotor.studies.simulate import body_lookup
     from neuromotor.studies.targets import window_indices
 
@@ -240,7 +248,8 @@ def make_problem(
     index = body_lookup(setup.model, cfg.source, setup.character)
     direction_of = setup.direction_of
     times = np.asarray(setup.ref.time)
-    per_case = [build_pulses([s], setup.model, setup.options.h, index, direction_of, times) for s in specs]
+    pivot = setup.tilt_pivot  # a tilt turns the ground where every command turns it
+    per_case = [build_pulses([s], setup.model, setup.options.h, index, direction_of, times, pivot) for s in specs]
     if kind == "features":
         per_case = per_case + [unperturbed(per_case[0])]
     batch = jax.tree_util.tree_map(jnp.asarray, stack_runs(per_case))  # cases of any kinds: one program
@@ -260,7 +269,9 @@ def make_problem(
     )
     onsets = [onset([s]) for s in specs]  # each case measured from its own onset
     start = jnp.asarray(onsets)
-    names = check_fit_parameters(names, setup.gains.reflex is not None, cfg.source)
+    names = check_fit_parameters(
+        names, setup.gains.reflex is not None, cfg.source, has_balance=setup.gains.balance is not None
+    )
     steps = np.array([onset_step(sim_time, t) for t in onsets])
     return FitProblem(
         setup.model,
@@ -273,6 +284,7 @@ def make_problem(
         names,
         None if axes is None else jnp.asarray(np.asarray(axes, np.float64)),
         jnp.asarray(steps),
+        None if setup.ground is None else ground_scene(setup.ground),
     )
 
 
