@@ -22,6 +22,7 @@ from neuromotor.model.bvh import read_bvh, write_bvh
 from neuromotor.model.load import default_clip_path, load_character
 from neuromotor.physics.dynamics import StepOptions, make_reference
 from neuromotor.studies import residuals as rs
+from neuromotor.studies.balance import facing_axes
 from neuromotor.studies.simulate import prepare, run
 
 TURN = Rotation.from_euler("z", 37, degrees=True).as_matrix() @ Rotation.from_euler("x", 90, degrees=True).as_matrix()
@@ -102,3 +103,38 @@ def test_contact_tangents_turn_with_the_scene():
     np.testing.assert_allclose(level[0], along / np.linalg.norm(along), atol=1e-12)
     w1, _ = tangent_basis(jnp.asarray(normals @ turned.T))
     assert np.abs(np.asarray(w1) - np.asarray(tangent_basis(jnp.asarray(normals))[0]) @ turned.T).max() > 0.1
+
+
+def test_a_held_pose_does_not_depend_on_the_frames_it_does_not_hold(tmp_path):
+    """A still run of a frame that faces another way than the clip's most upright frame (where
+    the anatomy's facing is found): turning every later frame of the clip by 90 deg about the
+    vertical turns that facing but not the held pose, so the run, its friction axes and its
+    sway along and across the facing are the same (until 2026-11-29 the friction polygons and
+    the AP/ML axes followed the turned reference frame: AP and ML swapped)."""
+    raw = read_bvh(default_clip_path())
+    root, motion = raw.joints[0], raw.motion.copy()
+    cols, rcols, order = list(root.translation_columns), list(root.rotation_columns), root.rotation_order
+    turn = Rotation.from_euler("y", 90, degrees=True).as_matrix()  # the embedded clip is Y up
+    late = motion[300:]
+    late[:, cols] = late[:, cols] @ turn.T
+    late[:, rcols] = Rotation.from_matrix(turn @ Rotation.from_euler(order, late[:, rcols], degrees=True)
+                                          .as_matrix()).as_euler(order, degrees=True)
+    motion[300:] = late
+    turned = tmp_path / "turned_late.bvh"
+    write_bvh(turned, dataclasses.replace(raw, motion=motion))
+    push = {"body": "pelvis", "direction": "left", "magnitude": 120.0, "start": 0.2, "duration": 0.1,
+            "shape": "half_sine"}
+    sim = {"root": "free", "still": 1.5, "duration": 0.6, "h": 1.0 / 120.0}
+    setups = [prepare(simulation_config({"clip": str(c), "sim": sim, "perturbation": [push]}, "<test>"))
+              for c in (default_clip_path(), turned)]
+    a, b = setups
+    ref_frame = a.character.anatomy.reference_frame
+    assert ref_frame >= 300 and ref_frame == b.character.anatomy.reference_frame  # the facing's frame turned
+    assert abs(np.asarray(a.character.anatomy.forward) @ np.asarray(b.character.anatomy.forward)) < 0.1
+    np.testing.assert_allclose(facing_axes(b)[1], facing_axes(a)[1], atol=1e-9)
+    np.testing.assert_allclose(np.asarray(b.ground.axes), np.asarray(a.ground.axes), atol=1e-9)
+    ra, rb = run(a), run(b)
+    np.testing.assert_allclose(np.asarray(rb.perturbed.states.pos), np.asarray(ra.perturbed.states.pos), atol=1e-9)
+    assert ra.metrics["sway_range_ml_mm"] > 1.4 * ra.metrics["sway_range_ap_mm"]  # a push to the left (17 mm, 12)
+    for key in ("sway_range_ap_mm", "sway_range_ml_mm", "sway_rms_mm"):
+        assert rb.metrics[key] == pytest.approx(ra.metrics[key], rel=1e-9), key
