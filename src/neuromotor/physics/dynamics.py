@@ -514,10 +514,9 @@ def support_motion(sim: SimModel, pulses: ForcePulses, k):
     None on a still ground (the program without a platform is unchanged)."""
     if not sim.options.free_root or pulses.base_velocity is None:
         return None
-    if pulses.base_spin is None:
-        return pulses.base_velocity[k], None, None
-    assert pulses.base_pivot is not None and pulses.base_offset is not None
-    return pulses.base_velocity[k], pulses.base_spin[k], pulses.base_pivot + pulses.base_offset[k]
+    velocity = pulses.base_velocity[k]
+    spin = None if pulses.base_spin is None else pulses.base_spin[k]
+    return velocity, spin, pulses.pivot_at(k)
 
 
 def assist_target(model: Model, ref: Reference, k, base_offset=None, base_velocity=None):

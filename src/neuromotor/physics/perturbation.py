@@ -97,6 +97,14 @@ class ForcePulses(eqx.Module):
     def count(self) -> int:
         return self.magnitude.shape[-1]
 
+    def pivot_at(self, k):
+        """Where the tilt's pivot is at grid step k (world, m; carried by the base motion's
+        displacement); None without a tilt."""
+        if self.base_spin is None:
+            return None
+        assert self.base_pivot is not None and self.base_offset is not None
+        return self.base_pivot + self.base_offset[k]
+
 
 def no_pulses() -> ForcePulses:
     z = jnp.zeros((0,))

@@ -36,6 +36,7 @@ from neuromotor.physics.contact import (
     fit_capsules,
     make_ball,
     never_launched,
+    on_character as candidates_on_character,
     simulate_contact_jit,
 )
 from neuromotor.physics.dynamics import Params
@@ -205,7 +206,7 @@ def ball_rollouts(setup, base_pulses, check: bool = True) -> tuple[ContactRollou
 
 def on_character(bs: BallSetup) -> np.ndarray:
     """(C,) bool over the ball's candidates: a body of the character (not the ground)."""
-    return np.asarray(candidate_bodies(bs.capsules, bs.settings)) >= 0
+    return np.asarray(candidates_on_character(bs.capsules, bs.settings))
 
 
 def ball_metrics(out: ContactRollout, bs: BallSetup) -> dict:

@@ -188,8 +188,7 @@ def anatomy_forward(setup: Setup, base_quat) -> np.ndarray | None:
         ref_frame = getattr(anatomy, "reference_frame", None)
         if ref_frame is not None:
             t_ref = jnp.asarray(float(ref_frame) * setup.character.clip.frame_time)
-            capture = setup.traj if setup.capture is None else setup.capture  # the clip's, not a still pose
-            _, rot_ref = body_poses(setup.model, capture.q(t_ref))
+            _, rot_ref = body_poses(setup.model, setup.clip_trajectory.q(t_ref))
             local = np.asarray(rot_ref)[0].T @ forward
             forward = np.asarray((quat_to_matrix(jnp.asarray(base_quat[:, 0])) @ local).mean(axis=0))
     except Exception:  # an anatomy without a usable forward: the skeleton estimate
@@ -207,7 +206,7 @@ def residual_part(setup: Setup, n_times: int) -> dict[str, np.ndarray]:
     # One floor in the file: the simulated ground's where the run has one.
     ground = getattr(setup, "ground", None)
     floor = None if ground is None else float(ground.height)
-    res = capture_residuals(setup.character, setup.traj, setup.ref, setup.options, floor, capture=setup.capture)
+    res = capture_residuals(setup.character, setup.traj, setup.ref, setup.options, floor, capture=setup.clip_trajectory)
     return {k: v if v.ndim == 0 or k == "grf_body" else v[:n_times] for k, v in residual_arrays(res).items()}
 
 

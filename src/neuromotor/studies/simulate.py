@@ -105,6 +105,12 @@ class Setup:
         """What the rollouts vary: this setup's gains and pulses."""
         return Params(self.gains, self.pulses)
 
+    @property
+    def clip_trajectory(self) -> Trajectory:
+        """The clip's own trajectory, also when ``traj`` holds a still pose: where the anatomy's
+        facing, the feet's friction axes and the capture's residuals are read."""
+        return self.traj if self.capture is None else self.capture
+
 
 # With the paper's continuous feedforward (Eq. 3), a driven root turning more than this per step
 # (rad) makes the replay drift by degrees (the Bandai-Namco kick spins at 11 rad/s: 1.97 deg RMS at

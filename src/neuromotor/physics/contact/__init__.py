@@ -25,6 +25,7 @@ from neuromotor.physics.contact.detection import (
     candidate_names,
     detect,
     facing_basis,
+    on_character,
     tangent_basis,
 )
 from neuromotor.physics.contact.ground import Ground, GroundSlots, ground_slots, lowest_points, make_ground, vertex_gap
@@ -65,6 +66,7 @@ __all__ = [
     "contact_step",
     "detect",
     "facing_basis",
+    "on_character",
     "fit_capsules",
     "ground_slots",
     "initial_ball_state",

@@ -10,7 +10,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from neuromotor.model.skeleton import Model
 from neuromotor.physics.contact.shapes import Capsules
@@ -35,6 +35,12 @@ def candidate_bodies(caps: Capsules, settings: ContactSettings) -> Int[Array, " 
     """Body of every contact candidate; -1 for the ground (static world)."""
     extra = jnp.array([-1], jnp.int32) if settings.ground else jnp.zeros((0,), jnp.int32)
     return jnp.concatenate([caps.body, extra])
+
+
+def on_character(caps: Capsules, settings: ContactSettings) -> Bool[Array, " C"]:
+    """Which contact candidates are bodies of the character (the ground is not): the ones a
+    ball's hit metrics count."""
+    return candidate_bodies(caps, settings) >= 0
 
 
 def candidate_names(caps: Capsules, settings: ContactSettings) -> tuple[str, ...]:

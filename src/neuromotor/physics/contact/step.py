@@ -200,7 +200,7 @@ def ground_motion(sim: SimModel, params: Params, scene: ContactScene, k) -> Grou
     assert pulses.base_spin is not None and pulses.base_pivot is not None
     normal = quat_rotate(pulses.base_turn[k], up)
     lift = pulses.base_pivot @ up - scene.ground.height  # the pivot's height above the level plane
-    centre = pulses.base_pivot + pulses.base_offset[k]
+    centre = pulses.pivot_at(k)
     return dataclasses.replace(
         motion,
         normal=normal,

@@ -74,7 +74,7 @@ class BallSweeper(Sweeper):
             ct.ContactScene(run.ball, self.capsules, self.settings),
         )
         bodies = ct.candidate_bodies(self.capsules, self.settings)
-        on_char = bodies >= 0  # not the ground
+        on_char = ct.on_character(self.capsules, self.settings)
         imp = jnp.linalg.norm(r.contact.impulse, axis=-1) * on_char  # (S+1, C)
         peak = jnp.max(imp)
         cand = jnp.argmax(jnp.max(imp, axis=0))
