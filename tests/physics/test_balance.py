@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import base64
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -172,12 +173,13 @@ def test_assist_pulls_the_pelvis_back_and_reports_its_impulse():
     assert drift[50.0] < drift[0.0]
 
 
-def test_assist_on_a_platform_is_the_force_the_file_and_the_viewer_show():
+def test_assist_on_a_platform_is_the_force_the_file_and_the_viewer_show(tmp_path):
     """On a moving platform the assist pulls toward the captured path carried along with the
     ground. What RUN.npz records as ``assist_force`` is the force the step applied: the body's
     linear momentum changes by h (M g + F_assist) plus the ground's impulses, to round-off (the
     joints' and the loop's torques are internal). Its impulse is the metrics', and the viewer
-    draws it as an arrow |F| / 500 N per m long from the pelvis."""
+    draws it as an arrow |F| / 500 N per m long from the pelvis, and its BVH export moves the
+    root with the platform."""
     from neuromotor.studies.record import run_arrays
     from neuromotor.studies.simulate import prepare, run
     from neuromotor.studies.standing import standing_pose
@@ -214,12 +216,48 @@ def test_assist_on_a_platform_is_the_force_the_file_and_the_viewer_show():
     assert result.metrics["lcp_residual_p95_mps"] == pytest.approx(np.percentile(step_max, 95), rel=1e-12)
     assert np.all(residual[~touching] == 0.0)
 
+    # The file says which loop ran: its gains as configured (the assist's included), its feet.
+    prov = json.loads(str(arrays["provenance_json"]))["balance"]
+    spec = setup.config.balance
+    assert {k: prov[k] for k in ("kp", "kd", "hip_kp", "hip_kd", "delay", "assist")} == {
+        "kp": spec.kp, "kd": spec.kd, "hip_kp": spec.hip_kp, "hip_kd": spec.hip_kd, "delay": spec.delay,
+        "assist": 40.0}
+    assert prov["longest_delay"] >= spec.max_delay and prov["stepping"] is False and len(prov["feet"]) == 2
+
     page = viewer_data(arrays)
     unpack = lambda part: np.frombuffer(base64.b64decode(part["b64"]), "<f4").reshape(part["shape"])
     tail, tip = unpack(page["assist"]["tail"]), unpack(page["assist"]["tip"])
     order = yup_order(int(arrays["up_axis"]))  # the page's frame is Y up
     np.testing.assert_allclose(tip - tail, force[:, order] / 500.0, atol=1e-5)
     np.testing.assert_allclose(tail, arrays["assist_point"][:, order], atol=1e-5)
+    # The pictures' ground rides on the platform: the viewer's per sample, the filmstrip's and the
+    # video's mesh moved by the platform's displacement (the feet stay on the drawn ground).
+    from neuromotor.viz.scene import Scene
+
+    np.testing.assert_allclose(unpack(page["platform"]), arrays["base_offset"][:, order], atol=1e-6)
+    scene, k = Scene(arrays), n - 1
+    centre = arrays["body_pos"][0, 0]
+    moved = np.asarray(scene.ground_mesh(centre, 1.0, k).points) - np.asarray(scene.ground_mesh(centre, 1.0).points)
+    np.testing.assert_allclose(moved, np.broadcast_to(arrays["base_offset"][k], moved.shape), atol=1e-9)
+    assert np.linalg.norm(arrays["base_offset"][k]) > 0.01
+
+
+    # The run's BVH puts the root where the simulation did (carried by the platform), not on the
+    # held pose: the file's root joint, posed by forward kinematics, is the simulated root body.
+    from neuromotor.io.export import export_bvh
+    from neuromotor.io.opensim import root_pose_of_bodies
+    from neuromotor.io.runfile import save_npz_atomic
+    from neuromotor.model.clip_edit import forward_kinematics
+    from neuromotor.model.load import load_character
+
+    run_path = save_npz_atomic(tmp_path / "run.npz", arrays)
+    units = float(arrays["source_units"])  # metres per file unit, as the run recorded them
+    back, _ = load_character(str(export_bvh(run_path, tmp_path / "run.bvh")), units, int(arrays["up_axis"]))
+    pos, rot, _ = forward_kinematics(back.source)
+    origin, want = root_pose_of_bodies(setup.model, arrays["body_pos"], arrays["body_quat"])
+    np.testing.assert_allclose(pos[:, 0], origin, rtol=0, atol=1e-6)  # the file's decimals
+    np.testing.assert_allclose(rot[:, 0], want, rtol=0, atol=1e-6)
+    assert np.abs(origin - origin[0]).max() > 0.01  # the platform carried it by more than a centimetre
 
 
 def _com_distance_mm(setup, result) -> np.ndarray:

@@ -627,17 +627,27 @@ def test_a_toes_up_tilt_turns_the_standing_feet_with_the_ground():
 
 def test_a_rig_without_feet_on_the_ground_is_warned(tmp_path):
     """Every body stands in for a foot on a rig whose labels find none; the run says so (a rig
-    with feet does not get the warning)."""
+    with feet does not get the warning). The postural loop, which stands on the feet, is
+    refused there, naming the table and how to run without it."""
     from synthetic_rigs import chain_text
 
     chain = tmp_path / "chain.bvh"
     chain.write_text(chain_text())
     data = {"clip": str(chain), "sim": {"root": "free", "duration": 0.1}}
-    setup = prepare(simulation_config(data, "chain.toml"))
+    with pytest.raises(ConfigError, match=r"^chain\.toml: field 'balance': .*none labelled.*enabled = false"):
+        prepare(simulation_config(data, "chain.toml"))
+    setup = prepare(simulation_config({**data, "balance": {"enabled": False}}, "chain.toml"))
     assert foot_bodies(setup.character) == tuple(range(setup.model.n_bodies))
     assert [w for w in setup.warnings if "no labelled feet" in w] == [
         "chain.toml: the rig has no labelled feet (see neuromotor inspect): every body counts as a foot for the "
-        "ground's floor, the fall rule and the standing support, so falls are found only by the COM's height"
+        "ground's floor and the fall rule, so falls are found only by the COM's height"
     ]
     with_feet = prepare(simulation_config({"sim": {"root": "free", "duration": 0.1}}, "<test>"))
     assert not any("no labelled feet" in w for w in with_feet.warnings)
+    # A given ground far from the feet is said: inside them, or below them by a drop.
+    floor = float(with_feet.ground.height)
+    for dz, words in ((0.05, "mm above the feet's lowest point"), (-0.2, "the character drops onto it"), (0.01, None)):
+        cfg = simulation_config({"sim": {"root": "free", "duration": 0.1}, "ground": {"height": floor + dz}}, "g.toml")
+        said = [w for w in prepare(cfg).warnings if "ground.height" in w]
+        assert (len(said) == 1 and words in said[0] and said[0].startswith("g.toml: field 'ground.height'")) if words \
+            else not said, (dz, said)

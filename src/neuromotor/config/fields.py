@@ -94,6 +94,8 @@ class Fields:
         val = self.get(key, default)
         if not isinstance(val, list) or len(val) != 3 or not all(_is_number(x) for x in val):
             self.fail(key, f"must be a list of 3 numbers, got {val!r}")
+        if not all(math.isfinite(x) for x in val):
+            self.fail(key, f"must be finite, got {val!r}")
         return [float(x) for x in val]
 
     def nonzero_vector(self, key, default):

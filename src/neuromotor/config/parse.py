@@ -316,6 +316,8 @@ def parse_balance(top: Fields) -> BalanceSpec:
     d = lambda name: default(BalanceSpec, name)
     enabled = None if f.get("enabled") is None else f.boolean("enabled", None)
     out = {k: f.number(k, d(k), nonneg=True) for k in ("kp", "kd", "hip_kp", "hip_kd", "delay", "assist")}
+    if f.get("max_delay") is None and out["delay"] > REFLEX_DELAY_LIMIT:
+        f.fail("delay", f"must be at most {REFLEX_DELAY_LIMIT:g} s (the history buffer), got {out['delay']!r}")
     out["max_delay"] = f.number("max_delay", max(d("max_delay"), out["delay"]), positive=True)
     if out["max_delay"] > REFLEX_DELAY_LIMIT:
         f.fail("max_delay", f"must be at most {REFLEX_DELAY_LIMIT:g} s (the history buffer), got {out['max_delay']!r}")
@@ -338,6 +340,9 @@ def parse_reflex(top: Fields) -> ReflexSpec:
         for k in ("gain", "delay", "long_latency_gain", "long_latency_delay", "rate_weight")
     }
     out["width"] = f.number("width", d("width"), positive=True)
+    for key in ("delay", "long_latency_delay"):
+        if f.get("max_delay") is None and out[key] > REFLEX_DELAY_LIMIT:
+            f.fail(key, f"must be at most {REFLEX_DELAY_LIMIT:g} s (the history buffer), got {out[key]!r}")
     out["max_delay"] = f.number(
         "max_delay", max(d("max_delay"), out["delay"], out["long_latency_delay"]), positive=True
     )
@@ -374,7 +379,31 @@ def simulation_config(data: dict, source: str = "<dict>", base_dir=None) -> Simu
     if "balance" in data:
         fields["balance"] = parse_balance(top)
     top.done(allowed_tables=TABLES)
-    return SimulationConfig(source=source, **fields)
+    if "ball" in data:
+        fields["ball"] = _ball_in_window(top, data["ball"], fields["ball"], fields["start"])
+    cfg = SimulationConfig(source=source, **fields)
+    if cfg.ball is not None and cfg.ground_on:  # one ground for the ball and the bodies (studies.simulate.prepare)
+        ball = top.sub("ball")
+        if "ground_height" in data["ball"]:
+            ball.fail(
+                "ground_height",
+                "cannot be set when the bodies touch the ground: the ball bounces on it (set [ground] height)",
+            )
+        if not cfg.ball.ground:
+            ball.fail(
+                "ground", "= false with the bodies on the ground: the ball would fall through the floor they stand on"
+            )
+    return cfg
+
+
+def _ball_in_window(top: Fields, table: dict, ball: BallSpec, start: float) -> BallSpec:
+    """The ball released at the window's start unless ``launch`` says when: a ball cannot be
+    released before the simulation does (its flight would start late, its onset would not)."""
+    if "launch" not in table:
+        return dataclasses.replace(ball, launch=start)
+    if ball.launch < start - 1e-9:
+        top.sub("ball").fail("launch", f"= {ball.launch:g} s is before the simulation starts (sim.start = {start:g} s)")
+    return ball
 
 
 def load_simulation_config(path) -> SimulationConfig:
@@ -489,7 +518,7 @@ def _sweep_axes(f: Fields) -> dict:
                 if isinstance(d, str)
                 else isinstance(d, list)
                 and len(d) == 3
-                and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in d)
+                and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in d)
                 and any(d)
                 for d in directions
             )
@@ -497,7 +526,7 @@ def _sweep_axes(f: Fields) -> dict:
         if not ok:
             f.fail(
                 "directions",
-                f"must be a non-empty list of non-zero [x, y, z] or keywords {list(DIRECTION_KEYWORDS)}, "
+                f"must be a non-empty list of finite, non-zero [x, y, z] or keywords {list(DIRECTION_KEYWORDS)}, "
                 f"got {directions!r}",
             )
     return dict(
@@ -800,7 +829,7 @@ def fit_spec(data: dict, cfg: SimulationConfig, base_dir=None) -> FitSpec:
     d = lambda name: default(SolverOptions, name)
     solver = f.choice("solver", default(FitSpec, "solver"), FIT_SOLVERS)
     opts = SolverOptions(
-        max_steps=int(f.number("max_steps", d("max_steps"), positive=True)),
+        max_steps=f.integer("max_steps", d("max_steps"), 1),
         rtol=f.number("rtol", d("rtol"), positive=True),
         atol=f.number("atol", d("atol"), positive=True),
         gtol=f.number("gtol", d("gtol"), positive=True),

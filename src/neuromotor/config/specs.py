@@ -495,10 +495,23 @@ class SimulationConfig:
         if self.root not in ROOT_MODES:
             raise ConfigError(f"{self.source}: field 'sim.root' must be one of {list(ROOT_MODES)}, got {self.root!r}")
         self._check_tilts()
+        if self.balance.enabled and not (self.root == "free" and self.ground_on):
+            raise ConfigError(
+                f"{self.source}: field 'balance.enabled': the postural loop needs [sim] root = \"free\" "
+                "with the ground on (a driven root is held on its path: the loop would only bend the joints)"
+            )
 
     def _check_tilts(self) -> None:
         """A tilt turns the ground under a free root: one platform (one pivot), no ball (whose
-        ground does not tilt)."""
+        ground does not tilt). A platform's translation under a free root moves the ground: no
+        ball either (the ball's ground stays)."""
+        if self.ball is not None and self.root == "free" and self.ground_on:
+            for i, p in enumerate(self.perturbations):
+                if p.kind == "base":
+                    raise ConfigError(
+                        f"{self.source}: field 'perturbation[{i}].kind': a moving platform with a [ball] is "
+                        "not modelled (the ball's ground does not move)"
+                    )
         tilts = [(i, p) for i, p in enumerate(self.perturbations) if p.kind == "tilt"]
         for i, _ in tilts:
             where = f"{self.source}: field 'perturbation[{i}].kind'"

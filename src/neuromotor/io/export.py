@@ -1,8 +1,10 @@
 """Write a simulated run back as BVH in the source clip's skeleton, channel orders and units.
 
-Simulated DOFs take the simulated Euler angles; the root (driven along the mocap) and any
-channel that is not simulated take the mocap's values at the simulation times (a ``[sim] still``
-run: at the held pose's clip time, ``clip_still``). The frame time is the simulation step.
+Simulated DOFs take the simulated Euler angles and the root takes the simulated root body's
+pose (``body_pos``, ``body_quat``: the driven path, a sled's added path, or wherever a free root
+went); any channel that is not simulated takes the mocap's values at the simulation times (a
+``[sim] still`` run: at the held pose's clip time, ``clip_still``). The frame time is the
+simulation step.
 """
 
 from __future__ import annotations
@@ -10,25 +12,29 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from neuromotor.errors import UserError
+from neuromotor.io.opensim import root_pose_of_bodies
 from neuromotor.io.runfile import EXPORT_FIELDS, read_run
 from neuromotor.model.bvh import read_bvh, write_bvh
+from neuromotor.model.clip_edit import forward_kinematics
 from neuromotor.model.load import load_character
-from neuromotor.rotations import continuous_angles, matrix_to_euler, quat_to_matrix
+from neuromotor.rotations import continuous_angles, matrix_to_euler
+
+# The root is the simulated one: where the run put it, not where the capture was.
+FIELDS = EXPORT_FIELDS + ("body_pos", "body_quat")
 
 
 def export_bvh(run_path, out_path) -> pathlib.Path:
-    run = read_run(run_path, EXPORT_FIELDS)
+    run = read_run(run_path, FIELDS)
     units: str | float = str(run["source_units"])
     try:
         units = float(units)
     except ValueError:
         pass
-    character, traj = load_character(str(run["source_clip"]), units, int(run["up_axis"]))
+    character, _ = load_character(str(run["source_clip"]), units, int(run["up_axis"]))
     # Written in the file's own skeleton: a virtual root removed for the model is put back.
     clip, model = character.source, character.model
     if tuple(str(n) for n in run["dof_names"]) != model.dof_names:
@@ -46,11 +52,10 @@ def export_bvh(run_path, out_path) -> pathlib.Path:
         if is_rot:
             col = np.rad2deg(np.unwrap(np.deg2rad(col)))
         motion[:, c] = np.interp(times, frame_times, col)
-    # ...the root exactly on the splined path it was driven along (a virtual root and the
-    # joint below it keep the file's channels: together they are that path)...
-    root = clip.joints[0]
-    if root.name == model.joint_names[0]:
-        _write_root(motion, root, np.asarray(jax.vmap(traj.q)(jnp.asarray(times))))
+    # ...the root where the simulation put it (below a virtual root: relative to that root's
+    # frame, which keeps the file's channels)...
+    origin, rot = root_pose_of_bodies(model, run["body_pos"], run["body_quat"])
+    _write_root(run_path, clip, motion, model.joint_names[0], origin, rot)
     # ...and the simulated DOFs from the run, continuous in time and starting on the mocap's
     # branch. RUN.npz files store them so already (run_arrays), and then they are written as
     # they are: the exported angle minus RUN.npz theta is exactly 0.
@@ -70,13 +75,26 @@ def export_bvh(run_path, out_path) -> pathlib.Path:
     return pathlib.Path(out_path)
 
 
-def _write_root(motion, root, q):
-    """Root channels (in place) from spline coordinates q (T, 7+): position and rotation."""
-    motion[:, list(root.translation_columns)] = q[:, 0:3]
-    quat = q[:, 3:7] / np.linalg.norm(q[:, 3:7], axis=1, keepdims=True)
-    ref = jnp.deg2rad(jnp.asarray(motion[:, list(root.rotation_columns)]))
-    ang = matrix_to_euler(quat_to_matrix(jnp.asarray(quat)), root.rotation_order, ref)
-    motion[:, list(root.rotation_columns)] = np.rad2deg(np.asarray(ang))
+def _write_root(run_path, clip, motion, name: str, origin, rot) -> None:
+    """The model root's channels (in place) from its world pose: origin (T, 3), rotation (T, 3, 3)
+    (metres, the clip's world). A joint above it (a virtual root) keeps its channels; the pose is
+    written relative to that joint's frame."""
+    k = clip.joint_index(name)
+    joint = clip.joints[k]
+    if joint.parent >= 0:
+        pos, rots, _ = forward_kinematics(dataclasses.replace(clip, motion=motion))
+        parent_rot, parent_pos = rots[:, joint.parent], pos[:, joint.parent]
+        origin = np.einsum("tba,tb->ta", parent_rot, origin - parent_pos)
+        rot = np.einsum("tba,tbc->tac", parent_rot, rot)
+    if not (joint.translation_columns and joint.rotation_order):
+        raise UserError(
+            f"{run_path}: the clip's root joint {name!r} has no position or no rotation channels in "
+            f"{clip.path}: its simulated pose cannot be written as BVH"
+        )
+    motion[:, list(joint.translation_columns)] = origin
+    ref = jnp.deg2rad(jnp.asarray(motion[:, list(joint.rotation_columns)]))
+    ang = matrix_to_euler(jnp.asarray(rot), joint.rotation_order, ref)
+    motion[:, list(joint.rotation_columns)] = np.rad2deg(np.asarray(ang))
 
 
 def reread_angles(bvh_path, units, dof_names) -> np.ndarray:

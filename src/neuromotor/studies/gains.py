@@ -86,3 +86,15 @@ def gain_value(gains: Gains, name: str):
         return getattr(gains.balance, _BALANCE[name])
     path, leaf = _REFLEX[name]
     return getattr(getattr(gains.reflex, path), leaf)
+
+
+def delay_limits(gains: Gains, h: float) -> dict[str, float]:
+    """The longest delay (s) each named delay parameter can take in this controller: its
+    history holds ``steps`` grid steps, and a longer delay would read the oldest entry (a
+    delay the model never ran). Names of controllers ``gains`` lacks are left out."""
+    out = {}
+    if gains.reflex is not None:
+        out["reflex_delay"] = out["long_latency_delay"] = (gains.reflex.steps - 1) * h
+    if gains.balance is not None:
+        out["balance_delay"] = (gains.balance.steps - 1) * h
+    return out

@@ -48,14 +48,36 @@ def foot_bodies(character: Character) -> tuple[int, ...]:
 
 def feet_warnings(character: Character, source: str) -> tuple[str, ...]:
     """A warning for a run on the ground of a rig without labelled feet (every body then stands
-    in for a foot: the floor, the fall rule and the postural loop's support); none with feet."""
+    in for a foot: the floor and the fall rule; the postural loop is refused); none with feet."""
     if labelled_feet(character):
         return ()
     return (
         f"{source}: the rig has no labelled feet (see neuromotor inspect): every body counts as a "
-        "foot for the ground's floor, the fall rule and the standing support, so falls are found "
-        "only by the COM's height",
+        "foot for the ground's floor and the fall rule, so falls are found only by the COM's height",
     )
+
+
+# How far a given ground may sit from the motion's own floor before a run says so (m): inside
+# the feet by more than a sole's thickness, or far enough below them to drop the character.
+BURIED_WARN_M = 0.02
+DROP_WARN_M = 0.10
+
+
+def height_warnings(character: Character, traj: Trajectory, height: float, source: str) -> tuple[str, ...]:
+    """A warning when ``[ground] height`` is far from the floor the motion stands on
+    (:func:`capture_floor`): the feet start inside the ground, or the character drops onto it."""
+    floor = capture_floor(character, traj)
+    if height - floor > BURIED_WARN_M:
+        return (
+            f"{source}: field 'ground.height' = {height:g} m is {1e3 * (height - floor):.0f} mm above the feet's "
+            f"lowest point ({floor:.4f} m): they start inside the ground and are pushed out",
+        )
+    if floor - height > DROP_WARN_M:
+        return (
+            f"{source}: field 'ground.height' = {height:g} m is {1e3 * (floor - height):.0f} mm below the feet's "
+            f"lowest point ({floor:.4f} m): the character drops onto it",
+        )
+    return ()
 
 
 @functools.partial(compiler.jit, static_argnames=("bodies",))

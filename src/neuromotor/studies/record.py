@@ -203,10 +203,13 @@ def residual_part(setup: Setup, n_times: int) -> dict[str, np.ndarray]:
         return {}
     from neuromotor.studies.residuals import capture_residuals, residual_arrays
 
-    # One floor in the file: the simulated ground's where the run has one.
-    ground = getattr(setup, "ground", None)
+    # One floor and one friction coefficient in the file: the simulated ground's where the run has one.
+    ground = setup.ground
     floor = None if ground is None else float(ground.height)
-    res = capture_residuals(setup.character, setup.traj, setup.ref, setup.options, floor, capture=setup.clip_trajectory)
+    mu = {} if ground is None else {"mu": float(ground.friction)}
+    res = capture_residuals(
+        setup.character, setup.traj, setup.ref, setup.options, floor, capture=setup.clip_trajectory, **mu
+    )
     return {k: v if v.ndim == 0 or k == "grf_body" else v[:n_times] for k, v in residual_arrays(res).items()}
 
 
@@ -221,7 +224,7 @@ def run_arrays(setup: Setup, result: RunResult, residuals: bool | None = None) -
         **_source_arrays(setup, result),
         **shape_arrays(setup),
     }
-    if residuals if residuals is not None else getattr(setup, "ground", None) is not None:
+    if residuals if residuals is not None else setup.ground is not None:
         arrays.update(residual_part(setup, arrays["time"].shape[0]))
     # Horizontal facing direction: the anatomy's forward, else estimated from the skeleton.
     forward = anatomy_forward(setup, result.unperturbed.states.quat)
@@ -353,6 +356,24 @@ def _ground_record(setup: Setup) -> dict | None:
     }
 
 
+def _balance_record(setup: Setup) -> dict | None:
+    """The postural loop as it ran (docs/balance.md): its gains and delay, the assist, the
+    history's length, stepping on or off, and the feet and hips by name; None without it."""
+    bal = setup.gains.balance
+    if bal is None:
+        return None
+    model, h = setup.model, setup.options.h
+    out = {k: float(getattr(bal, k)) for k in ("kp", "kd", "hip_kp", "hip_kd", "delay", "assist")}
+    return out | {
+        "longest_delay": float((bal.steps - 1) * h),  # s: what its history holds (raise max_delay for more)
+        "stepping": bal.stepping is not None,
+        "feet": [model.body_names[b] for b in bal.feet],
+        "hips": [model.body_names[c + 1] for c in bal.hips],  # joint c attaches body c + 1
+        "mgh_Nm_per_rad": float(bal.mgh),
+        "com_height_m": float(bal.height),
+    }
+
+
 def _ball_record(setup: Setup) -> dict | None:
     """The ball's configuration and resolved parameters, or None without a ball."""
     cfg = setup.config
@@ -405,7 +426,7 @@ def provenance(setup: Setup) -> dict:
     """What made a run, as plain JSON values (RUN.npz ``provenance_json``): the package
     version, the clip file and its SHA-256, and the fully resolved configuration (gains, step,
     window, perturbations with their resolved body and point, units, up axis, stature, mass
-    options, ball, delayed reflex)."""
+    options, ground, ball, delayed reflex, postural loop)."""
     from neuromotor import __version__
 
     cfg, options = setup.config, setup.options
@@ -430,6 +451,8 @@ def provenance(setup: Setup) -> dict:
         "ground": _ground_record(setup),
         "perturbations": _perturbation_records(setup),
         "ball": _ball_record(setup),
+        # The postural loop (docs/balance.md), or None: a driven root, or the loop off.
+        "balance": _balance_record(setup),
         # The delayed reflex (docs/reflex.md), or None: the paper's controller.
         "reflex": None if cfg.reflex is None else dataclasses.asdict(cfg.reflex),
         **_body_record(setup),

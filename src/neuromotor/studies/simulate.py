@@ -55,6 +55,8 @@ from neuromotor.studies.ground import (
     ground_metrics,
     ground_rollouts,
     ground_setup,
+    height_warnings,
+    labelled_feet,
     lcp_figures,
     platform_offset,
     tilt_pivot,
@@ -270,6 +272,10 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
     )
     for i, p in enumerate(config.perturbations):
         window.check(p, f"perturbation[{i}].body", f"perturbation[{i}].start")
+    if config.ball is not None and float(config.ball.get("launch", 0.0)) < window.t0 - 1e-9:
+        raise ConfigError(  # its flight would start at t0, its onset (the figures' clock) would not
+            f"{config.source}: field 'ball.launch' = {float(config.ball['launch']):g} s is before {window.text}"
+        )
     if config.ball is not None and float(config.ball.get("launch", 0.0)) >= window.t1 - 1e-9:
         raise ConfigError(
             f"{config.source}: field 'ball.launch' = {float(config.ball['launch']):g} s is at "
@@ -301,8 +307,15 @@ def prepare(config: SimulationConfig, character: Character | None = None, traj: 
         warnings += feet_warnings(character, config.source)
     directions = direction_lookup(character, config.source, still)
     ground = ground_setup(config.ground, character, traj, capture) if config.ground_on else None
+    if ground is not None and config.ground.height is not None:
+        warnings += height_warnings(character, traj, float(ground.height), config.source)
     pivot = tilt_pivot(model, ref, ground)
     pulses = build_pulses(config.perturbations, model, config.h, index, directions, ref.time, pivot)
+    if config.balance_on and not labelled_feet(character):
+        raise ConfigError(
+            f"{config.source}: field 'balance': the postural loop stands on the rig's feet, and this rig has "
+            "none labelled (see neuromotor inspect); set [balance] enabled = false to run without it"
+        )
     if config.balance_on:  # the postural loop of the held (first) pose: neuromotor.physics.balance
         bal = balance_for(character, ref.init, config.h, **config.balance.values())
         ref, bal = fold_support(model, ref, bal)  # the legs carry the trunk: part of the feedforward

@@ -252,12 +252,15 @@ def viewer_data(d: Mapping[str, np.ndarray]) -> dict:
         "ball": None,
         "assist": _assist_part(d, order),
         "tilt": None,
+        "platform": None,
     }
     if "ground_turn" in d:  # a tilted ground: the grid turns about the pivot with it, sample by sample
         out["tilt"] = {
             "pivot": np.asarray(d["ground_pivot"], float)[order].tolist(),
             "quat": _packed(xyzw(d["ground_turn"], order)),
         }
+    if scene.ground_shift is not None:  # a platform carries the ground (and the tilt's pivot) along
+        out["platform"] = _packed(scene.ground_shift[:, order])
     if "deviation" in d:  # the curve the run's metrics came from ([sim] metric)
         out["deviation"] = _packed(d["deviation"])
     elif "theta" in d and "theta_unperturbed" in d:  # older files: the Euler-DOF form

@@ -49,7 +49,7 @@ class Scene:
         self.pad = 1.25 * float(self.capsule_radii.max()) if len(self.capsule_radii) else 0.0
         self._init_camera()
         self._init_tilt()
-        self.ground = self._lowest_point() if self.ground_turn is None else float(d["ground_height"])
+        self.ground = self._lowest_point() if not self.ground_moves else float(d["ground_height"])
         self.has_ball = "ball_pos" in d
         self._init_assist()
         self._init_hit()
@@ -96,21 +96,35 @@ class Scene:
         self.screen_up /= np.linalg.norm(self.screen_up)
 
     def _init_tilt(self):
-        """A tilted ground (RUN.npz ``ground_turn``, ``ground_pivot``): its rotation per sample
-        (T, 3, 3) and pivot; None: level. Its plane is the run's ``ground_height`` turned about
-        the pivot, drawn so: the lowest point of a tilted run is not the ground."""
+        """A ground that moves under a free root: a tilt (RUN.npz ``ground_turn``, ``ground_pivot``:
+        its rotation per sample (T, 3, 3) and pivot) and a platform's translation (``base_offset``
+        (T, 3) of a free-root run on a ground); None: still. A moving ground is the run's
+        ``ground_height`` moved so, and drawn so: the lowest point of such a run is not the ground."""
         d = self.d
-        self.ground_turn, self.ground_pivot = None, None
+        self.ground_turn, self.ground_pivot, self.ground_shift = None, None, None
         if "ground_turn" in d:
             self.ground_turn = quat_matrices(d["ground_turn"])
             self.ground_pivot = np.asarray(d["ground_pivot"], float)
+        root = (json_field(d, "provenance_json") or {}).get("root")
+        if "base_offset" in d and "ground_height" in d and root == "free":  # a driven root's is the root's own
+            self.ground_shift = np.asarray(d["base_offset"], float)
 
-    def tilted(self, pts, k):
-        """Points of the level ground where the tilted ground has them at sample ``k`` (unchanged
-        on a level ground or with ``k`` None)."""
-        if self.ground_turn is None or k is None:
+    @property
+    def ground_moves(self) -> bool:
+        return self.ground_turn is not None or self.ground_shift is not None
+
+    def moved(self, pts, k):
+        """Points of the still, level ground where the moving ground has them at sample ``k``:
+        turned about the pivot, then carried by the platform (``pivot + D_k + R_k (p - pivot)``, as
+        the step has it); unchanged on a still ground or with ``k`` None."""
+        if not self.ground_moves or k is None:
             return pts
-        return self.ground_pivot + (np.asarray(pts, float) - self.ground_pivot) @ self.ground_turn[k].T
+        pts = np.asarray(pts, float)
+        if self.ground_turn is not None:
+            pts = self.ground_pivot + (pts - self.ground_pivot) @ self.ground_turn[k].T
+        if self.ground_shift is not None:
+            pts = pts + self.ground_shift[k]
+        return pts
 
     def _lowest_point(self) -> float:
         """Height of the ground: touching the lowest surface of either figure (or the ball) over
@@ -332,8 +346,8 @@ class Scene:
         return 0.5 * (proj.min(axis=0) + proj.max(axis=0)) @ axes
 
     def ground_mesh(self, center, half_size, k=None):
-        """A checkered ground plane (world-anchored tiles) around ``center``; a tilted ground as
-        it is at sample ``k``."""
+        """A checkered ground plane (world-anchored tiles) around ``center``; a moving ground
+        (a tilt, a platform) as it is at sample ``k``."""
         import pyvista as pv
 
         n = int(np.ceil(half_size / GROUND_TILE_M))
@@ -352,7 +366,7 @@ class Scene:
         vid = np.arange(m * m).reshape(m, m)
         quads = np.stack([vid[:-1, :-1], vid[1:, :-1], vid[1:, 1:], vid[:-1, 1:]], -1).reshape(-1, 4)
         mesh = pv.PolyData(
-            self.tilted(grid_pts.reshape(-1, 3), k), np.hstack([np.full((len(quads), 1), 4), quads]).ravel()
+            self.moved(grid_pts.reshape(-1, 3), k), np.hstack([np.full((len(quads), 1), 4), quads]).ravel()
         )
         parity = ((ia[:-1, :-1] + ib[:-1, :-1]).astype(int) % 2).ravel()
         colors = np.where(parity[:, None] == 0, GROUND_COLORS[0], GROUND_COLORS[1])

@@ -246,8 +246,8 @@ def render_video(scene: Scene, out_tmp, ext, progress=True, ghost=True):
         writer = _mp4_writer(out_tmp, fps) if ext == ".mp4" else None
         for i, k in enumerate(tqdm(ks, desc=f"rendering {ext[1:]}", unit="frame", disable=not progress)):
             _pose_frame(actors, scene, k, shift)
-            if scene.ground_turn is not None:  # a tilted ground turns with the run
-                ground.points = scene.tilted(level, k)
+            if scene.ground_moves:  # a tilt or a platform moves the ground with the run
+                ground.points = scene.moved(level, k)
             set_camera(pl, scene, focals[i], scale)
             pl.render()  # screenshot() only renders by itself the first time
             img = pl.screenshot(return_img=True)

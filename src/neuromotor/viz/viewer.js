@@ -226,6 +226,9 @@ if (tilt) {
 }
 groundGroup.add(ground, grid);
 layers.grid.add(groundGroup);
+// A platform carries the ground, and the tilt's pivot, along: the group's place per sample.
+const platform = D.platform ? unpack(D.platform) : null;
+const groundHome = groundGroup.position.clone();
 
 // ---------------------------------------------------------------------------------------------
 // Deviation curve (2-D canvas)
@@ -306,6 +309,8 @@ function showIndex(k) {
   poseArrow(k);
   if (ball) ball.position.fromArray(ballPos, 3 * k);
   if (tilt) groundGroup.quaternion.fromArray(tilt.quat, 4 * k);
+  if (platform) groundGroup.position.set(groundHome.x + platform[3 * k], groundHome.y + platform[3 * k + 1],
+                                         groundHome.z + platform[3 * k + 2]);
   slider.value = String(k);
   $('nm-time').textContent = 't = ' + time[k].toFixed(3) + ' s';
   $('nm-status').setAttribute('data-index', String(k));

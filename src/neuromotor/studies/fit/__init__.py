@@ -35,9 +35,10 @@ identifies (:func:`.result.identifiability`: a finite standard error of the log 
 delay cannot be told from a gain by one peak value), residual, counts, wall time, and a status:
 ``converged``, ``converged (loss flat)`` (the step limit was reached with the loss flat:
 relative change below ``LOSS_FLAT_RTOL`` in each of the last ``LOSS_FLAT_ITERATIONS``
-iterations; counts as converged), ``max_steps``, ``diverged`` or ``nonfinite`` (the last finite
-iterate is returned). A fit never returns NaN gains; with ``strict=True`` anything but the two
-converged statuses raises :class:`FitError`.
+iterations; counts as converged), ``max_steps``, ``diverged``, ``nonfinite`` (the last finite
+iterate is returned) or ``out_of_range`` (a fitted delay is longer than the delay history the
+fit simulated, so the model ran a shorter one: raise ``max_delay``). A fit never returns NaN
+gains; with ``strict=True`` anything but the two converged statuses raises :class:`FitError`.
 
 Config files (:mod:`.calibration`): the ``[fit]`` table is parsed by
 :func:`neuromotor.config.fit_spec`; synthetic targets are in :mod:`.synthetic`, the plot in

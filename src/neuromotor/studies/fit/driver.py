@@ -13,7 +13,7 @@ from neuromotor.config.specs import FIT_SOLVERS, SolverOptions
 from neuromotor.studies.fit.bridge import residual_function
 from neuromotor.studies.fit.covariance import gauss_newton_covariance
 from neuromotor.studies.fit.evaluate import Evaluation, ResponseEvaluator
-from neuromotor.studies.fit.parameters import describe
+from neuromotor.studies.fit.parameters import beyond_history, describe
 from neuromotor.studies.fit.result import (
     LOSS_FLAT_ITERATIONS,
     LOSS_FLAT_RTOL,
@@ -123,12 +123,22 @@ def _final_status(evaluator, solver, opts, track: _Progress, x, iters, converged
     if status != "nonfinite" and not np.all(np.isfinite(ev.y)):
         status = "nonfinite"
         message = f"the response is non-finite at {_at(evaluator, x)} ({message or 'solver stopped'})"
+    beyond = _beyond_history(evaluator, x)
     if np.any(ev.diverged >= 0):
         status = "diverged"
         message = f"the rollout diverges at the final values {_at(evaluator, x)}: {_divergence_text(evaluator, ev)}"
+    elif beyond:
+        status, message = "out_of_range", beyond
     elif status == "max_steps":
         message = f"{solver} did not converge in {opts.max_steps} steps ({message})"
     return status, x, ev, message
+
+
+def _beyond_history(evaluator: ResponseEvaluator, x) -> str | None:
+    """Why the fitted delays are not the model's, or None (:func:`.parameters.beyond_history`)."""
+    p = evaluator.problem
+    why = beyond_history(p.gains, p.options.h, dict(zip(p.names, np.exp(np.asarray(x, np.float64)))))
+    return None if why is None else f"{why} and fit again"
 
 
 def _report(evaluator, ev, target, weights, x, x0, solver, status, message, history) -> FitResult:

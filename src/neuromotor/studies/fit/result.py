@@ -70,7 +70,7 @@ class FitResult:
     """Everything the calibration reports (``to_json`` gives the JSON contract)."""
 
     solver: str
-    status: str  # converged | max_steps | diverged | nonfinite
+    status: str  # converged | converged (loss flat) | max_steps | diverged | nonfinite | out_of_range
     message: str
     ks: float
     kd: float

@@ -9,7 +9,7 @@ import numpy as np
 from neuromotor.errors import ConfigError
 from neuromotor.studies.fit.calibration import Calibration
 from neuromotor.studies.fit.evaluate import ResponseEvaluator
-from neuromotor.studies.fit.parameters import UNITS, describe
+from neuromotor.studies.fit.parameters import UNITS, beyond_history, describe
 from neuromotor.studies.fit.problem import make_problem
 from neuromotor.studies.fit.result import FitError
 
@@ -30,6 +30,9 @@ def synthetic_target(
     missing = [n for n in cal.problem.names if n not in known]
     if missing:
         raise ValueError(f"synthetic_target needs a value of every fitted parameter; missing {missing}")
+    why = beyond_history(cal.problem.gains, cal.problem.options.h, {n: known[n] for n in cal.problem.names})
+    if why is not None:
+        raise ValueError(f"synthetic_target: {why}")
     x = np.log([known[n] for n in cal.problem.names])
     ev = (evaluator or ResponseEvaluator(cal.problem, cal.jacobian))(x)
     if np.any(ev.diverged >= 0):
@@ -85,6 +88,9 @@ def write_synthetic_target(
             f"{cfg.source}: the synthetic target needs a value of every fitted parameter "
             f"(fit.parameters); missing {missing}"
         )
+    why = beyond_history(problem.gains, problem.options.h, {n: known[n] for n in problem.names})
+    if why is not None:
+        raise ConfigError(f"{cfg.source}: the synthetic target's {why}")
     cal = Calibration(setup=setup, problem=problem, target=np.zeros(1), weights=np.zeros(1), x0=np.zeros(2))
     y = synthetic_target(
         cal,
