@@ -345,3 +345,27 @@ def test_the_balance_assist_is_drawn_and_named_in_chromium(tmp_path):
     assert dom["console"] == [] and dom["status"] == "ready"
     line = re.search(r'<div id="nm-metrics">([^<]*)<', dom["dom"]).group(1)
     assert "assist (not physics, purple arrow) 12.5 N s = 0.75 % BW" in html.unescape(line), line
+
+
+def test_a_platform_carries_the_pages_ground_and_plays_in_chromium(tmp_path):
+    """A free root on a moving platform (issue 38): the page gets the platform's displacement per
+    sample in its Y-up frame (its ground rides on it) and plays without errors; the same shift on
+    a driven root's file (a sled moves the root, not the ground) gives the page none."""
+    import json
+
+    _need_chromium()
+    d = _zup_run(with_bodies=False, with_ball=False)
+    T = d["time"].shape[0]
+    shift = np.zeros((T, 3))
+    shift[:, 0] = -0.3 * np.linspace(0.0, 1.0, T) ** 2  # backward along x, Z up
+    shift[:, 2] = 0.05 * np.sin(np.linspace(0.0, np.pi, T))  # and up and down
+    d.update(base_offset=shift, ground_height=np.asarray(0.0),
+             provenance_json=np.asarray(json.dumps({"root": "free"})))
+    data = viewer_data(d)
+    np.testing.assert_allclose(_unpack(data["platform"]), shift[:, [1, 2, 0]], atol=1e-6)
+    assert viewer_data({**d, "provenance_json": np.asarray(json.dumps({"root": "driven"}))})["platform"] is None
+    np.savez(tmp_path / "platform.npz", **d)
+    page = write_viewer(tmp_path / "platform.npz", tmp_path / "platform.html")
+    dom = _open(page, "t=0.5", None, tmp_path, budget_ms=1500, window=(480, 360))
+    assert dom["errors"] == "", dom["errors"]
+    assert dom["console"] == [] and dom["status"] == "ready"
