@@ -405,8 +405,10 @@ def test_any_fitted_parameters_are_reported_by_name():
     absolute standard errors, start values and identifiability keyed by name; ks and kd, not
     fitted, reported at the problem's fixed gains."""
     ev = ToyEvaluator()
-    gains = type("G", (), {"ks": np.asarray(400.0), "kd": np.asarray(20.0)})()
+    # No reflex history in this toy (the driver's last check has no delay limit to apply).
+    gains = type("G", (), {"ks": np.asarray(400.0), "kd": np.asarray(20.0), "reflex": None, "balance": None})()
     ev.problem.names, ev.problem.gains = ("reflex_gain", "reflex_delay"), gains
+    ev.problem.options = type("O", (), {"h": 0.01})()
     x_true = np.array([0.4, -0.2])
     res = F.fit(ev, ev(x_true).y, np.ones(20), [0.0, 0.0], progress=False, strict=True)
     assert res.parameters == ["reflex_gain", "reflex_delay"] and (res.ks, res.kd) == (400.0, 20.0)

@@ -88,6 +88,10 @@ def gain_value(gains: Gains, name: str):
     return getattr(getattr(gains.reflex, path), leaf)
 
 
+# The named parameters that are delays (s): each read from a history of limited length.
+DELAYS = ("reflex_delay", "long_latency_delay", "balance_delay")
+
+
 def delay_limits(gains: Gains, h: float) -> dict[str, float]:
     """The longest delay (s) each named delay parameter can take in this controller: its
     history holds ``steps`` grid steps, and a longer delay would read the oldest entry (a

@@ -23,7 +23,7 @@ from neuromotor.studies.fit.result import (
     loss_is_flat,
 )
 from neuromotor.studies.fit.solvers import run_solver
-from neuromotor.studies.gains import gain_value
+from neuromotor.studies.gains import DELAYS, gain_value
 
 
 def fit(
@@ -137,6 +137,8 @@ def _final_status(evaluator, solver, opts, track: _Progress, x, iters, converged
 def _beyond_history(evaluator: ResponseEvaluator, x) -> str | None:
     """Why the fitted delays are not the model's, or None (:func:`.parameters.beyond_history`)."""
     p = evaluator.problem
+    if not any(n in DELAYS for n in p.names):
+        return None
     why = beyond_history(p.gains, p.options.h, dict(zip(p.names, np.exp(np.asarray(x, np.float64)))))
     return None if why is None else f"{why} and fit again"
 
