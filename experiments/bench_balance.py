@@ -1,12 +1,15 @@
 """Cost of the free-root step on the ground (issue 38) beside the driven step (the paper's).
 
     taskset -c 0 env XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" \\
-        .venv/bin/python experiments/bench_balance.py [--seconds 2] [--h 0.008333]
+        .venv/bin/python experiments/bench_balance.py [--seconds 2] [--h 0.008333] [--breakdown]
 
 The clip's most upright frame held still, h = 1/120 s by default: (a) the driven root without
 contact (the paper), (b) the free root on the ground with the postural loop (balance), (c) the
-same without the loop. Prints the time per step (best of 3, after compilation) and the
-real-time factor.
+same without the loop. ``--breakdown`` adds (b) with one PGS sweep a step and (b) with 8
+contacts kept instead of 16, whose differences from (b) are the sweeps' and the contacts'
+share of the step. Every variant is compiled first, then timed in interleaved rounds (one run
+of each per round, so the host's drift reaches them alike); prints the best round's time per
+step and the real-time factor.
 """
 
 from __future__ import annotations
@@ -24,14 +27,17 @@ from neuromotor.studies.ground import ground_scene
 from neuromotor.studies.standing import standing_setup
 
 
-def best(fn, repeats: int = 3) -> float:
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
+def interleaved(fns: dict, rounds: int) -> dict:
+    """Best wall time of each compiled function over ``rounds`` rounds, one call of each per round."""
+    for fn in fns.values():
         jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return min(times)
+    best = dict.fromkeys(fns, float("inf"))
+    for _ in range(rounds):
+        for label, fn in fns.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            best[label] = min(best[label], time.perf_counter() - t0)
+    return best
 
 
 def main() -> None:
@@ -40,20 +46,29 @@ def main() -> None:
     ap.add_argument("--h", type=float, default=1.0 / 120.0)
     ap.add_argument("--max-contacts", type=int, default=None, help="[ground] max_contacts (default 16)")
     ap.add_argument("--pgs-iterations", type=int, default=None, help="[ground] pgs_iterations (default 40)")
+    ap.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds (best kept)")
+    ap.add_argument("--breakdown", action="store_true", help="add 1-sweep and 8-contact variants")
     args = ap.parse_args()
     n = int(round(args.seconds / args.h))
     sim_jit = compiler.jit(simulate)
-    rows = []
+    fns = {}
     driven = standing_setup(args.seconds, args.h, {"enabled": False}, root="driven")
-    rows.append(("driven root, no contact (paper)", best(lambda: sim_jit(driven.sim_model, driven.params))))
-    for label, bal in (("free root + ground + balance", None), ("free root + ground, no balance", {"enabled": False})):
-        ground = {"max_contacts": args.max_contacts, "pgs_iterations": args.pgs_iterations}
-        ground = {key: v for key, v in ground.items() if v is not None} or None
-        s = standing_setup(args.seconds, args.h, bal, ground=ground)
+    fns["driven root, no contact (paper)"] = lambda: sim_jit(driven.sim_model, driven.params)
+    base = {"max_contacts": args.max_contacts, "pgs_iterations": args.pgs_iterations}
+    base = {key: v for key, v in base.items() if v is not None}
+    runs = [("free root + ground + balance", None, base), ("free root + ground, no balance", {"enabled": False}, base)]
+    if args.breakdown:
+        runs += [
+            ("  same with balance, 1 PGS sweep", None, {**base, "pgs_iterations": 1}),
+            ("  same with balance, 8 contacts", None, {**base, "max_contacts": 8}),
+        ]
+    for label, bal, ground in runs:
+        s = standing_setup(args.seconds, args.h, bal, ground=ground or None)
         scene = ground_scene(s.ground)
-        rows.append((label, best(lambda s=s, scene=scene: simulate_contact_jit(s.sim_model, s.params, scene))))
-    print(f"{n} steps at h = {args.h:.6g} s ({args.seconds:g} s simulated), best of 3 after compilation")
-    for label, wall in rows:
+        fns[label] = lambda s=s, scene=scene: simulate_contact_jit(s.sim_model, s.params, scene)
+    best = interleaved(fns, args.rounds)
+    print(f"{n} steps at h = {args.h:.6g} s ({args.seconds:g} s simulated), best of {args.rounds} interleaved rounds")
+    for label, wall in best.items():
         print(f"  {label:34s} {1e3 * wall / n:7.3f} ms/step  {args.seconds / wall:7.1f}x real time")
 
 
