@@ -339,7 +339,8 @@ def test_mjcf_function_checks_the_timestep(tmp_path):
 # ----------------------------------------------------------------------- temporaries and signals
 
 SLOW_WRITER = textwrap.dedent("""
-    import pathlib, sys, time
+    import faulthandler, pathlib, signal, sys, time
+    faulthandler.register(signal.SIGUSR1, all_threads=True)  # the stacks, should it not exit
     real = pathlib.Path.write_text
     def slow(self, text, *a, **k):  # the model XML: write half, then hang
         real(self, text[:100], *a, **k)
@@ -361,13 +362,25 @@ def _start_slow_export(clip, out) -> subprocess.Popen:
     return proc
 
 
+def _exit_status(proc: subprocess.Popen, timeout: float = 60.0) -> int:
+    """The child's exit status; a child that does not exit fails the test with its threads' stacks."""
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(2.0)
+        proc.kill()
+        _, err = proc.communicate(timeout=30)
+        pytest.fail(f"the interrupted export did not exit within {timeout:g} s; its stderr:\n{err[-6000:]}")
+
+
 @pytest.mark.parametrize("sig, status", [(signal.SIGTERM, -signal.SIGTERM), (signal.SIGINT, 130)])
 def test_signal_removes_the_temporary(tmp_path, clip, sig, status):
     out_dir = tmp_path / "out"
     out_dir.mkdir()
     proc = _start_slow_export(clip, out_dir / "model.xml")
     proc.send_signal(sig)
-    assert proc.wait(timeout=60) == status
+    assert _exit_status(proc) == status
     err = proc.stderr.read()
     assert "Traceback" not in err
     assert list(out_dir.iterdir()) == []  # no target, no temporary
