@@ -8,7 +8,8 @@ interrupt) leaves no partial output behind:
   the format from the name still do);
 * it is renamed over the target only when the block succeeds, and removed when it raises;
 * while a temporary exists, SIGINT, SIGTERM and SIGHUP remove it before the process goes on
-  to what the signal would have done anyway (``KeyboardInterrupt``, or dying of the signal);
+  to what the signal would have done anyway (``KeyboardInterrupt``, or dying of the signal); a
+  signal the process ignores (as a background job ignores SIGINT) is left ignored;
 * a process killed with SIGKILL cannot clean up: the next atomic write into the same folder
   removes this program's temporaries whose process is gone or that have not been touched for
   :data:`STALE_AFTER_S` seconds.
@@ -134,6 +135,10 @@ def _install_handlers() -> bool:
             for s in _SIGNALS:
                 try:
                     prev = signal.getsignal(s)
+                    # An ignored signal stays ignored (a background job's SIGINT, nohup's SIGHUP):
+                    # a handler would remove the temporary of a write that then goes on.
+                    if prev == signal.SIG_IGN:
+                        continue
                     signal.signal(s, _on_signal)
                 except (OSError, ValueError):
                     continue

@@ -338,9 +338,12 @@ def test_mjcf_function_checks_the_timestep(tmp_path):
 
 # ----------------------------------------------------------------------- temporaries and signals
 
+# argv[3]: "default" gives SIGINT Python's own handler (a terminal's Ctrl-C: a test worker may
+# hand down an ignored SIGINT, as a shell does to a background job), "ignore" ignores it.
 SLOW_WRITER = textwrap.dedent("""
     import faulthandler, pathlib, signal, sys, time
     faulthandler.register(signal.SIGUSR1, all_threads=True)  # the stacks, should it not exit
+    signal.signal(signal.SIGINT, signal.default_int_handler if sys.argv[3] == "default" else signal.SIG_IGN)
     real = pathlib.Path.write_text
     def slow(self, text, *a, **k):  # the model XML: write half, then hang
         real(self, text[:100], *a, **k)
@@ -352,8 +355,8 @@ SLOW_WRITER = textwrap.dedent("""
 """)
 
 
-def _start_slow_export(clip, out) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-c", SLOW_WRITER, str(clip), str(out)], stdout=subprocess.PIPE,
+def _start_slow_export(clip, out, sigint: str = "default") -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-c", SLOW_WRITER, str(clip), str(out), sigint], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, cwd=REPO)
     line = proc.stdout.readline()  # the temporary exists and is half written
     assert line.strip() == "WRITING", proc.stderr.read()
@@ -384,6 +387,22 @@ def test_signal_removes_the_temporary(tmp_path, clip, sig, status):
     err = proc.stderr.read()
     assert "Traceback" not in err
     assert list(out_dir.iterdir()) == []  # no target, no temporary
+
+
+def test_an_ignored_sigint_leaves_the_write_going(tmp_path, clip):
+    """A process that ignores SIGINT (a background job) goes on writing: its temporary stays; a
+    SIGTERM then still removes it."""
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    proc = _start_slow_export(clip, out_dir / "model.xml", sigint="ignore")
+    proc.send_signal(signal.SIGINT)
+    time.sleep(1.0)
+    assert proc.poll() is None
+    left = [p.name for p in out_dir.iterdir()]
+    assert len(left) == 1 and atomic.is_temporary(left[0])
+    proc.send_signal(signal.SIGTERM)
+    assert _exit_status(proc) == -signal.SIGTERM
+    assert list(out_dir.iterdir()) == []
 
 
 def test_sigkill_leftover_is_swept_by_the_next_write(tmp_path, clip):
