@@ -15,7 +15,6 @@ step and the real-time factor.
 from __future__ import annotations
 
 import argparse
-import time
 
 import _common  # noqa: F401  (float64, compile cache)
 import jax
@@ -23,21 +22,9 @@ import jax
 from neuromotor import compiler
 from neuromotor.physics.contact import simulate_contact_jit
 from neuromotor.physics.dynamics import simulate
+from neuromotor.studies.bench import interleaved
 from neuromotor.studies.ground import ground_scene
 from neuromotor.studies.standing import standing_setup
-
-
-def interleaved(fns: dict, rounds: int) -> dict:
-    """Best wall time of each compiled function over ``rounds`` rounds, one call of each per round."""
-    for fn in fns.values():
-        jax.block_until_ready(fn())
-    best = dict.fromkeys(fns, float("inf"))
-    for _ in range(rounds):
-        for label, fn in fns.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn())
-            best[label] = min(best[label], time.perf_counter() - t0)
-    return best
 
 
 def main() -> None:
@@ -46,7 +33,7 @@ def main() -> None:
     ap.add_argument("--h", type=float, default=1.0 / 120.0)
     ap.add_argument("--max-contacts", type=int, default=None, help="[ground] max_contacts (default 16)")
     ap.add_argument("--pgs-iterations", type=int, default=None, help="[ground] pgs_iterations (default 40)")
-    ap.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds (best kept)")
+    ap.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds, at least 5 (best kept)")
     ap.add_argument("--breakdown", action="store_true", help="add 1-sweep and 8-contact variants")
     args = ap.parse_args()
     n = int(round(args.seconds / args.h))
@@ -66,8 +53,11 @@ def main() -> None:
         s = standing_setup(args.seconds, args.h, bal, ground=ground or None)
         scene = ground_scene(s.ground)
         fns[label] = lambda s=s, scene=scene: simulate_contact_jit(s.sim_model, s.params, scene)
-    best = interleaved(fns, args.rounds)
-    print(f"{n} steps at h = {args.h:.6g} s ({args.seconds:g} s simulated), best of {args.rounds} interleaved rounds")
+    for fn in fns.values():  # compiled before any timing
+        jax.block_until_ready(fn())
+    rounds = max(args.rounds, 5)  # bench.interleaved's floor
+    best = interleaved(fns, rounds)
+    print(f"{n} steps at h = {args.h:.6g} s ({args.seconds:g} s simulated), best of {rounds} interleaved rounds")
     for label, wall in best.items():
         print(f"  {label:34s} {1e3 * wall / n:7.3f} ms/step  {args.seconds / wall:7.1f}x real time")
 

@@ -119,8 +119,6 @@ def _on_signal(signum, frame):
     if callable(previous):  # e.g. Python's SIGINT handler: KeyboardInterrupt
         previous(signum, frame)
         return
-    if previous == signal.SIG_IGN:
-        return
     # The default action (terminate): die of the same signal, so the exit status says so.
     signal.signal(signum, signal.SIG_DFL)
     os.kill(os.getpid(), signum)

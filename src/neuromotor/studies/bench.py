@@ -205,9 +205,10 @@ def batch_split(setup, size: int, repeats: int) -> dict:
     return out
 
 
-def _interleaved(runs: dict, repeats: int) -> dict[str, float]:
-    """Best wall time of each zero-argument callable, timed in alternation (the host's speed
-    drifts too much between processes, or even minutes apart, for separate runs to be compared)."""
+def interleaved(runs: dict, repeats: int) -> dict[str, float]:
+    """Best wall time of each zero-argument callable over ``max(repeats, 5)`` rounds, one call of
+    each per round (the host's speed drifts too much between processes, or even minutes apart,
+    for separate runs to be compared). Pass compiled programs, or warm them up first."""
     best = {name: np.inf for name in runs}
     for _ in range(max(repeats, 5)):
         for name, fn in runs.items():
@@ -224,7 +225,7 @@ def compiler_options_ab(setup, repeats: int) -> dict:
         "default": jax.jit(fn).lower(m, g, p, ref).compile(),
     }
     diff = float(jnp.max(jnp.abs(progs["tuned"](m, g, p, ref).theta - progs["default"](m, g, p, ref).theta)))
-    best = _interleaved({k: (lambda c=c: c(m, g, p, ref)) for k, c in progs.items()}, repeats)
+    best = interleaved({k: (lambda c=c: c(m, g, p, ref)) for k, c in progs.items()}, repeats)
     return {
         "tuned_us": best["tuned"] / cfg.n_steps * 1e6,
         "default_us": best["default"] / cfg.n_steps * 1e6,
@@ -244,7 +245,7 @@ def stabilization_ab(setup, repeats: int, steps=(1, 2)) -> list[dict]:
         run_n = lambda m, g, p, ref, c=c: dy.simulate(dy.SimModel(m, ref, c), dy.Params(g, p))
         progs[n] = compiler.jit(run_n).lower(m, g, p, ref).compile()
     runs = {n: progs[n](m, g, p, ref) for n in steps}
-    best = _interleaved({k: (lambda c=c: c(m, g, p, ref)) for k, c in progs.items()}, repeats)
+    best = interleaved({k: (lambda c=c: c(m, g, p, ref)) for k, c in progs.items()}, repeats)
     last = runs[steps[-1]]
     return [
         {
@@ -318,7 +319,7 @@ def batched(setup, sizes, repeats: int, programs: dict | None = None, dtype: str
             row["compile_s" if not suffix else "one_device_compile_s"] = compile_s
             if programs is not None:
                 programs[f"batch{size}" + ("" if dtype == "float64" else f"_{dtype}") + suffix] = calls[suffix]
-        best = _interleaved(calls, repeats) if len(calls) > 1 else {"": _best(calls[""], repeats)}
+        best = interleaved(calls, repeats) if len(calls) > 1 else {"": _best(calls[""], repeats)}
         for suffix, t in best.items():
             key = "" if not suffix else "one_device_"
             row.update({f"{key}seconds": t, f"{key}steps_per_s": size * cfg.n_steps / t})
@@ -409,7 +410,7 @@ def mujoco_reference(setup, steps: int, repeats: int, ours=None) -> dict | None:
     }
     if ours is not None:
         n = setup.options.n_steps
-        best = _interleaved({"ours": ours, "mujoco": lambda: run(n)}, max(3 * repeats, 10))
+        best = interleaved({"ours": ours, "mujoco": lambda: run(n)}, max(3 * repeats, 10))
         out["interleaved"] = {
             "steps": n,
             "ours_us": best["ours"] / n * 1e6,
@@ -497,7 +498,7 @@ def free_root(clip, repeats: int, top: dict | None = None, seconds: float = 1.0)
         "free": lambda: c_free(free.sim_model, free.params, scene),
     }
     out = runs["free"]()
-    best = _interleaved(runs, repeats)
+    best = interleaved(runs, repeats)
     n = free.options.n_steps
     lam = np.asarray(out.contact.normal_impulse)
     return {
