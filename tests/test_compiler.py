@@ -1,5 +1,7 @@
 """Issue 6: the CPU compiler options change how the rollout is compiled, not what it computes."""
 
+import pathlib
+
 import jax
 import jax.numpy as jnp
 import pytest
@@ -56,30 +58,32 @@ def test_a_package_program_runs_inside_another_program():
 
 
 CORES_SCRIPT = """
-import json, jax
+import json, os, sys, jax
 from neuromotor import compiler
 from neuromotor.errors import UserError
 try:
-    got = compiler.use_cpu_cores()
+    got = compiler.use_cpu_cores(split=sys.argv[1] == "split")
 except UserError as e:
     got = "error: " + str(e)
-print("RESULT" + json.dumps([got, len(jax.devices())]))
+print("RESULT" + json.dumps([got, len(jax.devices()), os.environ.get("PJRT_NPROC")]))
 """
 
 
-def _cores(env: dict, script: str = CORES_SCRIPT):
+def _cores(env: dict, script: str = CORES_SCRIPT, split: bool = True, threads: bool = False):
     import json
     import os
     import subprocess
     import sys
 
-    base = {k: v for k, v in os.environ.items() if k not in ("NEUROMOTOR_CPU_DEVICES", "JAX_NUM_CPU_DEVICES")}
+    base = {k: v for k, v in os.environ.items()
+            if k not in ("NEUROMOTOR_CPU_DEVICES", "JAX_NUM_CPU_DEVICES", "PJRT_NPROC", "NPROC")}
     base["XLA_FLAGS"] = " ".join(f for f in base.get("XLA_FLAGS", "").split()
                                  if "device_count" not in f and "intra_op" not in f)
-    proc = subprocess.run([sys.executable, "-c", script], env={**base, "JAX_PLATFORMS": "cpu", **env},
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-c", script, "split" if split else "single"],
+                          env={**base, "JAX_PLATFORMS": "cpu", **env}, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    return json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT")][-1][6:])
+    got = json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT")][-1][6:])
+    return got if threads else got[:2]
 
 
 def test_use_cpu_cores_gives_one_device_per_core_unless_the_count_was_chosen():
@@ -101,3 +105,53 @@ def test_use_cpu_cores_gives_one_device_per_core_unless_the_count_was_chosen():
     assert _cores({"NEUROMOTOR_CPU_DEVICES": "3"}, late) == [None, 1]
     got = _cores({"NEUROMOTOR_CPU_DEVICES": "many"})[0]
     assert got.startswith("error: NEUROMOTOR_CPU_DEVICES:") and "'many'" in got
+    # Single runs (split=False): one device unless a count is given; one runtime thread either
+    # way, unless the user chose one (or JAX already runs).
+    assert _cores({}, split=False, threads=True) == [None, 1, "1"]
+    assert _cores({"NEUROMOTOR_CPU_DEVICES": "3"}, split=False, threads=True) == [3, 3, "1"]
+    assert _cores({"PJRT_NPROC": "4"}, split=False, threads=True) == [None, 1, "4"]
+    assert _cores({"NPROC": "4"}, split=False, threads=True) == [None, 1, None]
+    assert _cores({}, late, split=False, threads=True) == [None, 1, None]
+
+
+HANDOFF_SCRIPT = """
+import glob, sys
+from neuromotor import compiler
+if sys.argv[1] == "single":
+    compiler.use_cpu_cores(split=False)
+import jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+from neuromotor.physics.contact.lcp import solve_lcp_pgs
+
+def switches():
+    n = 0
+    for f in glob.glob("/proc/self/task/*/status"):
+        n += sum(int(ln.split()[1]) for ln in open(f) if ln.startswith("voluntary_ctxt_switches"))
+    return n
+
+w = jax.random.normal(jax.random.PRNGKey(1), (48, 48))
+w = w @ w.T / 48 + jnp.eye(48)
+step = lambda x: x + 1e-3 * solve_lcp_pgs(w, x - 1.0, 0.8, jnp.ones(16, bool), jnp.zeros((16, 3)), 8, 40).reshape(-1)
+f = compiler.jit(lambda x: jax.lax.scan(lambda c, _: (step(c), None), x, None, length=200)[0])
+x = jnp.zeros(48)
+jax.block_until_ready(f(x))
+before = switches()
+jax.block_until_ready(f(x))
+print("RESULT", (switches() - before) / 200)
+"""
+
+
+@pytest.mark.skipif(not pathlib.Path("/proc/self/task").exists(), reason="counts thread switches in /proc")
+def test_a_single_run_hands_no_kernels_to_other_threads():
+    """XLA:CPU's pool took part of the PGS step's kernels about once a step on a 2-core host (the
+    main thread then sleeps until they are done): with one runtime thread and one device, none."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("NEUROMOTOR_CPU_DEVICES", "PJRT_NPROC", "NPROC")}
+    proc = subprocess.run([sys.executable, "-c", HANDOFF_SCRIPT, "single"], env={**env, "JAX_PLATFORMS": "cpu"},
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    per_step = float([ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT")][-1].split()[1])
+    assert per_step < 0.2, per_step

@@ -937,7 +937,8 @@ def main(argv=None) -> int:
     from neuromotor.errors import UserError
 
     try:
-        use_cpu_cores()  # before JAX starts: batches and sweeps split over the cores
+        # Before JAX starts: batches and sweeps split over the cores; single runs on one device.
+        use_cpu_cores(split=args.command in ("sweep", "experiment") or (args.command == "bench" and not args.free_only))
         _preflight(args)  # SIGINT/SIGTERM while an output is being written: atomic.atomic_path
         status = args.func(args)
         sys.stdout.flush()  # a closed pipe shows here, not at exit

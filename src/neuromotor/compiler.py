@@ -143,27 +143,48 @@ def cpu_cores() -> int:
         return os.cpu_count() or 1
 
 
-def use_cpu_cores() -> int | None:
+def one_runtime_thread() -> bool:
+    """Ask XLA:CPU's runtime for one intra-op thread (``PJRT_NPROC=1``) before JAX starts.
+
+    With more, XLA:CPU hands groups of a program's ready kernels to its thread pool and waits
+    for them: the contact step paid about six thread hand-offs a step, 1.3-2x its time on a
+    quiet 2-core host and 5-20x when the other core is busy (docs/benchmarks.md, "Thread
+    hand-offs"). Kernels are this project's small ones, so nothing runs faster on the pool;
+    devices (batches split over cores) keep their own threads. Left alone, returning False,
+    when ``PJRT_NPROC`` or ``NPROC`` is set or JAX's backends already run."""
+    from jax._src import xla_bridge
+
+    if "PJRT_NPROC" in os.environ or "NPROC" in os.environ or xla_bridge.backends_are_initialized():
+        return False
+    os.environ["PJRT_NPROC"] = "1"
+    return True
+
+
+def use_cpu_cores(split: bool = True) -> int | None:
     """Give JAX one CPU device per core, so that a batch split over the devices runs one share
     per core (:func:`neuromotor.studies.sweep.runner.shard_vmap`). On one device XLA:CPU runs
     a batch's small kernels one after another and splits only the large ones over the cores: a
     batch of 256 rollouts ran 1.3x as fast split over two devices on a 2-core machine
-    (docs/benchmarks.md, "Issue 17: one device per core"). Single trajectories are unchanged
-    (they run on the first device).
+    (docs/benchmarks.md, "Issue 17: one device per core"). Also :func:`one_runtime_thread`.
 
-    ``NEUROMOTOR_CPU_DEVICES``: ``auto`` (default: the core count), a count, or ``1``/``off``
-    for one device. Left alone, returning None, once JAX's backends are running (the count is
+    ``split`` False (a command of single trajectories: ``simulate``, ``fit``, ...): one device
+    unless a count is given. A second device gains a single trajectory nothing and costs a
+    floating root's contact step thread hand-offs (docs/benchmarks.md, "Thread hand-offs").
+
+    ``NEUROMOTOR_CPU_DEVICES``: ``auto`` (default: the core count, or 1 when not ``split``), a
+    count, or ``1``/``off`` for one device. Left alone, returning None, once JAX's backends are running (the count is
     fixed at start-up), or when the device count or XLA:CPU's threads were already chosen:
     ``JAX_NUM_CPU_DEVICES``, ``jax_num_cpu_devices``, or ``XLA_FLAGS`` forcing the host device
     count or the intra-op threads (the processes of a distributed sweep run one thread each).
     Returns the count set otherwise."""
     from jax._src import xla_bridge
 
+    one_runtime_thread()
     env = os.environ.get("NEUROMOTOR_CPU_DEVICES", "auto").strip().lower()
     if env in _OFF or env == "1":
         return None
     if env == "auto":
-        count = cpu_cores()
+        count = cpu_cores() if split else 1
     elif env.isdigit():
         count = int(env)
     else:
