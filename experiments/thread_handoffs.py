@@ -3,12 +3,13 @@
     .venv/bin/python experiments/thread_handoffs.py [--rounds 2] [--seconds 2]
 
 Each round runs two fresh processes one after the other: ``single`` starts JAX as
-``neuromotor simulate`` does (``compiler.use_cpu_cores(split=False)``: one device, one runtime
-thread) and ``per-core`` as it did before 2026-12-07 (one device per core, XLA's default
-thread pool). Each compiles the free-standing run (the clip's upright frame on the ground with
-the postural loop, h = 1/120 s) and the same pose on the driven root, then prints the best of
-three runs per step and the voluntary context switches of all its threads per step (a thread
-that sleeps until kernels handed to another thread are done). Run it once on an idle machine
+``neuromotor simulate`` does for a free root (``compiler.one_runtime_thread`` and
+``compiler.use_cpu_cores(split=False)``: one device, one runtime thread) and ``per-core`` as it
+did before 2026-12-07 (one device per core, XLA's default thread pool). Each compiles the
+free-standing run (the clip's upright frame on the ground with the postural loop, h = 1/120 s)
+and the same pose on the driven root, then prints the best of three runs per step and the
+voluntary context switches of all its threads per step (a thread that sleeps until kernels
+handed to another thread are done). Run it once on an idle machine
 and once with the other cores busy (``yes > /dev/null &``): the hand-offs cost most there.
 """
 
@@ -40,6 +41,8 @@ def child(mode: str, seconds: float) -> None:
     from neuromotor import compiler
 
     # PJRT_NPROC="" in the per-core child's environment: XLA's default pool (the old start-up).
+    if mode == "single":
+        compiler.one_runtime_thread()
     compiler.use_cpu_cores(split=mode != "single")
     import jax
 

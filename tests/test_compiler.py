@@ -105,19 +105,56 @@ def test_use_cpu_cores_gives_one_device_per_core_unless_the_count_was_chosen():
     assert _cores({"NEUROMOTOR_CPU_DEVICES": "3"}, late) == [None, 1]
     got = _cores({"NEUROMOTOR_CPU_DEVICES": "many"})[0]
     assert got.startswith("error: NEUROMOTOR_CPU_DEVICES:") and "'many'" in got
-    # Single runs (split=False): one device unless a count is given; one runtime thread either
-    # way, unless the user chose one (or JAX already runs).
-    assert _cores({}, split=False, threads=True) == [None, 1, "1"]
-    assert _cores({"NEUROMOTOR_CPU_DEVICES": "3"}, split=False, threads=True) == [3, 3, "1"]
-    assert _cores({"PJRT_NPROC": "4"}, split=False, threads=True) == [None, 1, "4"]
-    assert _cores({"NPROC": "4"}, split=False, threads=True) == [None, 1, None]
-    assert _cores({}, late, split=False, threads=True) == [None, 1, None]
+    # Single runs (split=False): one device unless a count is given; XLA's threads left alone.
+    assert _cores({}, split=False, threads=True) == [None, 1, None]
+    assert _cores({"NEUROMOTOR_CPU_DEVICES": "3"}, split=False, threads=True) == [3, 3, None]
+
+
+THREAD_SCRIPT = """
+import json, os
+from neuromotor import compiler
+got = compiler.one_runtime_thread()
+print("RESULT" + json.dumps([got, os.environ.get("PJRT_NPROC")]))
+"""
+
+
+def test_one_runtime_thread_unless_the_user_chose_or_jax_runs():
+    assert _cores({}, THREAD_SCRIPT) == [True, "1"]
+    assert _cores({"PJRT_NPROC": "4"}, THREAD_SCRIPT) == [False, "4"]
+    assert _cores({"NPROC": "4"}, THREAD_SCRIPT) == [False, None]
+    late = THREAD_SCRIPT.replace("got =", "import jax; jax.devices()\ngot =")
+    assert _cores({}, late) == [False, None]
+
+
+def test_the_cli_asks_for_one_runtime_thread_only_for_a_free_root_run(tmp_path):
+    """Only a free-root trajectory, whose contact step it speeds up, gets one thread; the pool
+    stays for the rest (docs/benchmarks.md, "Thread hand-offs")."""
+    from neuromotor.cli import _free_root_run, build_parser
+
+    configs = pathlib.Path(__file__).resolve().parents[1] / "configs"
+
+    def free(*argv):
+        return _free_root_run(build_parser().parse_args(list(argv)))
+
+    out = str(tmp_path / "run.npz")
+    assert free("simulate", str(configs / "stand_balance.toml"), "-o", out)
+    assert free("simulate", str(configs / "walk_free.toml"), "-o", out)
+    assert not free("simulate", "-o", out)
+    assert not free("simulate", str(configs / "simulate_default.toml"), "-o", out)
+    assert not free("simulate", str(configs / "ball_hit.toml"), "-o", out)
+    assert free("bench", "--free-only")
+    assert not free("bench")
+    assert free("fit", str(configs / "fit_balance.toml"), "-o", str(tmp_path / "fit"))
+    assert not free("fit", str(configs / "fit_synthetic.toml"), "-o", str(tmp_path / "fit"))
+    assert not free("fit", str(tmp_path / "missing.toml"), "-o", str(tmp_path / "fit"))  # the command reports it
+    assert not free("sweep", str(configs / "sweep_magnitude.toml"))
 
 
 HANDOFF_SCRIPT = """
 import glob, sys
 from neuromotor import compiler
 if sys.argv[1] == "single":
+    compiler.one_runtime_thread()
     compiler.use_cpu_cores(split=False)
 import jax, jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)

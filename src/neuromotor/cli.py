@@ -927,17 +927,40 @@ def _preflight(args) -> None:
     check_outputs(files=files, folders=folders, inputs=inputs)
 
 
+def _free_root_run(args) -> bool:
+    """A single free-root trajectory: ``bench --free-only``, or ``simulate`` or ``fit`` of a
+    config with ``[sim] root = "free"`` (reads the config, computes nothing; a config the
+    command will refuse is not one)."""
+    from neuromotor.config import read_toml, simulation_config
+    from neuromotor.errors import UserError
+
+    if args.command == "bench":
+        return bool(args.free_only)
+    try:
+        if args.command == "simulate":
+            return _sim_config(args).root == "free"
+        if args.command == "fit":
+            path = pathlib.Path(args.config)
+            return simulation_config(read_toml(path), str(path), path.parent).root == "free"
+    except (UserError, OSError):
+        return False
+    return False
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # for `sweep --local-processes`
-    from neuromotor.compiler import enable_compile_cache, use_cpu_cores
+    from neuromotor.compiler import enable_compile_cache, one_runtime_thread, use_cpu_cores
 
     if args.command != "bench":  # bench reports compile times: it compiles for real
         enable_compile_cache()  # persistent XLA cache: a second `simulate` loads instead of compiling
     from neuromotor.errors import UserError
 
     try:
-        # Before JAX starts: batches and sweeps split over the cores; single runs on one device.
+        # Before JAX starts: batches and sweeps split over the cores; single runs on one device,
+        # a free root's with one runtime thread (docs/benchmarks.md, "Thread hand-offs").
+        if _free_root_run(args):
+            one_runtime_thread()
         use_cpu_cores(split=args.command in ("sweep", "experiment") or (args.command == "bench" and not args.free_only))
         _preflight(args)  # SIGINT/SIGTERM while an output is being written: atomic.atomic_path
         status = args.func(args)

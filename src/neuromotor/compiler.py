@@ -150,8 +150,10 @@ def one_runtime_thread() -> bool:
     for them: the contact step paid about six thread hand-offs a step, 1.3-2x its time on a
     quiet 2-core host and 5-20x when the other core is busy (docs/benchmarks.md, "Thread
     hand-offs"). Kernels are this project's small ones, so nothing runs faster on the pool;
-    devices (batches split over cores) keep their own threads. Left alone, returning False,
-    when ``PJRT_NPROC`` or ``NPROC`` is set or JAX's backends already run."""
+    devices (batches split over cores) keep their own threads. The CLI asks for it only for a
+    free-root run (``simulate``, ``fit``, ``bench --free-only``): a driven-root run gained
+    nothing, and XLA compiled up to 10% slower with one thread. Left alone, returning False, when
+    ``PJRT_NPROC`` or ``NPROC`` is set or JAX's backends already run."""
     from jax._src import xla_bridge
 
     if "PJRT_NPROC" in os.environ or "NPROC" in os.environ or xla_bridge.backends_are_initialized():
@@ -165,7 +167,7 @@ def use_cpu_cores(split: bool = True) -> int | None:
     per core (:func:`neuromotor.studies.sweep.runner.shard_vmap`). On one device XLA:CPU runs
     a batch's small kernels one after another and splits only the large ones over the cores: a
     batch of 256 rollouts ran 1.3x as fast split over two devices on a 2-core machine
-    (docs/benchmarks.md, "Issue 17: one device per core"). Also :func:`one_runtime_thread`.
+    (docs/benchmarks.md, "Issue 17: one device per core").
 
     ``split`` False (a command of single trajectories: ``simulate``, ``fit``, ...): one device
     unless a count is given. A second device gains a single trajectory nothing and costs a
@@ -179,7 +181,6 @@ def use_cpu_cores(split: bool = True) -> int | None:
     Returns the count set otherwise."""
     from jax._src import xla_bridge
 
-    one_runtime_thread()
     env = os.environ.get("NEUROMOTOR_CPU_DEVICES", "auto").strip().lower()
     if env in _OFF or env == "1":
         return None
