@@ -9,8 +9,8 @@ did before 2026-12-07 (one device per core, XLA's default thread pool). Each com
 free-standing run (the clip's upright frame on the ground with the postural loop, h = 1/120 s)
 and the same pose on the driven root, then prints the best of three runs per step and the
 voluntary context switches of all its threads per step (a thread that sleeps until kernels
-handed to another thread are done). Run it once on an idle machine
-and once with the other cores busy (``yes > /dev/null &``): the hand-offs cost most there.
+handed to another thread are done). Run it once on an idle machine and once with the other
+cores busy (``yes > /dev/null &``): the hand-offs cost most there.
 """
 
 from __future__ import annotations

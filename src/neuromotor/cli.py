@@ -902,14 +902,21 @@ def _clip_run_paths(args) -> tuple[list, list, list]:
     return inputs, [args.output, *files], [folder]
 
 
-def _fit_paths(args) -> tuple[list, list, list]:
-    """The fit's config, clip and target file; it writes fit.json and fit.png, or (with
-    --write-synthetic) the target file."""
-    from neuromotor.config import fit_spec, read_toml, simulation_config
+def _fit_sim_config(args):
+    """The fit config's path, its TOML table and the simulation config it holds."""
+    from neuromotor.config import read_toml, simulation_config
 
     path = pathlib.Path(args.config)
     data = read_toml(path)
-    cfg = simulation_config(data, str(path), path.parent)
+    return path, data, simulation_config(data, str(path), path.parent)
+
+
+def _fit_paths(args) -> tuple[list, list, list]:
+    """The fit's config, clip and target file; it writes fit.json and fit.png, or (with
+    --write-synthetic) the target file."""
+    from neuromotor.config import fit_spec
+
+    path, data, cfg = _fit_sim_config(args)
     if args.write_synthetic:  # the target table is checked by the writer
         target = data.get("fit", {}).get("target", {}) if isinstance(data.get("fit"), dict) else {}
         file = target.get("file") if isinstance(target, dict) else None
@@ -931,7 +938,6 @@ def _free_root_run(args) -> bool:
     """A single free-root trajectory: ``bench --free-only``, or ``simulate`` or ``fit`` of a
     config with ``[sim] root = "free"`` (reads the config, computes nothing; a config the
     command will refuse is not one)."""
-    from neuromotor.config import read_toml, simulation_config
     from neuromotor.errors import UserError
 
     if args.command == "bench":
@@ -940,8 +946,7 @@ def _free_root_run(args) -> bool:
         if args.command == "simulate":
             return _sim_config(args).root == "free"
         if args.command == "fit":
-            path = pathlib.Path(args.config)
-            return simulation_config(read_toml(path), str(path), path.parent).root == "free"
+            return _fit_sim_config(args)[2].root == "free"
     except (UserError, OSError):
         return False
     return False
