@@ -11,7 +11,8 @@ both versions on the embedded clip (one trajectory, or ``--batch N`` pulse magni
 (``--gain-jacobian``: ``jax.jacfwd`` of the joint angles over (ks, kd) instead, as in
 ``neuromotor bench``; ``--rates``: the joint rates theta_dot returned beside the angles, as
 sweeps that write them and the acceleration targets of ``fit`` use them; ``--free``: the free root
-standing on the ground with its balance loop, issue 38, instead of the driven rollout). The best of each is
+standing on the ground with its balance loop, issue 38, instead of the driven rollout; with ``--batch N``
+N of them under ``vmap`` by ``--solver``). The best of each is
 printed, in microseconds per trajectory-step, and the speedup both as the ratio of the bests and
 as the median of the rounds' ratios (the steadier of the two when the host drifts within the run).
 """
@@ -92,10 +93,14 @@ def _program(pkg: str, batch: int, solver: str = "nullspace", jacobians: str | N
     return (lambda: fn(scales, g, ref)), theta, batch * cfg.n_steps
 
 
-def _free_program(pkg: str, seconds: float):
-    """(zero-argument compiled call, its body positions, steps per call) of the free-standing
-    rollout on the ground (issue 38): ``standing_setup``'s pose, balance on, one trajectory."""
+def _free_program(pkg: str, seconds: float, batch: int = 1, solver: str = "nullspace"):
+    """(zero-argument compiled call, its body positions, trajectory-steps per call) of the
+    free-standing rollout on the ground (issue 38): ``standing_setup``'s pose, balance on; one
+    trajectory, or ``batch`` of them under ``vmap`` (the ankle gain scaled from 0.8 to 1.2, the
+    ``solver`` of the batch)."""
+    import equinox as eqx
     import jax
+    import jax.numpy as jnp
 
     standing = _module(pkg, "studies.standing")
     ground = _module(pkg, "studies.ground")
@@ -103,11 +108,22 @@ def _free_program(pkg: str, seconds: float):
     compiler = importlib.import_module(f"{pkg}.compiler")
     s = standing.standing_setup(seconds)
     scene = ground.ground_scene(s.ground)
-    fn = compiler.jit(lambda sim, params: contact.simulate_contact(sim, params, scene).run.states.pos)
+    sim = s.sim_model
+    if batch > 1:
+        sim = eqx.tree_at(lambda q: q.options, sim, dataclasses.replace(sim.options, solver=solver))
+    scales = jnp.linspace(0.8, 1.2, batch)
+
+    def many(sim, params, scales):
+        def one(c):
+            p = eqx.tree_at(lambda q: q.gains.balance.kp, params, params.gains.balance.kp * c)
+            return contact.simulate_contact(sim, p, scene).run.states.pos
+        return jax.vmap(one)(scales) if batch > 1 else one(scales[0])[None]
+
+    fn = compiler.jit(many)
     start = time.perf_counter()
-    pos = jax.block_until_ready(fn(s.sim_model, s.params))
+    pos = jax.block_until_ready(fn(sim, s.params, scales))
     print(f"{pkg}: trace and compile {time.perf_counter() - start:.1f} s")
-    return (lambda: fn(s.sim_model, s.params)), pos, s.options.n_steps
+    return (lambda: fn(sim, s.params, scales)), pos, batch * s.options.n_steps
 
 
 def main(argv=None) -> int:
@@ -134,7 +150,7 @@ def main(argv=None) -> int:
         for name, pkg, solver, jac in (("working tree", "neuromotor", args.solver, args.jacobians),
                                        (args.rev, old_pkg, args.rev_solver, None)):
             if args.free:
-                runs[name] = _free_program(pkg, args.seconds)
+                runs[name] = _free_program(pkg, args.seconds, args.batch, solver if args.batch > 1 else "nullspace")
             else:
                 runs[name] = _program(pkg, args.batch, solver, jac, args.seconds, args.gain_jacobian, args.rates)
         (new, th_new, steps), (old, th_old, _) = runs.values()

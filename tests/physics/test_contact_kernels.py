@@ -1,8 +1,8 @@
 """The contact step's fast kernels against their plain definitions (issue 38, the free-standing
 step's cost): the selection by ranks against ``lax.top_k``, the closed-form polygon projection
-against the nearest point over every edge, the factored LU solve against ``jnp.linalg.solve``
-(values, forward and reverse derivatives, the transposed solve), and the Delassus matrix from the
-contacts' own bodies against the dense product ``Jc X``."""
+against the nearest point over every edge, and the factored LU solve against ``jnp.linalg.solve``
+(values, forward and reverse derivatives, the transposed solve). The Delassus matrix from the
+contacts' own bodies: tests/physics/test_nullspace.py."""
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +11,6 @@ import pytest
 
 from neuromotor.physics.contact import project_polygon
 from neuromotor.physics.contact.ground import smallest
-from neuromotor.physics.contact.step import ContactFrame, _delassus
 from neuromotor.physics.solvers.nullspace import lu_factor, lu_solve
 
 
@@ -71,18 +70,3 @@ def test_factored_lu_solve_equals_linalg_solve_with_derivatives():
             np.testing.assert_allclose(x, y, rtol=1e-11, atol=1e-12)
     many = jax.vmap(lambda c: lu_solve(lu_factor(a), c))(jnp.eye(9))
     np.testing.assert_allclose(many.T, jnp.linalg.inv(a), rtol=1e-12, atol=1e-12)
-
-
-def test_delassus_from_the_contacts_bodies_equals_the_dense_product():
-    rng = np.random.default_rng(11)
-    n, k = 7, 5
-    body = jnp.asarray(rng.integers(0, n, size=k), jnp.int32)
-    rows = rng.normal(size=(k, 3, 6))
-    jc = np.zeros((k, 3, n, 6))
-    for i in range(k):
-        jc[i, :, int(body[i])] = rows[i]
-    jc = jnp.asarray(jc.reshape(3 * k, 6 * n))
-    x = jnp.asarray(rng.normal(size=(6 * n, 3 * k)))
-    z = jnp.zeros(k)
-    frame = ContactFrame(jnp.arange(k), z, jnp.zeros((k, 3, 3)), body, jc, jnp.zeros((3 * k, 0)), jnp.zeros(0, jnp.int32), jnp.zeros((0, 3)), 0)
-    np.testing.assert_allclose(_delassus(frame, x), jc @ x, rtol=1e-13, atol=1e-13)

@@ -132,3 +132,51 @@ def test_kkt_solve_and_projection_match_dense_saddle_point_solves(driven, free_r
         red = nullspace.reduce_tree(st, geo, *args)
         v = nullspace.solve_reduced(st, geo, red, jnp.asarray(r), jnp.asarray(b))
         np.testing.assert_allclose(np.asarray(v).reshape(-1), x[:6 * n], atol=1e-12 * np.abs(x).max())
+
+
+@pytest.mark.parametrize("unrolled", [False, True])
+@pytest.mark.parametrize("driven, free_root", [((), False), ((3, 6), False), ((), True)])
+def test_contact_responses_in_joint_space_equal_the_dense_saddle_point_solve(driven, free_root, unrolled):
+    """The contact rows projected in closed form (``(Jc S)``, no tree sum per row), the responses
+    ``X = A^-1 [Jc^T; 0]`` lifted from joint space and the Delassus matrix ``W = Jc X`` equal the
+    dense saddle-point solve and the solver interface's default (the vmapped solve of every row),
+    with a stiffness that is not symmetric (couplings up and down the tree)."""
+    from neuromotor.physics.solvers.base import KKTSolver, one_body_rows
+    from neuromotor.physics.solvers.nullspace import BranchSolver, NullSpaceKKT, NullSpaceSolver
+
+    rng, n, mass, inertia, r_parent, r_child, r0 = _random_tree(3)
+    topo = of_tree(PARENT)
+    st = nullspace.structure(topo, driven, free_root, unrolled)
+    geo = nullspace.geometry(st, jnp.asarray(r_parent), jnp.asarray(r_child), jnp.asarray(r0))
+    g_diag, (g_up, g_down) = 0.2 * rng.normal(size=(n, 3, 3)), 0.1 * rng.normal(size=(2, n - 1, 3, 3))
+    args = [jnp.asarray(x) for x in (mass, inertia, g_diag, g_up, g_down)]
+    red = nullspace.reduce_tree(st, geo, *args) if st.by_tree else None
+    den = None if st.by_tree else nullspace.reduce_dense(st, geo, *args)
+    system = NullSpaceKKT(st, topo, geo, *args, jnp.asarray(r_parent), jnp.asarray(r_child), red, den)
+    k = 5
+    body = jnp.asarray(rng.integers(0, n, size=k), jnp.int32)
+    rows = jnp.asarray(rng.normal(size=(k, 3, 6)))
+    jc = np.asarray(one_body_rows(n, body, rows)).reshape(3 * k, 6 * n)
+    # S^T of each one-body row in closed form, against the tree sums of project_forces.
+    proj = nullspace.project_body_rows(st, geo, body, rows)
+    want = jax.vmap(lambda f: nullspace.project_forces(st, geo, f))(jnp.asarray(jc.reshape(-1, n, 6)))
+    np.testing.assert_allclose(proj, want, rtol=0, atol=1e-13 * np.abs(want).max())
+    # The dense saddle-point system: A = M - G with G's angular blocks on the tree.
+    a = _dense_m(mass, inertia)
+    for bb in range(n):
+        a[6 * bb + 3:6 * bb + 6, 6 * bb + 3:6 * bb + 6] -= g_diag[bb]
+    for c in range(1, n):
+        p = PARENT[c]
+        a[6 * c + 3:6 * c + 6, 6 * p + 3:6 * p + 6] -= g_up[c - 1]
+        a[6 * p + 3:6 * p + 6, 6 * c + 3:6 * c + 6] -= g_down[c - 1]
+    j = _dense_j(n, r_parent, r_child, r0, driven, free_root)
+    nc = j.shape[0]
+    kkt = np.block([[a, -j.T], [j, np.zeros((nc, nc))]])
+    x_dense = np.linalg.solve(kkt, np.concatenate([jc.T, np.zeros((nc, 3 * k))]))[: 6 * n]
+    solver = BranchSolver() if unrolled else NullSpaceSolver()
+    b = jnp.asarray(rng.normal(size=nc))  # the responses do not depend on b
+    for cr, lift in ((solver.contact_responses(system, n, body, rows, b), solver.lift),
+                     (KKTSolver.contact_responses(solver, system, n, body, rows, b), lambda s, x: x)):
+        x = np.asarray(lift(system, cr.x))
+        np.testing.assert_allclose(x, x_dense, rtol=0, atol=1e-11 * np.abs(x_dense).max())
+        np.testing.assert_allclose(cr.w, jc @ x_dense, rtol=0, atol=1e-11 * np.abs(jc @ x_dense).max())

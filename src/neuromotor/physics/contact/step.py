@@ -25,10 +25,14 @@ Contact frame and Jacobian
 Free velocity and responses
     The ordinary step's stages (:func:`neuromotor.physics.dynamics.equations_of_motion`) build
     Eq. 2 for the chosen solver (``StepOptions.solver``: dense, tree or null-space). The solver
-    gives the free velocity v_f (no contact) and, vmapped over the contact rows with one
-    factorization, the responses X = A^-1 [Jc^T; 0] to unit contact impulses; the ball's block
+    gives the free velocity v_f (no contact) and, with one factorization for every contact row,
+    the responses X = A^-1 [Jc^T; 0] to unit contact impulses
+    (:meth:`~neuromotor.physics.solvers.KKTSolver.contact_responses`); the ball's block
     diag(m I, 2/5 m r^2 I) (when there is a ball) is inverted in closed form. So the Delassus
-    matrix is W = Jc X and v+ = v_f + X P. The LCP ``w = W P + Jc v_f - target e_n`` is solved
+    matrix is W = Jc X and v+ = v_f + X P. The null-space solvers keep X in joint space,
+    X = S H^-1 (Jc S)^T with the rows ``Jc S`` in closed form and ``W = (Jc S) H^-1 (Jc S)^T``,
+    and map to the bodies only the three impulse sums a step needs (X P, X (1 - s) P and the
+    position projection's X mu). The LCP ``w = W P + Jc v_f - target e_n`` is solved
     by :mod:`neuromotor.physics.contact.lcp`.
 
 Time of impact and restitution
@@ -418,7 +422,7 @@ class Responses(eqx.Module):
     """Free velocities and responses to unit contact impulses; contact-space velocities."""
 
     v_free: Float[Array, " 6B"]  # the character without contact
-    x_char: Float[Array, "6B 3K"]  # A^-1 [Jc^T; 0], the character's part
+    x_char: Float[Array, "D 3K"]  # A^-1 [Jc^T; 0], the character's part, in the solver's coordinates (KKTSolver.lift)
     x_ball: Float[Array, "6 3K"]  # the ball's inverse mass times its Jc^T ((0, 3K) without a ball)
     w_mat: Float[Array, "3K 3K"]  # Delassus matrix Jc X
     u_free: Float[Array, "K 3"]  # contact velocities (n, t1, t2) without contact impulses
@@ -442,15 +446,6 @@ def free_solve(solver: solvers.KKTSolver, eq: Eq2) -> FreeSolve:
     return FreeSolve(v_free, lam, residual)
 
 
-def _delassus(frame: ContactFrame, x_char: Float[Array, "6B 3K"]) -> Float[Array, "3K 3K"]:
-    """``Jc X`` from the contacts' own bodies: each row of Jc has 6 nonzero entries (its body's
-    columns), so a gather of those rows of X costs a twentieth of the dense product."""
-    k, n = frame.body.shape[0], x_char.shape[0] // 6
-    rows = frame.jc_char.reshape(k, 3, n, 6)[jnp.arange(k), :, frame.body]  # (K, 3, 6)
-    x_rows = x_char.reshape(n, 6, -1)[frame.body]  # (K, 6, 3K)
-    return jnp.einsum("kdj,kjm->kdm", rows, x_rows).reshape(3 * k, -1)
-
-
 def responses(
     solver: solvers.KKTSolver,
     eq: Eq2,
@@ -461,14 +456,14 @@ def responses(
     v: Float[Array, " 6B"],
 ) -> Responses:
     """The free velocity (``fs``), and the chosen solver's responses to unit contact impulses
-    (the contact rows as extra right-hand sides ``(Jc^T, 0)``, vmapped: one factorization)."""
+    (:meth:`~neuromotor.physics.solvers.KKTSolver.contact_responses`: one factorization for
+    every contact row)."""
     v_free, lam, residual = fs.v_free, fs.lam, fs.residual
     n6 = frame.jc_char.shape[1]
-    x, _ = jax.vmap(lambda col: solver.solve(eq.system, col, jnp.zeros_like(eq.b)))(
-        frame.jc_char.reshape(-1, n6 // 6, 6)
-    )
-    v_free, x_char = v_free.reshape(n6), x.reshape(-1, n6).T
-    w_char = _delassus(frame, x_char)
+    k = frame.body.shape[0]
+    rows = frame.jc_char.reshape(k, 3, n6 // 6, 6)[jnp.arange(k), :, frame.body]  # (K, 3, 6): each row's body
+    cr = solver.contact_responses(eq.system, n6 // 6, frame.body, rows, eq.b)
+    v_free, x_char, w_char = v_free.reshape(n6), cr.x, cr.w
     if ball is None:
         x_ball = jnp.zeros((0, x_char.shape[1]), x_char.dtype)
         w_mat = w_char
@@ -585,12 +580,13 @@ def motion(
     free: BallFree | None,
     settings: ContactSettings,
     h: float,
+    lift=lambda x: x,
 ) -> Motion:
     """v+ = v_f + X P; displacement with the impact inside the step, then the projection of the
-    remaining linearized penetration."""
+    remaining linearized penetration (``lift``: the solver's map from its coordinates of
+    ``resp.x_char`` to the bodies' velocities, :meth:`~neuromotor.physics.solvers.KKTSolver.lift`)."""
     flat = p.reshape(-1)
     late = (p * (1.0 - imp.toi)[:, None]).reshape(-1)
-    disp = h * (resp.v_free + resp.x_char @ late)
     sel_n = jnp.arange(frame.sel.shape[0]) * 3
     g_end = frame.gap + h * resp.u_free[:, 0] + h * (resp.w_mat @ late)[sel_n]
     w_nn = resp.w_mat[sel_n][:, sel_n]
@@ -600,8 +596,9 @@ def motion(
         jnp.zeros_like(g_end),
     )
     push = jnp.zeros(flat.shape[0], flat.dtype).at[sel_n].set(mu_pos)
-    disp = disp + resp.x_char @ push
-    v_char = resp.v_free + resp.x_char @ flat
+    moved = lift(resp.x_char @ jnp.stack([late, push, flat], 1))  # (6B, 3): X late, X push, X P
+    disp = h * (resp.v_free + moved[:, 0]) + moved[:, 1]
+    v_char = resp.v_free + moved[:, 2]
     if free is None:
         return Motion(v_char, None, disp, None)
     disp_b = h * (free.v_free + resp.x_ball @ late)
@@ -703,7 +700,7 @@ def contact_step(sim: SimModel, params: Params, scene: ContactScene, data: Conta
     resp = relative_to_ground(frame, responses(solver, eq, fs, frame, scene.ball, free, state.v), gm)
     imp = impact(frame, resp, scene, h, True if free is None else free.flying)
     p, slack, residual = contact_impulses(frame, resp, imp, scene, data.warm[frame.sel])
-    mo = motion(frame, resp, imp, p, free, scene.settings, h)
+    mo = motion(frame, resp, imp, p, free, scene.settings, h, lambda x: solver.lift(eq.system, x))
     n = model.n_bodies
     new, violation = integrate(sim, solver, k, state, mo.d_char.reshape(n, 6), mo.v_char.reshape(n, 6), params.pulses)
     record = contact_info(model, scene, h, data, free, frame, resp, imp, p, slack, residual, gm)

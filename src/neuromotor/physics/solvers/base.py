@@ -14,7 +14,10 @@ K and D, r and b -- once; a solver only assembles its own form of the matrix and
   ``(r, b)``, so ``jax.vmap`` over extra right-hand sides (responses to unit contact impulses,
   ``A^-1 [Jc^T; 0]``) reuses one factorization;
 * :meth:`KKTSolver.multipliers` -- lam and the relative residual of the whole of Eq. 2;
-* :meth:`KKTSolver.projection_step` -- the projection of post-stabilization (its first Newton step).
+* :meth:`KKTSolver.projection_step` -- the projection of post-stabilization (its first Newton step);
+* :meth:`KKTSolver.contact_responses` and :meth:`KKTSolver.lift` -- the responses to unit
+  contact impulses and the Delassus matrix (by default the vmapped :meth:`KKTSolver.solve`; a
+  solver in reduced coordinates may keep them reduced and lift only the impulses' sums).
 
 To add a solver: subclass :class:`KKTSolver` in a module of this package, add a member to
 :class:`Solver` and register the class in ``neuromotor.physics.solvers.SOLVERS``.
@@ -26,8 +29,10 @@ import abc
 import enum
 from typing import Any, ClassVar
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 
 def relative_residual(res: Float[Array, " m"], rhs_norm: Float[Array, ""]) -> Float[Array, ""]:
@@ -50,6 +55,21 @@ class Solver(str, enum.Enum):
     def batched(self) -> Solver:
         """The solver for many trajectories under ``vmap``: the null-space method's batched twin."""
         return Solver.BRANCH if self is Solver.NULLSPACE else self
+
+
+class ContactResponses(eqx.Module):
+    """The character's responses to unit contact impulses (the rows of Jc, each a wrench on one
+    body): ``x`` (D, R) in the solver's coordinates, ``X = lift(x)`` in the bodies' velocities
+    (6B, R), and the Delassus matrix ``W = Jc X`` (R, R)."""
+
+    x: Float[Array, "D R"]
+    w: Float[Array, "R R"]
+
+
+def one_body_rows(n_bodies: int, body: Int[Array, " K"], rows: Float[Array, "K d 6"]) -> Float[Array, "Kd B 6"]:
+    """The rows as whole-character wrenches (zero on every body but their own)."""
+    onehot = jax.nn.one_hot(body, n_bodies, dtype=rows.dtype)
+    return jnp.einsum("kb,kdj->kdbj", onehot, rows).reshape(-1, n_bodies, 6)
 
 
 class KKTSolver(abc.ABC):
@@ -78,3 +98,20 @@ class KKTSolver(abc.ABC):
     @abc.abstractmethod
     def projection_step(self, model, cfg, rot, c: Float[Array, " nc"]) -> Float[Array, "B 6"]:
         """dx of least M-norm with ``J dx = -C``: the projection of post-stabilization."""
+
+    def contact_responses(
+        self, system, n_bodies: int, body: Int[Array, " K"], rows: Float[Array, "K d 6"], b: Float[Array, " nc"]
+    ) -> ContactResponses:
+        """Responses to unit impulses along ``rows`` (row (k, j): the wrench ``[force, torque]``
+        of a unit impulse on body ``body[k]``, world) with the constraint right-hand side ``b``
+        zeroed: ``X = A^-1 [Jc^T; 0]``, one factorization for every row, and ``W = Jc X``."""
+        n = n_bodies
+        x, _ = jax.vmap(lambda col: self.solve(system, col, jnp.zeros_like(b)))(one_body_rows(n, body, rows))
+        x = x.reshape(x.shape[0], -1).T  # (6B, R)
+        k = body.shape[0]
+        x_rows = x.reshape(n, 6, -1)[body]  # (K, 6, R): each row of Jc has its body's 6 entries only
+        return ContactResponses(x, jnp.einsum("kdj,kjm->kdm", rows, x_rows).reshape(k * rows.shape[1], -1))
+
+    def lift(self, system, x: Float[Array, "D ..."]) -> Float[Array, "6B ..."]:
+        """Bodies' velocities ``(6B, ...)`` of responses in the solver's coordinates."""
+        return x

@@ -54,7 +54,7 @@ from jaxtyping import Array, Float, Int
 from neuromotor.model.topology import Topology
 from neuromotor.physics import static
 from neuromotor.physics.solvers import branch
-from neuromotor.physics.solvers.base import KKTSolver, relative_residual
+from neuromotor.physics.solvers.base import ContactResponses, KKTSolver, relative_residual
 from neuromotor.physics.stiffness import tree_matvec
 from neuromotor.physics.system import joint_levers, root_lever, world_inertia
 from neuromotor.rotations import cross, mv, skew
@@ -152,6 +152,22 @@ def project_forces(st: Structure, geo: Geometry, f: Float[Array, "B 6"]) -> Floa
     sub_force, sub_moment = _tree_sum(st, st.anc.T, force, torque + cross(geo.com, force))
     sub_moment = sub_moment - cross(geo.pivot, sub_force)
     return jnp.concatenate([jnp.sum(force, 0), sub_moment.reshape(-1)])
+
+
+def project_body_rows(
+    st: Structure, geo: Geometry, body: Int[Array, " K"], rows: Float[Array, "K d 6"]
+) -> Float[Array, "Kd N"]:
+    """S^T f for wrenches on one body each (row (k, j): ``[force, torque]`` on ``body[k]``):
+    :func:`project_forces` of each in closed form, the force in the translation columns and, in
+    the column of the body and of each of its ancestors l, the wrench's moment about p_l (the
+    contact Jacobian in joint space, ``(Jc S)``, without a sum over the tree per row)."""
+    force, torque = rows[..., :3], rows[..., 3:]
+    reach = jnp.asarray(st.anc, rows.dtype)[body]  # (K, B): anc[b, l] = 1 for l = b and its ancestors
+    about = torque + cross(geo.com[body][:, None, :], force)  # (K, d, 3): moment about the root COM
+    moment = about[:, :, None, :] - cross(geo.pivot[None, None], force[:, :, None, :])  # (K, d, B, 3)
+    k, d = rows.shape[:2]
+    moment = (reach[:, None, :, None] * moment).reshape(k, d, -1)
+    return jnp.concatenate([force, moment], -1).reshape(k * d, -1)
 
 
 def inertia_blocks(st: Structure, geo: Geometry, mass: Float[Array, " B"], inertia: Float[Array, "B 3 3"]):
@@ -613,6 +629,31 @@ class NullSpaceSolver(KKTSolver):
         st = structure(model.topology, cfg.driven, cfg.free_root, self.unrolled)
         geo = geometry(st, *joint_levers(model, rot), root_lever(model, rot))
         return projection_step(st, geo, model.mass, world_inertia(model, rot), c, tree=True)
+
+    def contact_responses(self, system, n_bodies, body, rows, b):
+        # In joint space: G = Jc S row by row in closed form, u = H^-1 G^T (the known entries of u
+        # are 0 for b = 0), W = G u; the rows never pass through the basis (S^T, S) one by one.
+        s = system
+        g = project_body_rows(s.st, s.geo, body, rows)  # (R, N)
+        u = jax.vmap(lambda rhs: _unit_solve(s, rhs))(g).T  # (N, R)
+        return ContactResponses(u, g @ u)
+
+    def lift(self, system, x):
+        flat = x.reshape(x.shape[0], -1)
+        v = jax.vmap(lambda u: apply_basis(system.st, system.geo, u).reshape(-1), in_axes=1, out_axes=1)(flat)
+        return v.reshape(v.shape[:1] + x.shape[1:])
+
+
+def _unit_solve(s: NullSpaceKKT, rhs: Float[Array, " N"]) -> Float[Array, " N"]:
+    """u of Eq. 2 projected for the projected right-hand side ``rhs`` with b = 0 (the known entries of
+    u are zero): the solve of :func:`solve_reduced` or :func:`solve_dense` before the basis."""
+    st = s.st
+    if s.reduced is not None:
+        red = s.reduced
+        u = branch.linear_solve(st.tree, red.paths, red.factor, rhs[3:].reshape(-1, 3))
+        return jnp.concatenate([jnp.zeros(6, rhs.dtype), u[1:].reshape(-1)])
+    assert s.dense is not None
+    return _assemble(st, lu_solve(s.dense.factor, _take(rhs, st.free)), jnp.zeros(st.known.size, rhs.dtype))
 
 
 class BranchSolver(NullSpaceSolver):
