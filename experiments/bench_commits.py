@@ -150,7 +150,7 @@ def main(argv=None) -> int:
         for name, pkg, solver, jac in (("working tree", "neuromotor", args.solver, args.jacobians),
                                        (args.rev, old_pkg, args.rev_solver, None)):
             if args.free:
-                runs[name] = _free_program(pkg, args.seconds, args.batch, solver if args.batch > 1 else "nullspace")
+                runs[name] = _free_program(pkg, args.seconds, args.batch, solver)
             else:
                 runs[name] = _program(pkg, args.batch, solver, jac, args.seconds, args.gain_jacobian, args.rates)
         (new, th_new, steps), (old, th_old, _) = runs.values()

@@ -73,6 +73,7 @@ A moving ground (a platform)
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -580,7 +581,7 @@ def motion(
     free: BallFree | None,
     settings: ContactSettings,
     h: float,
-    lift=lambda x: x,
+    lift: Callable[[Float[Array, "D R"]], Float[Array, "6B R"]],
 ) -> Motion:
     """v+ = v_f + X P; displacement with the impact inside the step, then the projection of the
     remaining linearized penetration (``lift``: the solver's map from its coordinates of

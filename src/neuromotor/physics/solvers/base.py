@@ -105,13 +105,12 @@ class KKTSolver(abc.ABC):
         """Responses to unit impulses along ``rows`` (row (k, j): the wrench ``[force, torque]``
         of a unit impulse on body ``body[k]``, world) with the constraint right-hand side ``b``
         zeroed: ``X = A^-1 [Jc^T; 0]``, one factorization for every row, and ``W = Jc X``."""
-        n = n_bodies
-        x, _ = jax.vmap(lambda col: self.solve(system, col, jnp.zeros_like(b)))(one_body_rows(n, body, rows))
+        cols = one_body_rows(n_bodies, body, rows)
+        x, _ = jax.vmap(lambda col: self.solve(system, col, jnp.zeros_like(b)))(cols)
         x = x.reshape(x.shape[0], -1).T  # (6B, R)
-        k = body.shape[0]
-        x_rows = x.reshape(n, 6, -1)[body]  # (K, 6, R): each row of Jc has its body's 6 entries only
-        return ContactResponses(x, jnp.einsum("kdj,kjm->kdm", rows, x_rows).reshape(k * rows.shape[1], -1))
+        x_rows = x.reshape(n_bodies, 6, -1)[body]  # (K, 6, R): each row of Jc has its body's 6 entries only
+        return ContactResponses(x, jnp.einsum("kdj,kjm->kdm", rows, x_rows).reshape(cols.shape[0], -1))
 
-    def lift(self, system, x: Float[Array, "D ..."]) -> Float[Array, "6B ..."]:
-        """Bodies' velocities ``(6B, ...)`` of responses in the solver's coordinates."""
+    def lift(self, system, x: Float[Array, "D R"]) -> Float[Array, "6B R"]:
+        """Bodies' velocities ``(6B, R)`` of ``R`` responses in the solver's coordinates (columns)."""
         return x

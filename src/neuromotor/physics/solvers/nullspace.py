@@ -639,9 +639,7 @@ class NullSpaceSolver(KKTSolver):
         return ContactResponses(u, g @ u)
 
     def lift(self, system, x):
-        flat = x.reshape(x.shape[0], -1)
-        v = jax.vmap(lambda u: apply_basis(system.st, system.geo, u).reshape(-1), in_axes=1, out_axes=1)(flat)
-        return v.reshape(v.shape[:1] + x.shape[1:])
+        return jax.vmap(lambda u: apply_basis(system.st, system.geo, u).reshape(-1), in_axes=1, out_axes=1)(x)
 
 
 def _unit_solve(s: NullSpaceKKT, rhs: Float[Array, " N"]) -> Float[Array, " N"]:
